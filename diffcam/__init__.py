@@ -1,0 +1,2 @@
+"""diffcam: differentiable JAX optics for lensless diffuser cameras."""
+__version__ = "0.1.0"

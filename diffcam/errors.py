@@ -1,0 +1,119 @@
+"""Errors, warnings and the checks that public entry points run before tracing.
+
+Every public numerical function validates its *concrete* arguments (shapes, signs,
+NaN/Inf, sampling) before it calls its jitted core. When an argument is a JAX tracer
+(the caller has wrapped diffcam in their own ``jit``/``grad``/``vmap``) the value check
+is skipped: the caller has taken responsibility for it, and shapes are still checked.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any
+
+import jax
+import numpy as np
+
+__all__ = [
+    "DiffcamError",
+    "SamplingError",
+    "ShapeError",
+    "UndersamplingWarning",
+    "is_concrete",
+    "check_positive",
+    "check_finite",
+    "check_field",
+    "sampling_problem",
+]
+
+
+class DiffcamError(ValueError):
+    """Base class of diffcam's input errors (a ``ValueError``: the input is wrong)."""
+
+
+class ShapeError(DiffcamError):
+    """An array has the wrong number of axes, an empty axis, or mismatched shape."""
+
+
+class SamplingError(DiffcamError):
+    """A kernel or field would be undersampled (aliased) on the requested grid."""
+
+
+class UndersamplingWarning(UserWarning):
+    """Undersampling the caller accepted explicitly (``accept_undersampling=True``)."""
+
+
+def is_concrete(*values: Any) -> bool:
+    """True if none of ``values`` is a JAX tracer (so their values can be inspected)."""
+    return not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values))
+
+
+def check_positive(name: str, value: Any, unit: str, *, allow_zero: bool = False,
+                   allow_negative: bool = False) -> None:
+    """Raise ``DiffcamError`` unless ``value`` (scalar or array) is finite and > 0.
+
+    Tracers pass unchecked. ``unit`` is used in the message, e.g. ``"m"``.
+    """
+    if not is_concrete(value):
+        return
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.size == 0:
+        raise DiffcamError(f"{name} is empty; give at least one value in {unit}.")
+    if not np.all(np.isfinite(arr)):
+        raise DiffcamError(f"{name} must be finite, got {value!r} ({unit}).")
+    if allow_negative:
+        return
+    bad = arr < 0 if allow_zero else arr <= 0
+    if np.any(bad):
+        need = ">= 0" if allow_zero else "> 0"
+        raise DiffcamError(
+            f"{name} must be {need} (SI units: {unit}), got {value!r}. "
+            f"diffcam takes metres and radians everywhere: 25 mm is 25e-3."
+        )
+
+
+def check_finite(name: str, arr: Any) -> None:
+    """Raise ``DiffcamError`` if a concrete array holds NaN or Inf."""
+    if not is_concrete(arr):
+        return
+    a = np.asarray(arr)
+    if not np.all(np.isfinite(a)):
+        n_bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
+        raise DiffcamError(
+            f"{name} contains {n_bad} NaN/Inf value(s); clean the input "
+            f"(e.g. np.nan_to_num) or mask those pixels before calling diffcam."
+        )
+
+
+def check_field(field: Any, name: str = "field", *, finite: bool = True) -> None:
+    """Check that ``field`` has at least two (space) axes, none of them empty."""
+    shape = np.shape(field)
+    if len(shape) < 2:
+        raise ShapeError(
+            f"{name} must have at least 2 axes (..., ny, nx), got shape {shape}; "
+            f"a 1-D profile can be given as field[None, :]."
+        )
+    if 0 in shape:
+        raise ShapeError(f"{name} has an empty axis: shape {shape}.")
+    if finite:
+        check_finite(name, field)
+
+
+def sampling_problem(message: str, accept_undersampling: bool) -> None:
+    """Raise ``SamplingError(message)``, or warn if the caller accepted undersampling."""
+    if accept_undersampling:
+        warnings.warn(message, UndersamplingWarning, stacklevel=3)
+    else:
+        raise SamplingError(message + " (pass accept_undersampling=True to run anyway.)")
+
+
+def fmt_length(x: float) -> str:
+    """Format a length in metres with a readable unit (used in messages)."""
+    ax = abs(x)
+    if ax == 0 or not math.isfinite(ax):
+        return f"{x} m"
+    for unit, scale in (("m", 1.0), ("mm", 1e-3), ("µm", 1e-6), ("nm", 1e-9)):
+        if ax >= scale:
+            return f"{x / scale:.4g} {unit}"
+    return f"{x:.3g} m"
