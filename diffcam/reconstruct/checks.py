@@ -1,0 +1,109 @@
+"""Checks that every solver runs on its concrete arguments before tracing."""
+
+from __future__ import annotations
+
+import numbers
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffcam.errors import DiffcamError, ShapeError, check_field, is_concrete
+
+__all__ = ["as_psf_stack", "check_psf", "check_image", "check_iterations", "check_tol",
+           "batch_shape", "float_dtype"]
+
+
+def as_psf_stack(psfs: Any) -> Any:
+    """A PSF stack ``(nz, my, mx)`` from an array or a sequence of ``(my, mx)`` arrays."""
+    if isinstance(psfs, (list, tuple)):
+        if len(psfs) == 0:
+            raise ShapeError("the PSF stack is empty; give one (my, mx) PSF per depth.")
+        shapes = {np.shape(p) for p in psfs}
+        if len(shapes) != 1:
+            raise ShapeError(
+                f"the PSFs of a stack must all have one shape, got {sorted(shapes)}; "
+                f"crop or pad them to a common (my, mx) first (diffcam.grid.crop_to).")
+        return jnp.stack([jnp.asarray(p) for p in psfs])
+    return psfs
+
+
+def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> None:
+    """Shape, finiteness, sign and sum of a PSF (or stack) against the sensor image."""
+    check_field(psf, "psf")
+    shape = np.shape(psf)
+    if len(shape) < min_ndim:
+        raise ShapeError(
+            f"psf must have at least {min_ndim} axes "
+            f"({'(..., nz, my, mx): one PSF per depth' if min_ndim == 3 else '(..., my, mx)'}), "
+            f"got shape {shape}.")
+    if shape[-2] > image_shape[-2] or shape[-1] > image_shape[-1]:
+        raise ShapeError(
+            f"psf {shape[-2:]} is larger than the image {tuple(image_shape[-2:])}; crop the "
+            f"PSF to at most the image size around its centre "
+            f"(diffcam.grid.crop_to(psf, image.shape)) or capture a larger image.")
+    if not is_concrete(psf):
+        return
+    p = np.asarray(psf, dtype=np.float64)
+    if p.min() < 0:
+        raise DiffcamError(
+            f"psf has {int((p < 0).sum())} negative value(s) (min {p.min():.3g}); a PSF is "
+            f"an intensity: subtract the background with diffcam.io.subtract_background "
+            f"(which clips small negatives) or np.clip(psf, 0, None).")
+    sums = p.sum(axis=(-2, -1))
+    if np.any(sums <= 0):
+        raise DiffcamError(
+            f"psf sums to zero in {int((sums <= 0).sum())} slice(s); every PSF needs some "
+            f"light: check the file and the background subtraction.")
+
+
+def check_image(image: Any, *, nonnegative: bool) -> None:
+    """Shape and finiteness of the sensor image; its sign if the solver needs it."""
+    check_field(image, "image")
+    if nonnegative and is_concrete(image):
+        lo = float(np.min(np.asarray(image)))
+        if lo < 0:
+            raise DiffcamError(
+                f"image has negative values (min {lo:.3g}); Richardson–Lucy needs "
+                f"non-negative counts: subtract the background with "
+                f"diffcam.io.subtract_background (clips small negatives) or use admm_tv.")
+
+
+def check_iterations(num_iter: Any) -> int:
+    """``num_iter`` as a positive Python int (it fixes the history length: static)."""
+    if isinstance(num_iter, jax.core.Tracer) or not isinstance(num_iter, numbers.Integral) \
+            or isinstance(num_iter, bool):
+        raise DiffcamError(
+            f"num_iter must be a Python int (it is static under jit), got {num_iter!r}.")
+    if num_iter <= 0:
+        raise DiffcamError(f"num_iter must be >= 1, got {num_iter}; 50–300 is typical.")
+    return int(num_iter)
+
+
+def check_tol(tol: Any) -> None:
+    """``tol`` is None or a finite number >= 0."""
+    if tol is None or not is_concrete(tol):
+        return
+    t = float(tol)
+    if not np.isfinite(t) or t < 0:
+        raise DiffcamError(f"tol must be None or a number >= 0 (e.g. 1e-4), got {tol!r}.")
+
+
+def batch_shape(image_shape: Sequence[int], psf_shape: Sequence[int],
+                psf_core_ndim: int) -> tuple[int, ...]:
+    """Broadcast leading (batch) axes of image ``(..., ny, nx)`` and PSF."""
+    a, b = tuple(image_shape[:-2]), tuple(psf_shape[:len(psf_shape) - psf_core_ndim])
+    try:
+        return tuple(np.broadcast_shapes(a, b))
+    except ValueError:
+        raise ShapeError(
+            f"the leading (batch) axes of image {tuple(image_shape)} and psf "
+            f"{tuple(psf_shape)} do not broadcast ({a} vs {b}); give one PSF per image, "
+            f"or one PSF for all.") from None
+
+
+def float_dtype(*arrays: Any):
+    """The float dtype of a computation: float32 unless x64 is on and inputs are float64."""
+    dtypes = [np.asarray(a).dtype if not hasattr(a, "dtype") else a.dtype for a in arrays]
+    return jax.dtypes.canonicalize_dtype(np.result_type(*dtypes, np.float32))

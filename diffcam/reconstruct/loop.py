@@ -1,0 +1,71 @@
+"""The result every solver returns, and the jitted iteration driver they share."""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array, lax
+
+__all__ = ["Reconstruction", "iterate", "relative_residual"]
+
+
+class Reconstruction(NamedTuple):
+    """What a solver returns (a pytree: it passes through ``jit`` and ``vmap``).
+
+    Attributes:
+        image: ``(..., [nz,] oy, ox)`` estimated object on the model's object grid, in
+            the units of ``image / sum(psf)``.
+        residual: ``(..., num_iter)`` relative data misfit ``||A x_k - b|| / ||b||`` of
+            the estimate entering iteration ``k``; NaN after an early stop.
+        objective: ``(..., num_iter)`` the quantity the solver minimises, at the same
+            estimates (Richardson–Lucy: the I-divergence ``Σ b log(b/Ax) - b + Ax``
+            plus its regulariser; ADMM: ``½||A x - b||² + tau·TV``; Wiener: the
+            Tikhonov functional); NaN after an early stop.
+        iterations: ``(...)`` int, iterations run.
+        converged: ``(...)`` bool, True if the tolerance stopped the loop.
+    """
+
+    image: Array
+    residual: Array
+    objective: Array
+    iterations: Array
+    converged: Array
+
+
+def relative_residual(predicted: Array, data: Array) -> Array:
+    """``||predicted - data|| / ||data||`` over the last two axes (0/0 gives 0)."""
+    num = jnp.sqrt(jnp.sum((predicted - data) ** 2, axis=(-2, -1)))
+    den = jnp.sqrt(jnp.sum(data ** 2, axis=(-2, -1)))
+    return jnp.where(den > 0, num / jnp.where(den > 0, den, 1), num)
+
+
+def iterate(step: Callable, state, num_iter: int, tol: Array | None):
+    """Run ``state, (residual, objective) = step(state)`` up to ``num_iter`` times.
+
+    With ``tol=None`` this is a ``lax.scan`` (reverse-mode differentiable); otherwise a
+    ``lax.while_loop`` that stops once ``|f_k - f_{k-1}| <= tol·|f_{k-1}|`` for the
+    objective ``f`` (forward-mode only). Returns ``(state, residual, objective,
+    iterations, converged)`` with NaN-filled histories of length ``num_iter``.
+    """
+    if tol is None:
+        state, (res, obj) = lax.scan(lambda s, _: step(s), state, None, length=num_iter)
+        return state, res, obj, jnp.asarray(num_iter), jnp.asarray(False)
+
+    def body(carry):
+        state, k, res, obj, _ = carry
+        state, (r, f) = step(state)
+        f_prev = obj[jnp.maximum(k - 1, 0)]
+        done = (k > 0) & (jnp.abs(f - f_prev) <= tol * jnp.abs(f_prev))
+        return state, k + 1, res.at[k].set(r), obj.at[k].set(f), done
+
+    def cond(carry):
+        _, k, _, _, done = carry
+        return (k < num_iter) & ~done
+
+    _, (r0, f0) = jax.eval_shape(step, state)
+    nan = jnp.full((num_iter,), jnp.nan, dtype=f0.dtype)
+    carry = (state, jnp.asarray(0), nan.astype(r0.dtype), nan, jnp.asarray(False))
+    state, k, res, obj, done = lax.while_loop(cond, body, carry)
+    return state, res, obj, k, done
