@@ -73,13 +73,21 @@ def check_positive(name: str, value: Any, unit: str, *, allow_zero: bool = False
         )
 
 
+_all_finite = jax.jit(lambda a: jax.numpy.isfinite(a).all())
+
+
 def check_finite(name: str, arr: Any) -> None:
     """Raise ``DiffcamError`` if a concrete array holds NaN or Inf."""
     if not is_concrete(arr):
         return
-    a = np.asarray(arr)
-    if not np.all(np.isfinite(a)):
-        n_bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
+    if isinstance(arr, jax.Array):  # one fused pass on the device, no copy to the host
+        ok = bool(_all_finite(arr))
+        n_bad = 0 if ok else int(arr.size - jax.numpy.isfinite(arr).sum())
+    else:
+        finite = np.isfinite(np.asarray(arr))
+        ok = bool(finite.all())
+        n_bad = 0 if ok else int(finite.size - np.count_nonzero(finite))
+    if not ok:
         raise DiffcamError(
             f"{name} contains {n_bad} NaN/Inf value(s); clean the input "
             f"(e.g. np.nan_to_num) or mask those pixels before calling diffcam."

@@ -1,0 +1,103 @@
+"""Timing harness shared by every benchmark workload.
+
+Candidates are timed *interleaved* (one call of each in turn, repeated), so a slow
+spell of the machine hits all of them alike; the first call of each is reported
+separately as compile (or warm-up) time; results are medians. The machine's load
+average is recorded before and after, since these machines are shared and noisy.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def block(x):
+    """Wait for JAX results (no-op for numpy and others)."""
+    if hasattr(x, "block_until_ready"):
+        return x.block_until_ready()
+    if isinstance(x, (tuple, list)):
+        for y in x:
+            block(y)
+    return x
+
+
+def time_interleaved(candidates: dict[str, Callable[[], object]], repeats: int = 5,
+                     budget_s: float | None = None) -> dict[str, dict]:
+    """Time zero-argument callables interleaved; return per-candidate statistics.
+
+    Each candidate is called once untimed-for-the-median (its first-call time is the
+    ``first_s``, i.e. compile + run for jitted code), then ``repeats`` times in
+    round-robin order. A candidate whose single call exceeds ``budget_s`` is timed
+    fewer times (at least once), and ``repeats`` says how many.
+    """
+    stats = {name: {"first_s": None, "times": []} for name in candidates}
+    for name, fn in candidates.items():
+        t = time.perf_counter()
+        block(fn())
+        stats[name]["first_s"] = time.perf_counter() - t
+    for _ in range(repeats):
+        for name, fn in candidates.items():
+            s = stats[name]
+            if s["times"] and budget_s is not None and sum(s["times"]) > budget_s:
+                continue
+            t = time.perf_counter()
+            block(fn())
+            s["times"].append(time.perf_counter() - t)
+    out = {}
+    for name, s in stats.items():
+        times = s["times"] or [s["first_s"]]
+        out[name] = {"median_s": statistics.median(times), "min_s": min(times),
+                     "first_s": s["first_s"], "repeats": len(s["times"])}
+    return out
+
+
+def machine() -> dict:
+    """Facts about the machine and library versions, for the JSON record."""
+    info = {"python": sys.version.split()[0], "platform": platform.platform(),
+            "cpus": os.cpu_count(), "loadavg": os.getloadavg()}
+    for mod in ("jax", "numpy", "scipy", "skimage", "pyfftw", "torch", "LightPipes",
+                "diffractsim"):
+        try:
+            m = __import__(mod)
+            info[mod] = getattr(m, "__version__", "?")
+        except Exception:
+            info[mod] = None
+    return info
+
+
+def markdown_table(rows: list[dict], columns: list[str]) -> str:
+    """A Markdown table of ``rows`` (dicts) in ``columns`` order; floats to 3 s.f."""
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.3g}"
+        return "" if v is None else str(v)
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(fmt(r.get(c)) for c in columns) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def write_json(name: str, rows: list[dict], extra: dict | None = None) -> Path:
+    """Write ``benchmarks/results/<name>.json`` with the rows and the machine record."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    record = {"workload": name, "machine": machine(), "rows": rows, **(extra or {})}
+    path.write_text(json.dumps(record, indent=2, default=str))
+    return path
+
+
+def optional_import(name: str, note: list[str]):
+    """Import a peer, or record a note that it is missing and return None."""
+    try:
+        return __import__(name)
+    except Exception as e:  # a missing peer is skipped, never fatal
+        note.append(f"{name} not available ({type(e).__name__}: {e}); skipped")
+        return None

@@ -1,0 +1,55 @@
+"""The command line, run as a user runs it (a subprocess)."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from diffcam.errors import DiffcamError
+from diffcam.units import parse_length, parse_length_range
+
+
+def _diffcam(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "diffcam", *args], capture_output=True,
+                          text=True, cwd=cwd, timeout=600)
+
+
+def test_demo_writes_report(tmp_path):
+    """`diffcam demo` writes demo.png and metrics.json whose closed-form checks pass."""
+    out = tmp_path / "report"
+    r = _diffcam("demo", "--size", "512", "-o", str(out))
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (out / "demo.png").stat().st_size > 10_000
+    assert metrics["fresnel_on_axis_rel_error"] < 0.01
+    assert metrics["airy_profile_rms"] < 0.01
+    assert "diffcam demo:" in r.stdout
+
+
+def test_plan_reports_and_rejects_bad_units():
+    """`diffcam plan` prints the planner's report; a bad unit is one clear line, exit 2."""
+    r = _diffcam("plan", "--pixel", "3.45um", "--n", "4096", "--z1", "22mm", "--z2", "1mm",
+                 "--aperture-radius", "2.3mm")
+    assert r.returncode == 0 and "29.83 mm" in r.stdout
+    bad = _diffcam("plan", "--pixel", "3.45furlong", "--n", "8", "--z1", "1", "--z2", "1",
+                   "--aperture-radius", "1")
+    assert bad.returncode == 2 and "unknown unit" in bad.stderr
+    too_big = _diffcam("plan", "--pixel", "5um", "--n", "100", "--z1", "25mm", "--z2", "1mm",
+                       "--aperture-radius", "1mm")
+    assert too_big.returncode == 2 and "half-width" in too_big.stderr
+    assert "Traceback" not in too_big.stderr
+
+
+def test_units():
+    """Lengths with units convert to metres; ranges include their end."""
+    assert parse_length("25mm") == pytest.approx(0.025)
+    assert parse_length("3.45um") == pytest.approx(3.45e-6)
+    assert parse_length("532nm") == pytest.approx(532e-9)
+    assert parse_length("1e-3") == pytest.approx(1e-3)
+    r = parse_length_range("22mm:30mm:1mm")
+    assert len(r) == 9 and r[-1] == pytest.approx(0.030)
+    with pytest.raises(DiffcamError, match="unit"):
+        parse_length("3 parsecs")
+    with pytest.raises(DiffcamError, match="start:stop:step"):
+        parse_length_range("1mm:2mm")
