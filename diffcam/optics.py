@@ -76,7 +76,7 @@ def circular_aperture(shape, dx, radius, centre=(0.0, 0.0), *, edge: str = "hard
                 f"beyond the grid half-width ({fmt_length(half_y)} × {fmt_length(half_x)}); "
                 f"enlarge the grid (more samples) or reduce the radius.")
     r = jnp.sqrt(radius2(shape, dx, centre))
-    return _edge(radius - r, min(pitch_yx(dx)), edge)
+    return _edge(radius - r, jnp.minimum(*pitch_yx(dx)), edge)
 
 
 def rectangular_aperture(shape, dx, height, width, centre=(0.0, 0.0), *, edge: str = "hard"

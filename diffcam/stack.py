@@ -1,0 +1,298 @@
+"""PSF stacks over depths and lateral positions: chunked, sharded, streamed to disk.
+
+:func:`psf_stack` evaluates PSFs for every depth in ``z1`` (and every lateral position)
+in chunks of ``batch_size`` depths per device: one jitted call per chunk, copied to a
+host array (or a memory-mapped file) before the next starts, so working memory is set
+by the chunk, not by the number of depths. With several devices the chunk's depth axis
+is sharded over a ``jax.sharding.Mesh`` of them (and, after
+``jax.distributed.initialize()``, over hosts). Everything the depths share (the
+diffuser's field, or its FFT on the scaling-theorem path) is computed once.
+
+Saving and loading (:func:`save_stack`, :func:`load_stack`) keep the metadata
+(:class:`StackMeta`) beside the pixels: ``.npz`` round-trips exactly; ``.tif`` is an
+ImageJ hyperstack (axes ``ZYX``, or ``ZCYX`` with lateral positions as channels) with
+the metadata as JSON in the ImageJ ``Info`` property and the pitch as resolution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from functools import partial
+from typing import Iterator, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import tifffile
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm.auto import tqdm
+
+from .camera import Camera, _as_spectrum, check_inputs, depth_psfs, prepare
+from .errors import DiffcamError, ShapeError
+
+__all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
+           "FORMAT_VERSION"]
+
+FORMAT_VERSION = 1
+_PROGRESS_FROM = 32  # show a progress bar by default from this many depths
+
+
+@dataclasses.dataclass(frozen=True)
+class StackMeta:
+    """What a PSF stack is: axes, units and the camera that made it (SI units).
+
+    Attributes:
+        depths: z1 of each slice, metres, shape (nz,).
+        positions: (x1, y1) of each lateral position, metres, shape (npos, 2), or
+            ``None`` when the stack has no position axis (on-axis source).
+        pitch: sample pitch of the stored images, metres.
+        wavelengths: metres; ``weights``: their relative power.
+        camera: the camera's fields as plain numbers (``Camera`` attribute names).
+        normalised: each PSF sums to one (else physical irradiance).
+        format_version: :data:`FORMAT_VERSION` of the writer.
+    """
+
+    depths: np.ndarray
+    positions: np.ndarray | None
+    pitch: float
+    wavelengths: np.ndarray
+    weights: np.ndarray
+    camera: dict
+    normalised: bool = True
+    format_version: int = FORMAT_VERSION
+
+    def to_json(self) -> str:
+        d = dataclasses.asdict(self)
+        for k in ("depths", "positions", "wavelengths", "weights"):
+            d[k] = None if d[k] is None else np.asarray(d[k], dtype=np.float64).tolist()
+        return json.dumps(d)
+
+    @classmethod
+    def from_json(cls, text: str) -> "StackMeta":
+        d = json.loads(text)
+        if d.get("format_version", 0) > FORMAT_VERSION:
+            raise DiffcamError(f"stack written by format version {d['format_version']}, this "
+                               f"diffcam reads ≤ {FORMAT_VERSION}; upgrade diffcam.")
+        for k in ("depths", "wavelengths", "weights"):
+            d[k] = np.asarray(d[k], dtype=np.float64)
+        if d["positions"] is not None:
+            d["positions"] = np.asarray(d["positions"], dtype=np.float64).reshape(-1, 2)
+        return cls(**d)
+
+
+def camera_record(camera: Camera) -> dict:
+    """The camera as JSON-able numbers (a mask is recorded by its shape only)."""
+    rec = {"wavelength": float(camera.wavelength), "z2": float(camera.z2),
+           "dx": float(camera.dx), "shape": list(camera.shape), "pad": list(camera.pad),
+           "crop": list(camera.out_shape), "method": camera.method, "edge": camera.edge}
+    if camera.aperture_radius is not None:
+        rec["aperture_radius"] = float(camera.aperture_radius)
+    else:
+        rec["aperture_mask_shape"] = list(np.shape(camera.aperture_mask))
+    return rec
+
+
+# ----------------------------------------------------------------------------- compute
+
+@partial(jax.jit, static_argnames=("normalise", "sharding"))
+def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sharding):
+    out = jax.vmap(lambda z: depth_psfs(prepared, camera, wavelengths, weights, z,
+                                        positions, normalise))(z1)
+    if sharding is not None:
+        out = jax.lax.with_sharding_constraint(out, sharding)
+    return out
+
+
+_prepare = jax.jit(prepare)
+
+
+def _positions_array(positions):
+    if positions is None:
+        return np.zeros((1, 2))
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 2 or pos.shape[1] != 2 or pos.shape[0] == 0:
+        raise ShapeError(f"positions must be an (npos, 2) array of (x1, y1) in metres, "
+                         f"got shape {pos.shape}.")
+    if not np.all(np.isfinite(pos)):
+        raise DiffcamError("positions contain NaN/Inf; give finite (x1, y1) in metres.")
+    return pos
+
+
+def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
+                   normalise: bool = True, batch_size: int = 4,
+                   devices: Sequence | None = None, accept_undersampling: bool = False
+                   ) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
+    shape ``(n, npos, ny, nx)`` (host numpy). Arguments as in :func:`psf_stack`."""
+    depths = np.asarray(z1, dtype=np.float64).reshape(-1)
+    if depths.size == 0:
+        raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
+    pos = _positions_array(positions)
+    wavelengths, weights = _as_spectrum(spectrum, camera)
+    check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
+                 accept_undersampling)
+    devices = list(jax.devices()) if devices is None else list(devices)
+    sharding = None
+    step = batch_size * len(devices)
+    if len(devices) > 1:
+        mesh = Mesh(np.array(devices), ("batch",))
+        sharding = NamedSharding(mesh, PartitionSpec("batch"))
+        replicate = NamedSharding(mesh, PartitionSpec())
+        put = lambda a: jax.device_put(a, replicate)  # noqa: E731
+    else:
+        put = lambda a: jax.device_put(a, devices[0])  # noqa: E731
+    dtype = jnp.result_type(camera.dx, jnp.float32)
+    camera, phase = put(camera), put(phase)
+    wavelengths, weights = put(wavelengths.astype(dtype)), put(weights.astype(dtype))
+    prepared = _prepare(phase, camera, wavelengths)
+    pos_dev = put(jnp.asarray(pos, dtype))
+    for start in range(0, depths.size, step):
+        block = depths[start:start + step]
+        n = block.size
+        block = np.pad(block, (0, step - n), mode="edge")  # fixed shape: one compilation
+        zb = jnp.asarray(block, dtype)
+        zb = jax.device_put(zb, sharding) if sharding is not None else put(zb)
+        out = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise, sharding)
+        yield start, np.asarray(jax.device_get(out))[:n]
+
+
+def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
+              normalise: bool = True, batch_size: int = 4, out: str | os.PathLike | None = None,
+              progress: bool | None = None, devices: Sequence | None = None,
+              accept_undersampling: bool = False) -> np.ndarray:
+    """PSFs for every depth in ``z1`` and every lateral position, chunk by chunk.
+
+    Args:
+        phase: the diffuser (phase in radians at ``camera.wavelength``, or a
+            :class:`~diffcam.camera.HeightMap`).
+        camera: the :class:`~diffcam.camera.Camera`.
+        z1: depths, metres, shape (nz,) (non-empty, all > 0).
+        positions: ``(npos, 2)`` lateral source positions ``(x1, y1)``, metres; ``None``
+            for an on-axis source (the position axis is then dropped).
+        spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.camera.psf`.
+        normalise: each PSF sums to one (default) or is the physical irradiance.
+        batch_size: depths per device per jitted call; working memory grows with it.
+        out: stream the stack to this file instead of memory: ``.npy`` (a memory-mapped
+            array; metadata in ``<out>.json``) or ``.tif``/``.tiff`` (ImageJ hyperstack
+            written page by page, metadata inside). ``None`` keeps it in memory.
+        progress: show a tqdm bar; default on from 32 depths.
+        devices: devices to shard the depth axis over (default ``jax.devices()``).
+        accept_undersampling: turn sampling errors into warnings.
+
+    Returns:
+        float array ``(nz, npos, ny, nx)`` (or ``(nz, ny, nx)`` without positions):
+        numpy in memory, or a read-only memory map of ``out``.
+    """
+    depths = np.asarray(z1, dtype=np.float64).reshape(-1)
+    chunks = iter_psf_stack(phase, camera, depths, positions, spectrum=spectrum,
+                            normalise=normalise, batch_size=batch_size, devices=devices,
+                            accept_undersampling=accept_undersampling)
+    npos = 1 if positions is None else len(positions)
+    full = (depths.size, npos) + tuple(camera.out_shape)
+    shape = full if positions is not None else (full[0],) + full[2:]
+    show = depths.size >= _PROGRESS_FROM if progress is None else progress
+    bar = tqdm(total=depths.size, unit="depth", disable=not show, desc="PSF stack")
+    meta = _meta(camera, depths, positions, spectrum, normalise)
+
+    def pages():
+        for start, block in chunks:
+            bar.update(block.shape[0])
+            yield block if positions is not None else block[:, 0]
+
+    try:
+        if out is None:
+            stack = np.empty(shape, np.float32)
+            for start, block in _blocks(pages()):
+                stack[start:start + len(block)] = block
+            return stack
+        path = os.fspath(out)
+        if path.endswith(".npy"):
+            stack = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape)
+            for start, block in _blocks(pages()):
+                stack[start:start + len(block)] = block
+            stack.flush()
+            del stack
+            with open(path + ".json", "w") as f:
+                f.write(meta.to_json())
+            return np.load(path, mmap_mode="r")
+        if path.endswith((".tif", ".tiff")):
+            _write_tiff(path, (page for block in pages() for page in block), shape, meta)
+            return tifffile.memmap(path, mode="r")
+        raise DiffcamError(f"out must end in .npy, .tif or .tiff, got {path!r}.")
+    finally:
+        bar.close()
+
+
+def _blocks(pages):
+    start = 0
+    for block in pages:
+        yield start, block
+        start += len(block)
+
+
+def _meta(camera, depths, positions, spectrum, normalise):
+    wavelengths, weights = _as_spectrum(spectrum, camera)
+    return StackMeta(depths=np.asarray(depths, np.float64),
+                     positions=None if positions is None else _positions_array(positions),
+                     pitch=float(camera.dx), wavelengths=np.asarray(wavelengths, np.float64),
+                     weights=np.asarray(weights, np.float64), camera=camera_record(camera),
+                     normalised=bool(normalise))
+
+
+# ------------------------------------------------------------------------ save / load
+
+def _write_tiff(path, pages, shape, meta: StackMeta):
+    axes = "ZCYX" if len(shape) == 4 else "ZYX"
+    um = meta.pitch * 1e6
+    dz = float(np.median(np.diff(meta.depths))) * 1e3 if meta.depths.size > 1 else 1.0
+    with tifffile.TiffWriter(path, imagej=True) as tif:
+        tif.write(pages, shape=shape, dtype=np.float32, resolution=(1 / um, 1 / um),
+                  metadata={"axes": axes, "unit": "um", "spacing": dz,
+                            "Info": meta.to_json()}, contiguous=True)
+
+
+def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
+    """Write ``stack`` with ``meta`` to ``.npz`` (exact round trip) or ``.tif``/``.tiff``
+    (ImageJ hyperstack, float32; the ImageJ Z spacing is the median depth step in mm)."""
+    path = os.fspath(path)
+    stack = np.asarray(stack)
+    nz = meta.depths.size
+    want = 3 if meta.positions is None else 4
+    if stack.ndim != want or stack.shape[0] != nz or (
+            want == 4 and stack.shape[1] != len(meta.positions)):
+        raise ShapeError(f"stack shape {stack.shape} does not match the metadata "
+                         f"({nz} depths, positions {None if meta.positions is None else len(meta.positions)}).")
+    if path.endswith(".npz"):
+        np.savez(path, stack=stack, meta=np.array(meta.to_json()))
+    elif path.endswith((".tif", ".tiff")):
+        _write_tiff(path, stack.astype(np.float32), stack.shape, meta)
+    else:
+        raise DiffcamError(f"save_stack writes .npz, .tif or .tiff, got {path!r}.")
+
+
+def load_stack(path: str | os.PathLike) -> tuple[np.ndarray, StackMeta]:
+    """Read a stack written by :func:`save_stack` or :func:`psf_stack` (``out=``)."""
+    path = os.fspath(path)
+    if path.endswith(".npz"):
+        with np.load(path) as f:
+            return f["stack"], StackMeta.from_json(str(f["meta"]))
+    if path.endswith(".npy"):
+        with open(path + ".json") as f:
+            return np.load(path, mmap_mode="r"), StackMeta.from_json(f.read())
+    if path.endswith((".tif", ".tiff")):
+        with tifffile.TiffFile(path) as tif:
+            info = (tif.imagej_metadata or {}).get("Info")
+            if info is None:
+                raise DiffcamError(f"{path} has no diffcam metadata (ImageJ Info); was it "
+                                   f"written by diffcam.stack?")
+            meta = StackMeta.from_json(info)
+            stack = tif.asarray()
+        nz = meta.depths.size
+        shape = (nz,) + (() if meta.positions is None else (len(meta.positions),)) \
+            + stack.shape[-2:]
+        return stack.reshape(shape), meta
+    raise DiffcamError(f"load_stack reads .npz, .npy or .tif files, got {path!r}.")
