@@ -81,8 +81,9 @@ def check_finite(name: str, arr: Any) -> None:
     if not is_concrete(arr):
         return
     if isinstance(arr, jax.Array):  # one fused pass on the device, no copy to the host
-        ok = bool(_all_finite(arr))
-        n_bad = 0 if ok else int(arr.size - jax.numpy.isfinite(arr).sum())
+        with jax.ensure_compile_time_eval():  # concrete even inside someone's jit trace
+            ok = bool(_all_finite(arr))
+            n_bad = 0 if ok else int(arr.size - jax.numpy.isfinite(arr).sum())
     else:
         finite = np.isfinite(np.asarray(arr))
         ok = bool(finite.all())
