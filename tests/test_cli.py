@@ -53,3 +53,40 @@ def test_units():
         parse_length("3 parsecs")
     with pytest.raises(DiffcamError, match="start:stop:step"):
         parse_length_range("1mm:2mm")
+
+
+@pytest.fixture
+def tutorial_files(tmp_path):
+    import numpy as np
+    import tifffile
+
+    from diffcam.data import load_tutorial_pair
+
+    pair = load_tutorial_pair(downsample_by=2)
+    tifffile.imwrite(tmp_path / "psf.tif", np.asarray(pair.psf))
+    tifffile.imwrite(tmp_path / "raw.tif", np.asarray(pair.image))
+    return tmp_path
+
+
+def test_reconstruct_writes_png_and_fails_cleanly(tutorial_files):
+    """`diffcam reconstruct` writes a PNG; a missing file, a corrupt TIFF and a PSF larger
+    than the image give one clear line, exit 2, and leave no output behind."""
+    d = tutorial_files
+    out = d / "hand.png"
+    r = _diffcam("reconstruct", str(d / "raw.tif"), "--psf", str(d / "psf.tif"),
+                 "--iterations", "20", "-o", str(out))
+    assert r.returncode == 0, r.stderr
+    assert out.stat().st_size > 1000
+    (d / "corrupt.tif").write_bytes(b"II*\x00garbage")
+    import numpy as np
+    import tifffile
+    tifffile.imwrite(d / "big.tif", np.ones((400, 400), np.float32))
+    for args, message in [((str(d / "missing.tif"), "--psf", str(d / "psf.tif")), "no such file"),
+                          ((str(d / "corrupt.tif"), "--psf", str(d / "psf.tif")), "corrupt"),
+                          ((str(d / "raw.tif"), "--psf", str(d / "big.tif")), "larger")]:
+        bad_out = d / "bad.png"
+        r = _diffcam("reconstruct", *args, "-o", str(bad_out))
+        assert r.returncode == 2 and message in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr
+        assert not bad_out.exists()
+        assert not list(d.glob(".bad-*"))

@@ -1,0 +1,19 @@
+"""The notebooks (jupytext percent format) execute, at a reduced size, so they cannot rot."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.py"))
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+def test_notebook_executes(path, tmp_path):
+    """Run the notebook's source as a script (cells in order), headless."""
+    env = dict(os.environ, DIFFCAM_NOTEBOOK_SMALL="1", MPLBACKEND="Agg")
+    r = subprocess.run([sys.executable, str(path)], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
