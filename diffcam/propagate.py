@@ -217,12 +217,10 @@ def _propagate_core(field, dy, dx, wavelength, z, p, *, method, pad, band_limit)
     u = field.astype(_complex_dtype(field))
     if pad != (0, 0):
         u = pad_by(u, pad)
-    if method == "fresnel_tf":
-        hy, hx = _fresnel_tf_kernel(u.shape, dy, dx, wavelength, z)
-        # (U · p) · hy · hx: the outer product of the two chirps fuses into the multiply
-        out = jnp.fft.ifft2(jnp.fft.fft2(u) * (p * hy) * hx)
-    elif method == "fresnel_ir":
-        hy, hx = _fresnel_ir_kernel(u.shape, dy, dx, wavelength, z)
+    if method in ("fresnel_tf", "fresnel_ir"):
+        kernel = _fresnel_tf_kernel if method == "fresnel_tf" else _fresnel_ir_kernel
+        hy, hx = kernel(u.shape, dy, dx, wavelength, z)
+        # the outer product of the two 1-D kernels fuses into the one pass between FFTs
         out = jnp.fft.ifft2(jnp.fft.fft2(u) * (p * hy) * hx)
     else:
         H = _angular_spectrum_kernel(u.shape, dy, dx, wavelength, z, band_limit)
