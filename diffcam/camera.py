@@ -53,14 +53,23 @@ from .errors import (DiffcamError, ShapeError, check_field, check_finite, check_
 from .grid import crop_to, pad_to
 from .optics import circular_aperture, point_source_max_frequency
 from .propagate import critical_distance, transfer_function
+from .sensor import bspline_prefilter, cubic_rows
 
-__all__ = ["Camera", "HeightMap", "Spectrum", "psf", "diffuser_phase", "METHODS"]
+__all__ = ["Camera", "HeightMap", "Spectrum", "psf", "diffuser_phase", "random_diffuser",
+           "with_method", "METHODS"]
 
 METHODS = ("scaling", "direct")
 
 
 def _scalar(x):
-    return jnp.asarray(x)
+    """A strongly typed real scalar: float32, or float64 when given or when x64 is on."""
+    x = jnp.asarray(x)
+    return x.astype(jnp.promote_types(x.dtype, jnp.float32))
+
+
+def real_dtype(camera) -> jnp.dtype:
+    """The real dtype the camera computes in (its pitch's)."""
+    return jnp.promote_types(camera.dx.dtype, jnp.float32)
 
 
 def _optional_array(x):
@@ -217,6 +226,27 @@ def diffuser_phase(diffuser, wavelength, reference_wavelength) -> Float[Array, "
     return jnp.asarray(diffuser) * (reference_wavelength / wavelength)
 
 
+def random_diffuser(key: Array, shape, dx, wavelength, feature_size=30e-6,
+                    deflection=np.deg2rad(1.0)) -> Float[Array, "ny nx"]:
+    """A random-phase diffuser like the paper's Fig. 6 (radians at ``wavelength``).
+
+    Gaussian-correlated noise whose Gaussian kernel has a 1/e² diameter of
+    ``feature_size`` (m), scaled so the r.m.s. deflection λ|∇θ|/(2π) is
+    sin(``deflection``) (radians). ``dx`` and ``wavelength`` in metres.
+    """
+    check_positive("feature_size", feature_size, "m")
+    check_positive("deflection", deflection, "rad")
+    ny, nx = shape
+    noise = jax.random.normal(key, (ny, nx))
+    sigma = feature_size / 4 / dx  # 1/e² radius = 2σ, in samples
+    fy, fx = jnp.fft.fftfreq(ny)[:, None], jnp.fft.fftfreq(nx)[None, :]
+    lowpass = jnp.exp(-2 * (jnp.pi * sigma) ** 2 * (fy ** 2 + fx ** 2))
+    theta = jnp.fft.ifft2(jnp.fft.fft2(noise) * lowpass).real
+    gy, gx = jnp.gradient(theta, dx)
+    slope = jnp.sqrt(jnp.mean(gy ** 2 + gx ** 2))
+    return theta * (2 * jnp.pi * jnp.sin(deflection) / wavelength / slope)
+
+
 def _as_spectrum(spectrum, camera):
     """(wavelengths, weights) arrays, validated; the camera's wavelength if ``None``."""
     if spectrum is None:
@@ -238,36 +268,6 @@ def _chirp(n, dx, centre, wavelength, z):
     """1-D factor exp(jπ(t − centre)²/(λz)) of a separable spherical wave on ``n`` samples."""
     t = (jnp.arange(n) - n // 2) * dx - centre
     return jnp.exp(1j * jnp.pi * (t * t) / (wavelength * z))
-
-
-def _bspline_weights(frac):
-    """Cubic B-spline weights of taps −1, 0, 1, 2 at offset ``frac`` ∈ [0, 1)."""
-    f2, f3 = frac * frac, frac * frac * frac
-    g = 1 - frac
-    return jnp.stack([g * g * g, 3 * f3 - 6 * f2 + 4, -3 * f3 + 3 * f2 + 3 * frac + 1, f3],
-                     axis=-1) / 6
-
-
-def _bspline_prefilter(n):
-    """1/B(f) on the FFT frequencies of ``n`` samples: turns samples into cubic B-spline
-    coefficients when it multiplies their spectrum (B(f) = (4 + 2cos 2πf)/6)."""
-    return 6 / (4 + 2 * jnp.cos(2 * jnp.pi * jnp.fft.fftfreq(n)))
-
-
-def _cubic_rows(f, t):
-    """Evaluate the cubic spline with coefficients ``f`` along axis −2 at fractional
-    indices ``t`` (coefficients beyond the grid are zero). Row gathers only: they copy
-    contiguous memory, unlike gathers along the last axis."""
-    n = f.shape[-2]
-    i0 = jnp.floor(t)
-    w = _bspline_weights(t - i0)
-    i0 = i0.astype(jnp.int32)
-    out = 0
-    for k in range(4):
-        idx = i0 - 1 + k
-        wk = jnp.where((idx >= 0) & (idx < n), w[:, k], 0.0).astype(f.real.dtype)
-        out = out + jnp.take(f, jnp.clip(idx, 0, n - 1), axis=-2, mode="clip") * wk[:, None]
-    return out
 
 
 def _base_fields(phase, camera, wavelengths):
@@ -300,7 +300,7 @@ def _magnified_field(base_hat, camera, wavelength, z1):
     """
     z_eff = z1 * camera.z2 / (z1 + camera.z2)
     ny, nx = base_hat.shape[-2:]
-    pre = _bspline_prefilter(ny)[:, None] * _bspline_prefilter(nx)[None, :]
+    pre = bspline_prefilter(ny)[:, None] * bspline_prefilter(nx)[None, :]
     return jnp.fft.ifft2(base_hat * (_tf(camera, wavelength, z_eff) * pre))
 
 
@@ -313,7 +313,7 @@ def _sample_magnified(field, camera, wavelength, z1, x1, y1):
     shift = z2 / (z1 + z2) / camera.dx  # source offset → sample offset, per metre
     ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
     tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
-    s = _cubic_rows(jnp.swapaxes(_cubic_rows(field, ty), -1, -2), tx)
+    s = cubic_rows(jnp.swapaxes(cubic_rows(field, ty), -1, -2), tx)
     intensity = (s.real ** 2 + s.imag ** 2) / (mag * wavelength * z1) ** 2
     return jnp.swapaxes(intensity, -1, -2)
 
@@ -437,7 +437,7 @@ def psf(phase, camera: Camera, z1, x1=0.0, y1=0.0, *, spectrum=None, normalise: 
     wavelengths, weights = _as_spectrum(spectrum, camera)
     check_inputs(phase, camera, z1, jnp.hypot(jnp.asarray(x1), jnp.asarray(y1)), wavelengths,
                  accept_undersampling)
-    dtype = jnp.result_type(camera.dx, jnp.float32)
+    dtype = real_dtype(camera)
     return _psf_core(phase, camera, wavelengths.astype(dtype), weights.astype(dtype),
                      jnp.asarray(z1, dtype), x1, y1, normalise)
 

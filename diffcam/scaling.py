@@ -29,8 +29,8 @@ def scale_factor(z1, z1_ref, z2):
     return (1 + z2 / z1) / (1 + z2 / z1_ref)
 
 
-def scale_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0, 0.0)
-              ) -> Float[Array, "... ny nx"]:
+def scale_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0, 0.0), *,
+              kind: str = "cubic") -> Float[Array, "... ny nx"]:
     """Predict PSFs at depths ``z1`` from ``psf_ref`` measured at ``z1_ref``.
 
     Args:
@@ -41,11 +41,13 @@ def scale_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0, 0
         z2: diffuser-to-sensor distance, metres.
         centre: ``(y0, x0)`` the magnification keeps fixed, metres from the grid
             centre: the image of the aperture centre (0, 0 for an on-axis source).
+        kind: resampling of :func:`diffcam.sensor.resample`: ``"cubic"`` (default;
+            point-sampled PSFs, e.g. simulated) or ``"area"`` (pixel-integrated ones).
 
     Returns:
         ``z1.shape + psf_ref.shape``: the magnified, area-resampled reference,
-        renormalised to the reference's sum. Differentiable in every argument; the
-        magnification must stay ≥ 0.5 when it is traced.
+        renormalised to the reference's sum. Differentiable in every argument; with
+        ``kind="area"`` the magnification must stay ≥ 0.5 when it is traced.
     """
     check_field(psf_ref, "psf_ref")
     for name, v in (("dx", dx), ("z1_ref", z1_ref), ("z1", z1), ("z2", z2)):
@@ -56,7 +58,7 @@ def scale_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0, 0
     shape = ref.shape[-2:]
 
     def one(mi):
-        out = resample(ref, dx, dx, shape, mi, centre, max_width=max_width)
+        out = resample(ref, dx, dx, shape, mi, centre, kind=kind, max_width=max_width)
         return out * (jnp.sum(ref) / jnp.sum(out))
 
     return jax.vmap(one)(m.reshape(-1)).reshape(m.shape + shape)

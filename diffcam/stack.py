@@ -29,7 +29,7 @@ import tifffile
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from .camera import Camera, _as_spectrum, check_inputs, depth_psfs, prepare
+from .camera import Camera, _as_spectrum, check_inputs, depth_psfs, prepare, real_dtype
 from .errors import DiffcamError, ShapeError
 
 __all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
@@ -125,7 +125,8 @@ def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
                    devices: Sequence | None = None, accept_undersampling: bool = False
                    ) -> Iterator[tuple[int, np.ndarray]]:
     """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
-    shape ``(n, npos, ny, nx)`` (host numpy). Arguments as in :func:`psf_stack`."""
+    shape ``(n, npos, ny, nx)`` (host numpy). Arguments as in :func:`psf_stack`; the
+    inputs are checked when this is called, before the first chunk."""
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
     if depths.size == 0:
         raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
@@ -136,6 +137,12 @@ def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
     check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
                  accept_undersampling)
     devices = list(jax.devices()) if devices is None else list(devices)
+    return _chunks(phase, camera, depths, pos, wavelengths, weights, normalise,
+                   batch_size, devices)
+
+
+def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_size,
+            devices):
     sharding = None
     step = batch_size * len(devices)
     if len(devices) > 1:
@@ -145,7 +152,7 @@ def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
         put = lambda a: jax.device_put(a, replicate)  # noqa: E731
     else:
         put = lambda a: jax.device_put(a, devices[0])  # noqa: E731
-    dtype = jnp.result_type(camera.dx, jnp.float32)
+    dtype = real_dtype(camera)
     camera, phase = put(camera), put(phase)
     wavelengths, weights = put(wavelengths.astype(dtype)), put(weights.astype(dtype))
     prepared = _prepare(phase, camera, wavelengths)
