@@ -16,7 +16,8 @@ from jaxtyping import Float
 
 from .errors import DiffcamError, ShapeError, check_finite, is_concrete
 
-__all__ = ["pearson", "ssim", "mse", "psnr", "align_to"]
+__all__ = ["pearson", "ssim", "mse", "psnr", "align_to", "wrap_phase", "twin_phase",
+           "phase_offset", "phase_pearson", "phase_mse", "phase_scores"]
 
 _SPACE = (-2, -1)
 
@@ -168,3 +169,168 @@ def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx
     s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux ** 2 + uy ** 2 + c1) * (vx + vy + c2))
     r = (win - 1) // 2
     return jnp.mean(s[..., r:ny - r, r:nx - r], axis=_SPACE)
+
+
+# ------------------------------------------------------------------- phase metrics
+# DESIGN.md, "Phase ambiguities and the phase metric": near/far intensities fix the
+# diffuser phase only up to a piston and the conjugate twin θ'(x) = −θ(−x).
+
+def wrap_phase(phase: Float[Array, "..."]) -> Float[Array, "..."]:
+    """Phase wrapped into [−π, π) (radians)."""
+    return jnp.mod(jnp.asarray(phase) + jnp.pi, 2 * jnp.pi) - jnp.pi
+
+
+def twin_phase(phase: Float[Array, "... ny nx"]) -> Float[Array, "... ny nx"]:
+    """The conjugate twin θ'(x) = −θ(−x), reflected about index N//2 (i → (N − i) mod N).
+
+    A field C·e^{jθ} with a centro-symmetric aperture C and its twin C·e^{jθ'} have the
+    same Fourier-lens intensity (the twin's far field is the complex conjugate).
+    """
+    flipped = jnp.flip(jnp.asarray(phase), axis=_SPACE)
+    return -jnp.roll(flipped, 1, axis=_SPACE)
+
+
+def phase_offset(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
+                 mask=None) -> Float[Array, "..."]:
+    """The piston d = arg Σ_mask e^{j(θest − θtrue)} that best aligns two phases (rad)."""
+    _check_pair(estimate, truth, "estimate", "truth")
+    w = 1.0 if mask is None else jnp.asarray(mask)
+    z = jnp.sum(w * jnp.exp(1j * (jnp.asarray(estimate) - jnp.asarray(truth))), axis=_SPACE)
+    return jnp.angle(z)
+
+
+def _phase_residual(estimate, truth, mask):
+    d = phase_offset(estimate, truth, mask=mask)[..., None, None]
+    return wrap_phase(jnp.asarray(estimate) - jnp.asarray(truth) - d)
+
+
+def phase_pearson(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
+                  mask=None, twin: bool = False) -> Float[Array, "..."]:
+    """Piston-aligned phase Pearson: P(θtrue + wrap(θest − θtrue − d), θtrue) over ``mask``.
+
+    With ``twin=True`` the twin-resolved figure max(P(θest), P(twin(θest))): the twin is
+    taken on the full grid given (index N//2 is the axis), then masked.
+    """
+    truth = jnp.asarray(truth)
+    aligned = truth + _phase_residual(estimate, truth, mask)
+    p = pearson(aligned, truth, mask=mask)
+    if not twin:
+        return p
+    return jnp.maximum(p, phase_pearson(twin_phase(estimate), truth, mask=mask))
+
+
+def phase_mse(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
+              mask=None) -> Float[Array, "..."]:
+    """Mean of wrap(θest − θtrue − d)² over ``mask`` (rad²), d from :func:`phase_offset`."""
+    r2 = _phase_residual(estimate, truth, mask) ** 2
+    if mask is None:
+        return jnp.mean(r2, axis=_SPACE)
+    m = jnp.asarray(mask, dtype=r2.dtype)
+    return jnp.sum(m * r2, axis=_SPACE) / jnp.sum(m)
+
+
+def phase_scores(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
+                 mask=None) -> dict:
+    """All phase figures of DESIGN.md: ``pearson`` (piston-aligned), ``twin_resolved``
+    (the better of the estimate and its twin), ``raw`` (plain Pearson of θest and θtrue)
+    and ``mse`` (rad², piston-aligned)."""
+    return {
+        "pearson": phase_pearson(estimate, truth, mask=mask),
+        "twin_resolved": phase_pearson(estimate, truth, mask=mask, twin=True),
+        "raw": pearson(estimate, truth, mask=mask),
+        "mse": phase_mse(estimate, truth, mask=mask),
+    }
+
+
+# --------------------------------------------------------------------- PSF fidelity
+# Paper Fig. 9: a modelled PSF against a measured one, per depth, after sub-pixel
+# registration and intensity normalisation.
+
+def _peak_shift(image_product, upsample):
+    """Sub-pixel location of the inverse-DFT peak of one cross-power spectrum (pixels).
+
+    The integer peak of ``ifft2`` is refined on a window of ±0.75 pixel sampled every
+    1/``upsample`` pixel, where the inverse DFT is evaluated directly as two small
+    matrix products (the matrix-multiply DFT of Guizar-Sicairos et al., Opt. Lett. 2008).
+    """
+    ny, nx = image_product.shape
+    cc = jnp.abs(jnp.fft.ifft2(image_product))
+    flat = jnp.argmax(cc)
+    coarse = jnp.stack([flat // nx, flat % nx]).astype(jnp.float32)
+    n = jnp.array([ny, nx], jnp.float32)
+    coarse = jnp.where(coarse > n // 2, coarse - n, coarse)
+    if upsample <= 1:
+        return coarse
+    k = int(np.ceil(1.5 * upsample))
+    offsets = (jnp.arange(k) - k // 2) / upsample
+    sy, sx = coarse[0] + offsets, coarse[1] + offsets
+    ey = jnp.exp(2j * jnp.pi * sy[:, None] * jnp.fft.fftfreq(ny)[None, :])
+    ex = jnp.exp(2j * jnp.pi * sx[:, None] * jnp.fft.fftfreq(nx)[None, :])
+    fine = jnp.abs(ey @ image_product.astype(ey.dtype) @ ex.T)
+    best = jnp.argmax(fine)
+    return jnp.stack([sy[best // k], sx[best % k]])
+
+
+def registration_shift(moving: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx"],
+                       *, upsample: int = 20) -> Float[Array, "... 2"]:
+    """Shift ``(dy, dx)`` in pixels that moves ``moving`` onto ``reference``.
+
+    Phase correlation (the normalised cross-power spectrum) with its peak refined to
+    1/``upsample`` pixel; the same convention as
+    ``skimage.registration.phase_cross_correlation(reference, moving)``. Shifts are
+    piecewise constant in the images, so their gradient is zero.
+    """
+    _check_pair(moving, reference, "moving", "reference")
+    if not isinstance(upsample, int) or upsample < 1:
+        raise DiffcamError(f"upsample must be a positive int, got {upsample!r}.")
+    a = jnp.fft.fft2(jnp.asarray(reference))
+    b = jnp.fft.fft2(jnp.asarray(moving))
+    a, b = jnp.broadcast_arrays(a, b)
+    product = a * jnp.conj(b)
+    product = product / jnp.maximum(jnp.abs(product), jnp.finfo(product.real.dtype).tiny)
+    lead = product.shape[:-2]
+    flat = product.reshape((-1,) + product.shape[-2:])
+    shifts = jax.vmap(lambda p: _peak_shift(p, upsample))(flat)
+    return jax.lax.stop_gradient(shifts.reshape(lead + (2,)))
+
+
+def fourier_shift(image: Float[Array, "... ny nx"], shift: Float[Array, "... 2"]
+                  ) -> Float[Array, "... ny nx"]:
+    """``image`` moved by ``shift = (dy, dx)`` pixels (sub-pixel, circular, via the FFT)."""
+    image = jnp.asarray(image)
+    shift = jnp.asarray(shift, image.dtype)
+    ny, nx = image.shape[-2:]
+    fy = jnp.fft.fftfreq(ny)[:, None]
+    fx = jnp.fft.fftfreq(nx)[None, :]
+    ramp = jnp.exp(-2j * jnp.pi * (fy * shift[..., 0, None, None] + fx * shift[..., 1, None, None]))
+    return jnp.fft.ifft2(jnp.fft.fft2(image) * ramp).real.astype(image.dtype)
+
+
+def _min_max(x):
+    lo = jnp.min(x, axis=_SPACE, keepdims=True)
+    hi = jnp.max(x, axis=_SPACE, keepdims=True)
+    return (x - lo) / (hi - lo)
+
+
+def psf_fidelity(model: Float[Array, "... ny nx"], measured: Float[Array, "... ny nx"], *,
+                 register: bool = True, upsample: int = 20) -> dict:
+    """Pearson and SSIM of a modelled PSF against a measured one, per leading index.
+
+    The model is moved onto the measurement by :func:`registration_shift` (if
+    ``register``), both are min–max normalised to [0, 1] (as the paper normalises its
+    captures), then scored with :func:`pearson` and :func:`ssim` (``data_range=1``).
+
+    Returns:
+        ``{"pearson": (...), "ssim": (...), "shift": (..., 2)}``; ``shift`` in pixels
+        (zero when ``register=False``).
+    """
+    _check_pair(model, measured, "model", "measured")
+    model, measured = jnp.asarray(model), jnp.asarray(measured)
+    model, measured = jnp.broadcast_arrays(model, measured)
+    if register:
+        shift = registration_shift(model, measured, upsample=upsample)
+        model = fourier_shift(model, shift)
+    else:
+        shift = jnp.zeros(model.shape[:-2] + (2,), model.dtype)
+    a, b = _min_max(model), _min_max(measured)
+    return {"pearson": pearson(a, b), "ssim": ssim(a, b, data_range=1.0), "shift": shift}

@@ -1,0 +1,31 @@
+"""Diffuser phase retrieval (issue #4): θd from near/far captures and captured PSFs.
+
+- :mod:`.projections` — Gerchberg–Saxton, HIO, RAAR between near and far amplitudes
+- :mod:`.lsq`         — least squares through the differentiable forward model (optimistix)
+- :mod:`.psf_fit`     — fitting θd (and geometry) to captured PSFs through paper Eq. 7
+- :mod:`.captures`    — preprocessing of captures, synthetic captures
+"""
+
+from .calibrate import calibrate
+from .captures import (PreparedCaptures, centre_on_axis, centroid, normalise_min_max,
+                       prepare_captures, resample_capture, resample_far_field,
+                       synthetic_captures)
+from .forward import calibration_intensities, cameraman_phase
+from .geometry import CalibrationGeometry, check_far_pitch, glass_equivalent_distance
+from .lsq import PhaseGrid, fit_phase, near_far_model, retrieve_lsq
+from .projections import gerchberg_saxton, hio, initial_phase, raar, retrieve_projections
+from .psf_fit import fit_to_psfs, predict_psfs
+from .result import RetrievalResult
+
+__all__ = [
+    # geometry, forward model, result
+    "CalibrationGeometry", "glass_equivalent_distance", "check_far_pitch",
+    "calibration_intensities", "cameraman_phase", "RetrievalResult",
+    # solvers
+    "calibrate", "retrieve_projections", "gerchberg_saxton", "hio", "raar",
+    "initial_phase", "retrieve_lsq", "fit_phase", "near_far_model", "PhaseGrid",
+    "fit_to_psfs", "predict_psfs",
+    # captures
+    "prepare_captures", "PreparedCaptures", "synthetic_captures", "normalise_min_max",
+    "centroid", "centre_on_axis", "resample_capture", "resample_far_field",
+]

@@ -1,0 +1,219 @@
+"""Alternating projections between the near- and far-field amplitudes (paper Fig. 4).
+
+The iterate u is the field in the **near-capture plane** (``near_distance`` behind the
+diffuser). Free-space propagation is a pure phase e^{jφ(f)} on the spectrum, so the
+Fourier-lens amplitude |FT(diffuser field)| equals |FT(u)| for any near distance: the
+far-field projection P_M is one FFT pair whatever the distance, and the distance enters
+only to start (diffuser → near plane), to impose the aperture support at the diffuser
+plane (optional, two more FFT pairs per iteration) and to return θd at the diffuser.
+
+Projections (Marchesini 2007 notation, P_S the near-amplitude projection):
+
+- ``"gs"``    Gerchberg–Saxton / error reduction   u ← P_S P_M u  (stagnates)
+- ``"hio"``   hybrid input–output (Fienup)        u ← u + P_S((1+β)P_M u − u) − β P_M u
+- ``"raar"``  relaxed averaged alternating reflections (Luke 2005)
+              u ← β u + β P_S(2 P_M u − u) + (1 − 2β) P_M u
+
+Each projection onto a measured amplitude A is u·(A/|u|) with a safe divide (about 3×
+cheaper than A·exp(j·angle(u))). Arrays are kept in FFT order (``ifftshift``-ed once)
+with unitary FFTs, so the loop has no shifts; the far amplitude is scaled to the near
+field's energy (Parseval), which also absorbs any exposure difference.
+"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import Float
+
+from ..errors import DiffcamError, ShapeError, check_finite
+from ..propagate import apply_transfer, transfer_function
+from .geometry import CalibrationGeometry, check_captures, check_far_pitch
+from .result import RetrievalResult
+
+__all__ = ["retrieve_projections", "gerchberg_saxton", "hio", "raar", "initial_phase",
+           "METHODS"]
+
+METHODS = ("gs", "hio", "raar")
+_AXES = (-2, -1)
+
+
+def _to_fft_order(a):
+    return jnp.fft.ifftshift(a, axes=_AXES)
+
+
+def _to_centred(a):
+    return jnp.fft.fftshift(a, axes=_AXES)
+
+
+def _fit_amplitude(u, amplitude):
+    """u·(A/|u|), 0 where |u| = 0 (the safe divide keeps gradients and values finite)."""
+    m = jnp.abs(u)
+    return u * jnp.where(m > 0, amplitude / jnp.where(m > 0, m, 1.0), 0.0)
+
+
+def _operators(near_amp, far_amp, H, support):
+    """P_S and P_M on FFT-ordered near-plane fields; ``H`` None when the near plane is
+    the diffuser plane (then the support lies in the near amplitude already)."""
+
+    def p_near(u):
+        return _fit_amplitude(u, near_amp)
+
+    def p_far(u):
+        v = jnp.fft.ifft2(_fit_amplitude(jnp.fft.fft2(u, norm="ortho"), far_amp), norm="ortho")
+        if support is not None:
+            v = apply_transfer(apply_transfer(v, jnp.conj(H)) * support, H)
+        return v
+
+    return p_near, p_far
+
+
+@partial(jax.jit, static_argnames=("method", "iterations"))
+def _iterate(u0, near_amp, far_amp, H, support, beta, *, method, iterations):
+    """Run one projection algorithm from the near-plane field ``u0`` (FFT order)."""
+    p_near, p_far = _operators(near_amp, far_amp, H, support)
+    norm = jnp.linalg.norm(near_amp)
+
+    def step(u, _):
+        pm = p_far(u)
+        err = jnp.linalg.norm(jnp.abs(pm) - near_amp) / norm
+        if method == "gs":
+            u = p_near(pm)
+        elif method == "hio":
+            u = u + p_near((1 + beta) * pm - u) - beta * pm
+        else:
+            u = beta * u + beta * p_near(2 * pm - u) + (1 - 2 * beta) * pm
+        return u, err
+
+    u, history = jax.lax.scan(step, u0, None, length=iterations)
+    return p_near(p_far(u)), history
+
+
+def initial_phase(init, shape, key=None, restarts: int = 1) -> Float[Array, "restarts ny nx"]:
+    """Starting diffuser phases (radians), one per restart.
+
+    ``init`` is ``"random"`` (uniform on [−π, π), one draw per restart from
+    ``jax.random.split(key, restarts)``), ``"flat"`` (zeros) or a phase array (ny, nx).
+    """
+    if isinstance(init, str):
+        if init == "random":
+            if key is None:
+                raise DiffcamError("init='random' needs key=jax.random.key(<seed>) "
+                                   "(diffcam takes randomness only from explicit keys).")
+            keys = jax.random.split(key, restarts)
+            return jax.vmap(lambda k: jax.random.uniform(k, shape[-2:], minval=-jnp.pi,
+                                                         maxval=jnp.pi))(keys)
+        if init == "flat":
+            if restarts != 1:
+                raise DiffcamError("restarts > 1 needs init='random' (flat starts are identical).")
+            return jnp.zeros((1,) + tuple(shape[-2:]), jnp.float32)
+        raise DiffcamError(f"init must be 'random', 'flat' or a phase array, got {init!r}.")
+    phase = jnp.asarray(init, jnp.float32)
+    if phase.shape != tuple(shape[-2:]):
+        raise ShapeError(f"init phase has shape {phase.shape}, the captures {tuple(shape[-2:])}.")
+    check_finite("init phase", phase)
+    if restarts != 1:
+        raise DiffcamError("restarts > 1 needs init='random' (a given start is deterministic).")
+    return phase[None]
+
+
+def _check_options(method, iterations, beta, restarts, aperture, shape):
+    if method not in METHODS:
+        raise DiffcamError(f"method must be one of {METHODS}, got {method!r}.")
+    if not isinstance(iterations, int) or iterations < 1:
+        raise DiffcamError(f"iterations must be a positive int, got {iterations!r}.")
+    if not isinstance(restarts, int) or restarts < 1:
+        raise DiffcamError(f"restarts must be a positive int, got {restarts!r}.")
+    if not 0 < float(beta) <= 1:
+        raise DiffcamError(f"beta must be in (0, 1] (0.9 is usual), got {beta!r}.")
+    if aperture is not None and np.shape(aperture) != tuple(shape):
+        raise ShapeError(f"aperture {np.shape(aperture)} and captures {tuple(shape)} differ "
+                         f"in shape.")
+
+
+def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
+                         geometry: CalibrationGeometry, *, method: str = "raar",
+                         iterations: int = 300, beta: float = 0.9, init="random", key=None,
+                         restarts: int = 1, aperture=None, far_pitch=None) -> RetrievalResult:
+    """Retrieve the diffuser phase from near- and far-field intensities by projections.
+
+    Args:
+        near: near-field intensity at ``geometry.near_distance`` behind the diffuser,
+            pitch ``geometry.dx`` (any scale).
+        far: far-field intensity at the Fourier-lens pitch λf/(N·dx) (any scale; it is
+            matched to the near field's energy).
+        geometry: the set-up, SI units.
+        method: ``"gs"``, ``"hio"`` or ``"raar"``.
+        iterations: number of iterations (one FFT pair each; three with a support
+            constraint at ``near_distance > 0``).
+        beta: HIO / RAAR relaxation, in (0, 1].
+        init: ``"random"``, ``"flat"`` or a diffuser-plane phase (ny, nx), radians.
+        key: ``jax.random`` key for ``init="random"``.
+        restarts: independent random starts, run batched with ``vmap`` (memory grows
+            with it); the run with the smallest final error is returned.
+        aperture: diffuser-plane amplitude C (ny, nx). With ``near_distance > 0`` it is
+            imposed as a support at the diffuser plane each iteration; it also shapes
+            the starting field. ``None``: the near amplitude (distance 0) or ones.
+        far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
+
+    Returns:
+        :class:`RetrievalResult`; ``stats["restart_errors"]`` holds each run's final error.
+    """
+    check_captures(near, far)
+    shape = np.shape(near)
+    _check_options(method, iterations, beta, restarts, aperture, shape)
+    if far_pitch is not None:
+        check_far_pitch(far_pitch, geometry, shape)
+    t0 = time.perf_counter()
+    near_amp = jnp.sqrt(jnp.asarray(near, jnp.float32))
+    far_amp = jnp.sqrt(jnp.asarray(far, jnp.float32))
+    far_amp = far_amp * jnp.linalg.norm(near_amp) / jnp.linalg.norm(far_amp)
+    z = float(geometry.near_distance)
+    H = None if z == 0 else transfer_function(shape, geometry.dx, geometry.wavelength, z)
+    if aperture is None:
+        amp0 = near_amp if z == 0 else jnp.ones(shape, jnp.float32)
+        support = None
+    else:
+        amp0 = jnp.asarray(aperture, jnp.float32)
+        support = None if z == 0 else _to_fft_order(amp0 > 0).astype(jnp.complex64)
+    phases = initial_phase(init, shape, key, restarts)
+    fields = _to_fft_order(amp0 * jnp.exp(1j * phases))
+    if H is not None:
+        fields = jax.vmap(apply_transfer, (0, None))(fields, H)
+    near_f, far_f = _to_fft_order(near_amp), _to_fft_order(far_amp)
+    run = partial(_iterate, method=method, iterations=iterations)
+    u, histories = jax.vmap(run, (0, None, None, None, None, None))(
+        fields, near_f, far_f, H, support, jnp.float32(beta))
+    best = int(jnp.argmin(histories[:, -1]))
+    u = u[best]
+    if H is not None:
+        u = apply_transfer(u, jnp.conj(H))
+    field = _to_centred(u)
+    phase = jnp.angle(field)
+    phase.block_until_ready()
+    stats = {"method": method, "iterations": iterations, "beta": float(beta),
+             "restarts": restarts, "best": best, "restart_errors": histories[:, -1],
+             "wall_time": time.perf_counter() - t0}
+    return RetrievalResult(phase, field, histories[best], stats)
+
+
+def gerchberg_saxton(near, far, geometry, **options) -> RetrievalResult:
+    """Gerchberg–Saxton between near and far amplitudes (paper Fig. 4); see
+    :func:`retrieve_projections` for the arguments. Stagnates from random starts: use
+    :func:`raar` or :func:`hio` (or restarts) when the error history flattens early."""
+    return retrieve_projections(near, far, geometry, method="gs", **options)
+
+
+def hio(near, far, geometry, **options) -> RetrievalResult:
+    """Fienup's hybrid input–output; arguments as :func:`retrieve_projections`."""
+    return retrieve_projections(near, far, geometry, method="hio", **options)
+
+
+def raar(near, far, geometry, **options) -> RetrievalResult:
+    """Relaxed averaged alternating reflections; arguments as :func:`retrieve_projections`."""
+    return retrieve_projections(near, far, geometry, method="raar", **options)

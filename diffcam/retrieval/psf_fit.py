@@ -1,0 +1,176 @@
+"""Fitting the diffuser phase to captured PSFs through paper Eq. 7, then predicting
+PSFs at other depths.
+
+The model of PSF k is s_k·PSF(θd; z1_k, z2) + b_k (:func:`diffcam.camera.psf`), fitted
+together with optional near/far captures (:func:`diffcam.retrieval.lsq.near_far_model`)
+by :func:`diffcam.retrieval.lsq.fit_phase`. A PSF is a defocused, magnified intensity
+of the diffuser field, so it also breaks the conjugate-twin ambiguity of near/far
+data.
+
+Geometry in identifiable form: paraxially z1, z2, the pitch dx and the wavelength λ
+enter the PSF only through the Fresnel numbers λz/dx², so λ and dx stay fixed (the
+camera's) and distances are fitted; ``stats`` reports them in metres and as
+ζ = λz/dx². Depths are either known (``"fixed"``), one per PSF (``"per_psf"``), or two
+parameters for planes spaced uniformly in 1/z1 (``"inverse_linear"``: 1/z1 = a + b·t
+with the plane index t).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import Float
+
+from ..camera import Camera, psf
+from ..errors import DiffcamError, ShapeError, check_field, check_positive
+from .geometry import CalibrationGeometry, check_captures
+from .lsq import PhaseGrid, fit_phase, near_far_model
+from .projections import initial_phase
+from .result import RetrievalResult
+
+__all__ = ["fit_to_psfs", "predict_psfs", "depths", "DEPTH_MODELS"]
+
+DEPTH_MODELS = ("fixed", "per_psf", "inverse_linear")
+
+
+def _inverse_linear_init(z1, t):
+    """Least-squares (a, b) of 1/z1 = a + b·t (1/m)."""
+    A = np.stack([np.ones_like(t), t], axis=1)
+    (a, b), *_ = np.linalg.lstsq(A, 1.0 / z1, rcond=None)
+    return np.array([a, b])
+
+
+def depths(extra, z1, depth_model: str, plane_index=None) -> Float[Array, " k"]:
+    """Depths z1 (m) of the planes ``plane_index`` under the fitted ``extra`` parameters."""
+    if depth_model == "fixed":
+        return jnp.asarray(z1)
+    if depth_model == "per_psf":
+        return jnp.asarray(z1) * jnp.exp(extra["log_z1"])
+    t = jnp.asarray(plane_index, jnp.float32)
+    return 1.0 / (extra["inverse_z1"][0] + extra["inverse_z1"][1] * t)
+
+
+class _PSFModel:
+    """θd and the extra parameters → (PSF_1 … PSF_K[, near, far]); hashable (static)."""
+
+    def __init__(self, camera, z1, depth_model, plane_index, spectrum, near_far):
+        self.camera, self.z1, self.depth_model = camera, z1, depth_model
+        self.plane_index, self.spectrum, self.near_far = plane_index, spectrum, near_far
+
+    def __call__(self, phase, extra):
+        camera = self.camera
+        extra = extra or {}
+        if "log_z2" in extra:
+            camera = eqx.tree_at(lambda c: c.z2, camera, camera.z2 * jnp.exp(extra["log_z2"]))
+        z1 = depths(extra, self.z1, self.depth_model, self.plane_index)
+        out = tuple(psf(phase, camera, z1[k], spectrum=self.spectrum)
+                    for k in range(len(self.z1)))
+        if self.near_far is not None:
+            out = out + tuple(self.near_far(phase))
+        return out
+
+
+def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[float], *,
+                near=None, far=None, geometry: CalibrationGeometry | None = None,
+                fit_z2: bool = False, depth_model: str = "fixed", plane_index=None,
+                init="flat", key=None, coarse: int = 1, masks=None, spectrum=None,
+                **options) -> RetrievalResult:
+    """Fit θd (with or without near/far captures) to one or more captured PSFs.
+
+    Args:
+        psfs: K measured PSFs (k, cy, cx) on ``camera.out_shape`` at the camera's pitch,
+            registered to the optical axis (any scale and background: both are fitted).
+        camera: the :class:`~diffcam.camera.Camera`: grid, pitch dx, λ, z2 (the start
+            value when ``fit_z2``), aperture.
+        z1: depths of the PSFs, metres, (k,): known values, or start values.
+        near, far: optional calibration intensities on the camera grid (``camera.shape``,
+            pitch ``camera.dx``; far at the Fourier-lens pitch); need ``geometry``.
+        geometry: the near/far set-up; its ``dx`` must be the camera's.
+        fit_z2: fit the diffuser-to-sensor distance.
+        depth_model: ``"fixed"``, ``"per_psf"`` or ``"inverse_linear"`` (needs
+            ``plane_index``, the plane number of each PSF).
+        init: ``"flat"``, ``"random"`` (with ``key``) or a phase on the camera grid.
+        coarse: phase unknowns every ``coarse`` samples.
+        masks: K (or K + 2 with near/far) weight images, 0 at saturated pixels.
+        spectrum: broadband light as in :func:`diffcam.camera.psf`.
+        **options: :func:`diffcam.retrieval.lsq.fit_phase` options (``loss``, ``solver``,
+            ``iterations``, ``smoothness``, ``tv``, ``fit_background``).
+
+    Returns:
+        :class:`RetrievalResult`; ``stats`` adds ``z1`` and ``z2`` (m), ``zeta1`` and
+        ``zeta2`` (λz/dx²) and ``depth_model``.
+    """
+    psfs = np.asarray(psfs, np.float32)
+    check_field(psfs, "psfs")
+    if psfs.ndim != 3 or psfs.shape[-2:] != tuple(camera.out_shape):
+        raise ShapeError(f"psfs must be (k, {camera.out_shape[0]}, {camera.out_shape[1]}) "
+                         f"(the camera's out_shape), got {psfs.shape}.")
+    z1 = np.asarray(z1, np.float64).reshape(-1)
+    check_positive("z1", z1, "m")
+    if z1.size != psfs.shape[0]:
+        raise ShapeError(f"{z1.size} depths for {psfs.shape[0]} PSFs; give one z1 per PSF.")
+    if depth_model not in DEPTH_MODELS:
+        raise DiffcamError(f"depth_model must be one of {DEPTH_MODELS}, got {depth_model!r}.")
+    for k, p in enumerate(psfs):
+        if p.min() < 0 or p.max() == p.min():
+            raise DiffcamError(f"PSF {k} is negative somewhere or constant (min {p.min():.3g}, "
+                               f"max {p.max():.3g}); subtract the background with "
+                               f"diffcam.io.subtract_background and check the exposure.")
+    extra = {}
+    if fit_z2:
+        extra["log_z2"] = jnp.float32(0.0)
+    if depth_model == "per_psf":
+        extra["log_z1"] = jnp.zeros(z1.size, jnp.float32)
+    if depth_model == "inverse_linear":
+        if plane_index is None or np.size(plane_index) != z1.size:
+            raise DiffcamError("depth_model='inverse_linear' needs plane_index: the plane "
+                               "number of each PSF (k values).")
+        if z1.size < 2:
+            raise DiffcamError("depth_model='inverse_linear' needs at least 2 PSFs.")
+        plane_index = tuple(float(t) for t in np.asarray(plane_index).reshape(-1))
+        extra["inverse_z1"] = jnp.asarray(_inverse_linear_init(z1, np.array(plane_index)),
+                                          jnp.float32)
+    measured = list(psfs)
+    near_far = None
+    if (near is None) != (far is None):
+        raise DiffcamError("give both near and far captures, or neither.")
+    if near is not None:
+        if geometry is None:
+            raise DiffcamError("near/far captures need geometry=CalibrationGeometry(...).")
+        check_captures(near, far)
+        if np.shape(near) != tuple(camera.shape):
+            raise ShapeError(f"near/far captures {np.shape(near)} must be on the camera grid "
+                             f"{tuple(camera.shape)}.")
+        if abs(float(geometry.dx) - float(camera.dx)) > 1e-6 * float(camera.dx):
+            raise DiffcamError(f"geometry.dx {geometry.dx} m differs from camera.dx "
+                               f"{float(camera.dx)} m; put both on one grid.")
+        near_far = near_far_model(camera.aperture(), geometry)
+        measured += [near, far]
+    aperture = np.asarray(camera.aperture())
+    grid = PhaseGrid.for_aperture(aperture, coarse)
+    theta0 = grid.restrict(initial_phase(init, camera.shape, key)[0])
+    model = _PSFModel(camera, tuple(z1), depth_model, plane_index, spectrum, near_far)
+    result = fit_phase(model, measured, theta0, grid, support=aperture > 0, masks=masks,
+                       extra0=extra or None, **options)
+    fitted = result.stats["extra"] or {}
+    z2 = float(camera.z2) * float(np.exp(fitted.get("log_z2", 0.0)))
+    z1_fit = np.asarray(depths(fitted, z1, depth_model, plane_index), np.float64)
+    scale = float(camera.wavelength) / float(camera.dx) ** 2
+    stats = dict(result.stats, z1=z1_fit, z2=z2, zeta1=z1_fit * scale, zeta2=z2 * scale,
+                 depth_model=depth_model)
+    return result._replace(stats=stats)
+
+
+def predict_psfs(phase: Float[Array, "ny nx"], camera: Camera, z1, *, z2=None,
+                 spectrum=None) -> np.ndarray:
+    """PSFs (nz, cy, cx), unit sum, of a (retrieved) phase at depths ``z1`` (m), with an
+    optional fitted ``z2`` (m); :func:`diffcam.stack.psf_stack` underneath."""
+    from ..stack import psf_stack
+    if z2 is not None:
+        camera = eqx.tree_at(lambda c: c.z2, camera, jnp.asarray(z2, camera.z2.dtype))
+    return psf_stack(phase, camera, np.asarray(z1, np.float64), spectrum=spectrum,
+                     progress=False)
