@@ -153,7 +153,7 @@ def read_mat_stack(path: str | os.PathLike, key: str | None = None) -> np.ndarra
         import scipy.io
         try:
             contents = scipy.io.loadmat(path)
-        except (ValueError, TypeError, OSError, zlib.error) as err:
+        except Exception as err:  # scipy's parser raises many types on a damaged file
             raise DiffcamError(f"{path}: not a readable MATLAB file ({err}); it may be "
                                f"truncated — copy it again.") from err
         key = _pick_key(path, [k for k in contents if not k.startswith("__")], key)
@@ -199,14 +199,13 @@ def subtract_background(image: np.ndarray, background, *,
     """
     image = np.asarray(image, dtype=np.float32)
     background = np.asarray(background, dtype=np.float32)
-    if background.ndim and background.shape != image.shape:
-        background = background.reshape(background.shape + (1, 1))
-    try:
-        out = image - background
-    except ValueError:
+    if background.ndim and background.shape == image.shape[:-2]:
+        background = background[..., None, None]
+    elif background.ndim and background.shape != image.shape:
         raise ShapeError(f"background of shape {background.shape} does not match the "
-                         f"image {image.shape}; give a scalar, one level per channel, or "
-                         f"a dark frame of the image's shape.") from None
+                         f"image {image.shape}; give a scalar, one level per channel "
+                         f"{image.shape[:-2]}, or a dark frame of the image's shape.")
+    out = image - background
     _check_values(out, "image - background")
     lo, hi = float(out.min()), float(out.max())
     if lo < 0:

@@ -17,10 +17,14 @@ Sherman–Morrison turns it into two applications of the (diagonal) TV-and-ident
 Everything that depends only on the PSF and the penalties is computed once, before the
 loop.
 
-Scaling: like the DiffuserCam tutorial, the solver works on ``b / ||b||`` and
-``h / ||h||`` (L2 norms; the whole stack for a volume), so the default penalties fit any
-input scale; the returned estimate is scaled back to the units of ``image / psf``, and
-the objective history is in the normalised units.
+Scaling: like the DiffuserCam code (2-D tutorial and 3-D solver), the PSF (the whole
+stack for a volume) is divided by its L2 norm, so the penalties ``mu1..mu3`` do not
+depend on the PSF's units nor on the image's (every term of the augmented Lagrangian
+scales with ``||b||²``); ``tau`` does scale with the image: the tutorial's ``tau = 1e-4``
+is for an L2-normalised image (:func:`diffcam.io.normalise_l2`), the 3-D solver's
+``tau = 6e-4`` for raw counts minus the bias. The estimate is returned in the units of
+``image / psf`` (so ``A x ≈ b`` with the PSF as given); the objective history is in
+units of the image squared, for the normalised PSF.
 """
 
 from __future__ import annotations
@@ -59,8 +63,8 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, num_iter: int = 100, *,
         num_iter: iterations (static). The DiffuserCam tutorial shows 5; 50–200 converge
             much further.
         mu1, mu2, mu3: ADMM penalties of the splits ``x = Hv``, ``u = Ψv``, ``w = v``
-            (for unit-norm data; defaults from the DiffuserCam tutorial).
-        tau: TV weight (for unit-norm data).
+            (defaults from the DiffuserCam tutorial).
+        tau: TV weight, in the image's units (1e-4 for an L2-normalised image).
         boundary: ``"crop"`` (the sensor sees the centre of the full convolution; the
             estimate is on the larger object grid) or ``"circular"``.
         tol: stop early when the objective changes by less than ``tol`` (relative).
@@ -85,7 +89,7 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, num_iter: int = 100, *,
             list of ``(my, mx)`` arrays.
         tv_axial: include differences along depth in the TV (3-D TV, as DiffuserCam).
         num_iter, mu1, mu2, mu3, tau, boundary, tol: as for :func:`admm_tv` (``tau``
-            default 6e-4, DiffuserCam's 3-D setting).
+            default 6e-4, DiffuserCam's 3-D setting for raw counts minus the bias).
 
     Returns:
         :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)``.
@@ -106,7 +110,7 @@ def _admm(image, psf, num_iter, *, mu1, mu2, mu3, tau, boundary, tol, volume, tv
     for name, value in (("mu1", mu1), ("mu2", mu2), ("mu3", mu3)):
         if is_concrete(value) and not float(value) > 0:
             raise DiffcamError(f"{name} must be > 0, got {value!r}; DiffuserCam uses "
-                               f"mu1=1e-6, mu2=1e-5, mu3=4e-5 for unit-norm data.")
+                               f"mu1=1e-6, mu2=1e-5, mu3=4e-5.")
     if is_concrete(tau) and not float(tau) >= 0:
         raise DiffcamError(f"tau must be >= 0, got {tau!r}.")
     if is_concrete(image) and float(jnp.sum(jnp.asarray(image) ** 2)) == 0:
@@ -156,9 +160,7 @@ def _tv_adjoint(g, axial):
 def _admm_solve(b, psf, penalties, tol, *, num_iter, boundary, tv_axial):
     """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid."""
     mu1, mu2, mu3, tau = penalties
-    b_norm = jnp.linalg.norm(b)
     h_norm = jnp.linalg.norm(psf)
-    b = b / b_norm
     model = convolution_model(psf / h_norm, b.shape, boundary, volume=True)
     otf, grid = model.otf, model.fft_shape                  # (nz, fy, fxr), (fy, fx)
     nz = psf.shape[0]
@@ -224,7 +226,7 @@ def _admm_solve(b, psf, penalties, tol, *, num_iter, boundary, tv_axial):
     state = (v0, plane, tv0, v0, plane, tv0, v0)
     state, res, obj, its, done = iterate(step, state, num_iter, tol)
     v, _, _, _, _, _, rho = state
-    estimate = jnp.maximum(v + rho / mu3, 0) * (b_norm / h_norm)
+    estimate = jnp.maximum(v + rho / mu3, 0) / h_norm
     return Reconstruction(image=estimate, residual=res, objective=obj, iterations=its,
                           converged=done)
 

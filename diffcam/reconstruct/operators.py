@@ -15,9 +15,10 @@ with the point spread function (PSF). Three boundaries are offered; each evaluat
     which no wrap-around reaches the output.
 ``"crop"``
     The DiffuserCam model ``b = crop(h * x)``: the sensor sees the centre of the full
-    linear convolution of a larger scene. The object grid is the FFT grid,
-    ``fft_size(n + m - 1)`` per axis, which holds every scene point that reaches the
-    sensor; points near its border that no sensor pixel sees have zero sensitivity.
+    linear convolution of a larger scene. The object grid is the FFT grid, at least
+    ``n + m - 1`` per axis (one more for some parities), which holds every scene point
+    that reaches the sensor; points near its border that no sensor pixel sees have zero
+    sensitivity.
 
 A volume model (``volume=True``) takes a PSF stack ``(..., nz, my, mx)``, one PSF per
 depth, and an object ``(..., nz, oy, ox)``; the sensor image is the sum over depths,
@@ -84,8 +85,20 @@ def grid_shapes(sensor_shape: Sequence[int], psf_shape: Sequence[int],
         return n, n
     if boundary == "same":
         return n, tuple(fft_size(ni + mi // 2) for ni, mi in zip(n, m))
-    full = tuple(fft_size(ni + mi - 1) for ni, mi in zip(n, m))
+    full = tuple(_crop_grid(ni, mi) for ni, mi in zip(n, m))
     return full, full
+
+
+def _crop_grid(n: int, m: int) -> int:
+    """Smallest fast length ``p >= n + m - 1`` whose centred sensor window leaves room on
+    both sides for every scene point that reaches it: ``m - 1 - m//2`` samples before
+    the window and ``m//2`` after (so the circular convolution never wraps into it)."""
+    p = fft_size(n + m - 1)
+    while True:
+        before = p // 2 - n // 2
+        if before >= m - 1 - m // 2 and p - n - before >= m // 2:
+            return p
+        p = fft_size(p + 1)
 
 
 class ConvolutionModel(eqx.Module):

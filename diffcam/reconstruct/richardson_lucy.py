@@ -69,7 +69,8 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, num_iter: int = 150, *,
     """Richardson–Lucy deconvolution of a sensor image by one PSF (paper Eq. 15).
 
     Args:
-        image: ``(..., ny, nx)`` sensor image, non-negative (counts, any scale).
+        image: ``(..., ny, nx)`` sensor image, non-negative (counts, any scale;
+            rounding-level negatives, ``>= -1e-5·max``, are clipped to 0).
         psf: ``(..., my, mx)`` PSF at the sensor pitch, non-negative, optical axis at
             ``(my//2, mx//2)``; ``my <= ny``, ``mx <= nx``. Leading axes of ``image`` and
             ``psf`` broadcast: one call deconvolves one image by a stack of PSFs (see
@@ -246,6 +247,7 @@ def _rl_batched(image, psf, init, tv_weight, eps, filter_epsilon, tol, *, num_it
 def _rl_solve(b, psf, x0, tv_weight, eps, filter_epsilon, tol, *, num_iter, boundary,
               convention, accelerate, use_tv, use_filter, volume) -> Reconstruction:
     """One problem: ``b (ny, nx)``, ``psf ([nz,] my, mx)``."""
+    b = jnp.maximum(b, 0)  # rounding-level negatives passed validation
     sensor_shape = b.shape
     if convention == "skimage":
         my, mx = psf.shape[-2:]
@@ -286,6 +288,8 @@ def _rl_solve(b, psf, x0, tv_weight, eps, filter_epsilon, tol, *, num_iter, boun
             objective = objective + jnp.sum(tv_scale * norm)
         else:
             update = y * correction * inv_sensitivity
+        # exact RL cannot go negative; FFT rounding of a near-zero correction can
+        update = jnp.maximum(update, 0)
         return update, relative_residual(predicted - eps, b), objective
 
     if not accelerate:

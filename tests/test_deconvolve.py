@@ -1,0 +1,410 @@
+"""Tests of diffcam.reconstruct: Richardson–Lucy, ADMM-TV, Wiener and the forward models.
+
+References: scikit-image's ``richardson_lucy`` (the skimage convention, bit for bit),
+``scipy.signal.convolve`` (direct linear convolution), dense-matrix Tikhonov solves
+(Wiener) and ``scipy.optimize.nnls`` (ADMM without TV).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+import scipy.signal
+from jax.test_util import check_grads
+from skimage.restoration import richardson_lucy as skimage_rl
+
+from diffcam.errors import DiffcamError, ShapeError
+from diffcam.reconstruct import (Reconstruction, admm_tv, admm_tv_3d, convolution_model,
+                                 fft_size, focus_sweep, richardson_lucy, richardson_lucy_3d,
+                                 wiener)
+from diffcam.reconstruct.operators import divergence, gradient
+
+
+@pytest.fixture
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def _rel(a, b):
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b)))
+
+
+def _problem(shape=(30, 36), psf_shape=(7, 8), seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.random(shape) + 0.1, rng.random(psf_shape) ** 2
+
+
+def _dense(model, object_shape):
+    """The matrix of a linear operator, column by column."""
+    n = int(np.prod(object_shape))
+    basis = np.eye(n).reshape((n,) + tuple(object_shape))
+    return np.stack([np.asarray(model(e)).ravel() for e in basis], axis=1)
+
+
+# --- forward model -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("boundary", ["same", "circular", "crop"])
+@pytest.mark.parametrize("psf_shape", [(5, 5), (6, 8)])
+def test_adjoint_identity(x64, boundary, psf_shape):
+    """<A x, y> = <x, Aᵀ y> to 1e-10 (relative) for every boundary, odd and even PSFs."""
+    rng = np.random.default_rng(1)
+    psf = rng.random(psf_shape)
+    model = convolution_model(jnp.asarray(psf), (17, 20), boundary)
+    x = rng.standard_normal(model.object_shape)
+    y = rng.standard_normal((17, 20))
+    lhs = float(jnp.vdot(model(x), y))
+    rhs = float(jnp.vdot(x, model.adjoint(y)))
+    assert abs(lhs - rhs) <= 1e-10 * abs(lhs)
+
+
+def test_adjoint_identity_volume(x64):
+    rng = np.random.default_rng(2)
+    model = convolution_model(jnp.asarray(rng.random((3, 6, 7))), (12, 13), "crop", volume=True)
+    x = rng.standard_normal((3,) + model.object_shape)
+    y = rng.standard_normal((12, 13))
+    lhs, rhs = float(jnp.vdot(model(x), y)), float(jnp.vdot(x, model.adjoint(y)))
+    assert abs(lhs - rhs) <= 1e-10 * abs(lhs)
+
+
+@pytest.mark.parametrize("psf_shape", [(5, 7), (6, 6)])
+def test_same_and_crop_equal_direct_convolution(x64, psf_shape):
+    """'same' = scipy.signal.convolve(mode='same') with the PSF centred at m//2; 'crop' =
+    the centre of the full linear convolution of the object grid."""
+    rng = np.random.default_rng(3)
+    psf = rng.random(psf_shape)
+    x = rng.random((16, 19))
+    my, mx = psf_shape
+    full = scipy.signal.convolve(x, psf, mode="full")
+    same = full[my // 2:my // 2 + 16, mx // 2:mx // 2 + 19]
+    assert _rel(convolution_model(jnp.asarray(psf), x.shape, "same")(x), same) < 1e-12
+    model = convolution_model(jnp.asarray(psf), (10, 11), "crop")
+    obj = rng.random(model.object_shape)
+    oy, ox = model.object_shape
+    full = scipy.signal.convolve(obj, psf, mode="full")
+    # sensor index i sees object index i + oy//2 - 10//2 through psf[m//2]
+    y0, x0 = oy // 2 - 5 + my // 2, ox // 2 - 11 // 2 + mx // 2
+    assert _rel(model(obj), full[y0:y0 + 10, x0:x0 + 11]) < 1e-12
+
+
+def test_fft_size():
+    assert fft_size(1536) == 1536 and fft_size(1537) == 1620 and fft_size(2047) == 2048
+    assert fft_size(599) == 640 and all(fft_size(n) >= n and fft_size(n) % 2 == 0
+                                        for n in range(1, 300))
+
+
+def test_gradient_divergence_adjoint(x64):
+    rng = np.random.default_rng(4)
+    x, g = rng.standard_normal((9, 11)), rng.standard_normal((2, 9, 11))
+    assert np.isclose(float(jnp.vdot(gradient(x), g)), -float(jnp.vdot(x, divergence(g))))
+
+
+# --- Richardson–Lucy --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("psf_shape", [(5, 5), (6, 6), (4, 7), (8, 5)])
+def test_skimage_convention_matches_scikit_image(x64, psf_shape):
+    """Equals skimage.restoration.richardson_lucy(clip=False) to < 1e-6 relative L2."""
+    image, psf = _problem(psf_shape=psf_shape)
+    ref = skimage_rl(image, psf, 25, clip=False)
+    out = richardson_lucy(image, psf, 25, convention="skimage")
+    assert out.image.dtype == jnp.float64
+    assert _rel(out.image, ref) < 1e-6
+
+
+def test_skimage_convention_filter_epsilon(x64):
+    image, psf = _problem()
+    level = float(np.percentile(scipy.signal.convolve(np.full_like(image, 0.5), psf, "same"), 20))
+    ref = skimage_rl(image, psf, 10, clip=False, filter_epsilon=level)
+    out = richardson_lucy(image, psf, 10, convention="skimage", filter_epsilon=level)
+    assert _rel(out.image, ref) < 1e-6
+
+
+def test_skimage_even_psf_is_not_the_adjoint(x64):
+    """For an even PSF scikit-image's back-projection is shifted by a pixel: the two
+    conventions differ, while for an odd PSF (interior) they agree up to normalisation."""
+    image, psf = _problem(psf_shape=(6, 6))
+    a = richardson_lucy(image, psf, 10, convention="skimage").image
+    b = richardson_lucy(image, psf, 10, init=0.5).image
+    assert _rel(a / a.mean(), b / b.mean()) > 1e-2
+
+
+def _rl_direct(image, psf, num_iter, boundary):
+    """The default update written with scipy.signal.convolve (no FFT), in float64."""
+    my, mx = psf.shape
+    ny, nx = image.shape
+    if boundary == "same":
+        oy, ox = ny, nx
+        fwd = lambda x: scipy.signal.convolve(x, psf, "full", method="direct")[  # noqa
+            my // 2:my // 2 + ny, mx // 2:mx // 2 + nx]
+        adj = lambda r: scipy.signal.correlate(r, psf, "full", method="direct")[  # noqa
+            my - 1 - my // 2:my - 1 - my // 2 + ny, mx - 1 - mx // 2:mx - 1 - mx // 2 + nx]
+    else:  # crop
+        oy, ox = convolution_model(jnp.asarray(psf), image.shape, "crop").object_shape
+        y0, x0 = oy // 2 - ny // 2 + my // 2, ox // 2 - nx // 2 + mx // 2
+        fwd = lambda x: scipy.signal.convolve(x, psf, "full", method="direct")[  # noqa
+            y0:y0 + ny, x0:x0 + nx]
+
+        def adj(r):
+            big = np.zeros((oy + my - 1, ox + mx - 1))
+            big[y0:y0 + ny, x0:x0 + nx] = r
+            return scipy.signal.correlate(big, psf, "valid", method="direct")
+    sens = adj(np.ones_like(image))
+    seen = sens > 1e-5 * sens.max()
+    x = np.where(seen, image.sum() / sens[seen].sum(), 0.0)
+    for _ in range(num_iter):
+        x = np.where(seen, x * adj(image / (fwd(x) + 1e-12)) / np.where(seen, sens, 1), 0)
+    return x
+
+
+@pytest.mark.parametrize("boundary", ["same", "crop"])
+@pytest.mark.parametrize("psf_shape", [(5, 5), (6, 4)])
+def test_default_equals_direct_implementation(x64, boundary, psf_shape):
+    image, psf = _problem(shape=(14, 17), psf_shape=psf_shape)
+    ref = _rl_direct(image, psf, 15, boundary)
+    out = richardson_lucy(image, psf, 15, boundary=boundary)
+    assert out.image.shape == ref.shape
+    assert _rel(out.image, ref) < 1e-10
+
+
+def test_rl_keeps_flux_and_sign_and_lowers_idivergence():
+    image, psf = _problem()
+    out = richardson_lucy(image, psf, 40, boundary="circular")
+    assert out.image.dtype == jnp.float32
+    assert float(out.image.min()) >= 0
+    model = convolution_model(jnp.asarray(psf, jnp.float32), image.shape, "circular")
+    assert np.isclose(float(model(out.image).sum()), image.sum(), rtol=1e-4)
+    assert np.all(np.diff(np.asarray(out.objective)) <= 1e-5 * float(out.objective[0]))
+    assert out.residual.shape == (40,) and int(out.iterations) == 40 and not out.converged
+
+
+def test_rl_recovers_sparse_scene(x64):
+    """Noise-free data of a few points: RL's estimate concentrates on them."""
+    rng = np.random.default_rng(5)
+    psf = rng.random((15, 15)) ** 4
+    scene = np.zeros((40, 40))
+    scene[[10, 20, 31], [12, 25, 30]] = [1.0, 2.0, 1.5]
+    image = np.asarray(convolution_model(jnp.asarray(psf), scene.shape, "same")(scene))
+    out = richardson_lucy(image, psf, 500, accelerate=True)
+    est = np.asarray(out.image)
+    assert est[[10, 20, 31], [12, 25, 30]].sum() > 0.8 * est.sum()
+    assert float(out.residual[-1]) < 1e-2
+
+
+def test_acceleration_and_tv_variants():
+    image, psf = _problem(seed=6)
+    plain = richardson_lucy(image, psf, 30)
+    fast = richardson_lucy(image, psf, 30, accelerate=True)
+    assert float(fast.objective[-1]) < float(plain.objective[-1])
+    tv = richardson_lucy(image, psf, 30, tv_weight=0.01)
+    assert float(tv.image.min()) >= 0 and np.all(np.isfinite(np.asarray(tv.image)))
+    tv_total = lambda x: float(jnp.abs(gradient(x)).sum())  # noqa: E731
+    assert tv_total(tv.image) < tv_total(plain.image)
+
+
+def test_early_stopping_inside_jit():
+    image, psf = _problem(seed=7)
+    out = richardson_lucy(image, psf, 500, tol=1e-3)
+    k = int(out.iterations)
+    assert bool(out.converged) and 1 < k < 500
+    assert np.all(np.isfinite(np.asarray(out.objective[:k])))
+    assert np.all(np.isnan(np.asarray(out.objective[k:])))
+    f = np.asarray(out.objective)
+    assert abs(f[k - 1] - f[k - 2]) <= 1e-3 * abs(f[k - 2])
+
+
+def test_batched_psfs_and_vmap_agree():
+    """Leading axes broadcast; the batched call equals per-PSF calls and jax.vmap."""
+    rng = np.random.default_rng(8)
+    image = rng.random((20, 24)) + 0.1
+    psfs = rng.random((3, 5, 5))
+    batched = richardson_lucy(image, psfs, 10)
+    assert batched.image.shape == (3, 20, 24) and batched.residual.shape == (3, 10)
+    for k in range(3):
+        single = richardson_lucy(image, psfs[k], 10)
+        assert _rel(batched.image[k], single.image) < 1e-5
+    mapped = jax.vmap(lambda h: richardson_lucy(image, h, 10).image)(jnp.asarray(psfs))
+    assert _rel(mapped, batched.image) < 1e-5
+
+
+def test_jit_wrapping_and_gradient(x64):
+    """Works under a caller's jit, and grad through the scan matches finite differences."""
+    image, psf = _problem(shape=(10, 12), psf_shape=(3, 3), seed=9)
+    jitted = jax.jit(lambda b, h: richardson_lucy(b, h, 5).image)
+    assert _rel(jitted(image, psf), richardson_lucy(image, psf, 5).image) < 1e-12
+    loss = lambda h: jnp.sum(richardson_lucy(image, h, 5).image ** 2)  # noqa: E731
+    check_grads(loss, (jnp.asarray(psf),), order=1, modes=["rev"], atol=1e-6, rtol=1e-5)
+
+
+def test_focus_sweep_picks_the_true_depth():
+    """A scene blurred by plane 2 of a stack of dilated PSFs is sharpest at plane 2."""
+    rng = np.random.default_rng(10)
+    base = (rng.random((9, 9)) > 0.7).astype(float)
+    planes = [np.kron(base, np.ones((k, k))) for k in (1, 2, 3)] + [np.kron(base.T, np.ones((2, 2)))]
+    stack = np.stack([np.pad(p, ((27 - len(p)) // 2, (28 - len(p)) // 2)) for p in planes])
+    scene = np.zeros((48, 48))
+    scene[[12, 30, 24], [14, 20, 36]] = 1
+    image = np.asarray(convolution_model(jnp.asarray(stack[2]), scene.shape, "same")(scene))
+    sweep = focus_sweep(image, stack, 100)
+    assert sweep.reconstruction.image.shape == (4, 48, 48)
+    assert int(sweep.best) == 2
+
+
+def test_rl_3d_separates_planes(x64):
+    """Two planes with different PSFs: a point in plane 1 is put back in plane 1."""
+    rng = np.random.default_rng(11)
+    stack = rng.random((2, 9, 9)) ** 6
+    model = convolution_model(jnp.asarray(stack), (24, 24), "crop", volume=True)
+    scene = np.zeros((2,) + model.object_shape)
+    scene[1, 14, 17] = 1.0
+    scene[1, 20, 12] = 0.5
+    image = np.asarray(model(scene))
+    out = richardson_lucy_3d(image, stack, 300)
+    est = np.asarray(out.image)
+    assert est.shape == scene.shape
+    assert est[1].sum() > 0.9 * est.sum()
+    assert float(out.residual[-1]) < 0.02
+
+
+# --- Wiener -------------------------------------------------------------------------
+
+
+def test_wiener_equals_dense_tikhonov(x64):
+    """Circular Wiener = argmin ||h⊛x - b||² + λ||x||², solved with the dense matrix."""
+    image, psf = _problem(shape=(8, 10), psf_shape=(3, 4), seed=12)
+    model = convolution_model(jnp.asarray(psf), image.shape, "circular")
+    a = _dense(model, image.shape)
+    lam = 1e-2 * float(np.max(np.abs(np.asarray(model.otf)) ** 2))
+    ref = np.linalg.solve(a.T @ a + lam * np.eye(a.shape[1]), a.T @ image.ravel())
+    out = wiener(image, psf, 1e-2)
+    assert _rel(np.asarray(out.image).ravel(), ref) < 1e-10
+    assert out.residual.shape == (1,) and out.objective.shape == (1,)
+
+
+# --- ADMM ---------------------------------------------------------------------------
+
+
+def test_admm_without_tv_reaches_nnls(x64):
+    """tau=0, circular: ADMM minimises ½||Ax-b||² over x >= 0 (scipy.optimize.nnls)."""
+    rng = np.random.default_rng(13)
+    psf = rng.random((4, 4))
+    scene = np.maximum(rng.standard_normal((8, 8)), 0)
+    model = convolution_model(jnp.asarray(psf), scene.shape, "circular")
+    image = np.asarray(model(scene)) + 0.01 * rng.standard_normal(scene.shape)
+    a = _dense(model, scene.shape)
+    x_ref, _ = scipy.optimize.nnls(a, image.ravel())
+    f_ref = 0.5 * np.sum((a @ x_ref - image.ravel()) ** 2)
+    out = admm_tv(image, psf, 3000, mu1=0.05, mu2=0.05, mu3=0.05, tau=0.0,
+                  boundary="circular")
+    est = np.asarray(out.image).ravel()
+    assert est.min() >= 0
+    f = 0.5 * np.sum((a @ est - image.ravel()) ** 2)
+    assert f <= f_ref * (1 + 1e-3) + 1e-12
+
+
+def test_admm_decreases_its_objective(x64):
+    rng = np.random.default_rng(14)
+    psf = rng.random((12, 12)) ** 6
+    model = convolution_model(jnp.asarray(psf), (20, 20), "crop")
+    scene = np.zeros(model.object_shape)
+    scene[12:22, 10:26] = 1.0
+    image = np.asarray(model(scene))
+    out = admm_tv(image, psf, 400, mu1=1e-2, mu2=1e-2, mu3=1e-2, tau=1e-3)
+    f = np.asarray(out.objective)
+    assert f[-1] < 0.05 * f[0] and f[-1] < f[10] < f[1]
+    tail = f[200:]
+    assert np.all(np.diff(tail) <= 1e-3 * tail[:-1])   # monotone once converging
+    assert float(out.image.min()) >= 0
+    assert float(out.residual[-1]) < 0.05
+
+
+def test_admm_3d_and_2d_agree_for_one_plane(x64):
+    image, psf = _problem(shape=(16, 18), psf_shape=(8, 9), seed=15)
+    a = admm_tv(image, psf, 20, mu1=1e-2, mu2=1e-2, mu3=1e-2, tau=1e-3)
+    b = admm_tv_3d(image, psf[None], 20, mu1=1e-2, mu2=1e-2, mu3=1e-2, tau=1e-3)
+    assert b.image.shape == (1,) + a.image.shape
+    assert _rel(b.image[0], a.image) < 1e-10
+
+
+def test_admm_3d_axial_tv_runs_and_fits(x64):
+    rng = np.random.default_rng(16)
+    stack = rng.random((3, 8, 8)) ** 6
+    model = convolution_model(jnp.asarray(stack), (16, 16), "crop", volume=True)
+    scene = np.zeros((3,) + model.object_shape)
+    scene[:, 10:14, 8:16] = 1.0
+    image = np.asarray(model(scene))
+    out = admm_tv_3d(image, stack, 200, mu1=1e-2, mu2=1e-2, mu3=1e-2, tau=1e-4)
+    assert out.image.shape == scene.shape and float(out.image.min()) >= 0
+    assert float(out.residual[-1]) < 0.05
+    assert float(out.objective[-1]) < 0.01 * float(out.objective[0])
+
+
+def test_result_is_a_pytree():
+    image, psf = _problem()
+    out = jax.jit(lambda b: admm_tv(b, psf, 3))(image)
+    assert isinstance(out, Reconstruction) and out.image.shape == (
+        fft_size(30 + 7 - 1), fft_size(36 + 8 - 1))
+
+
+# --- validation ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("solver", [richardson_lucy, admm_tv, wiener])
+def test_bad_inputs_raise_clear_errors(solver):
+    image, psf = _problem()
+    args = (lambda b, h: solver(b, h, 5)) if solver is not wiener else solver
+    with pytest.raises(ShapeError, match="larger than the image"):
+        args(image[:5, :5], psf)
+    with pytest.raises(DiffcamError, match="negative"):
+        args(image, psf - 0.5)
+    with pytest.raises(DiffcamError, match="sums to zero"):
+        args(image, np.zeros_like(psf))
+    bad = image.copy()
+    bad[3, 3] = np.nan
+    with pytest.raises(DiffcamError, match="NaN/Inf"):
+        args(bad, psf)
+    bad_psf = psf.copy()
+    bad_psf[0, 0] = np.inf
+    with pytest.raises(DiffcamError, match="NaN/Inf"):
+        args(image, bad_psf)
+    with pytest.raises(ShapeError, match="at least 2 axes"):
+        args(image[0], psf)
+    with pytest.raises(ShapeError, match="do not broadcast"):
+        args(np.stack([image] * 2), np.stack([psf] * 3))
+
+
+@pytest.mark.parametrize("num_iter", [0, -3, 2.5, True])
+def test_bad_iterations(num_iter):
+    image, psf = _problem()
+    with pytest.raises(DiffcamError, match="num_iter"):
+        richardson_lucy(image, psf, num_iter)
+
+
+def test_rl_specific_errors():
+    image, psf = _problem()
+    with pytest.raises(DiffcamError, match="non-negative counts"):
+        richardson_lucy(image - 0.5, psf, 3)
+    with pytest.raises(DiffcamError, match="boundary='same'"):
+        richardson_lucy(image, psf, 3, convention="skimage", boundary="crop")
+    with pytest.raises(DiffcamError, match="boundary must be"):
+        richardson_lucy(image, psf, 3, boundary="reflect")
+    with pytest.raises(ShapeError, match="one shape"):
+        richardson_lucy_3d(image, [psf, psf[:-1]], 3)
+    with pytest.raises(ShapeError, match="nz, my, mx"):
+        richardson_lucy_3d(image, psf, 3)
+    with pytest.raises(DiffcamError, match="tol"):
+        richardson_lucy(image, psf, 3, tol=-1.0)
+    with pytest.raises(ShapeError, match="object grid"):
+        richardson_lucy(image, psf, 3, init=np.ones((4, 4)))
+
+
+def test_admm_specific_errors():
+    image, psf = _problem()
+    with pytest.raises(DiffcamError, match="mu2 must be > 0"):
+        admm_tv(image, psf, 3, mu2=0.0)
+    with pytest.raises(DiffcamError, match="richardson_lucy"):
+        admm_tv(image, psf, 3, boundary="same")
+    with pytest.raises(DiffcamError, match="all zeros"):
+        admm_tv(np.zeros_like(image), psf, 3)
