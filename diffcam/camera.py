@@ -4,7 +4,7 @@ A point source at ``(x1, y1, z1)`` lights a circular aperture C (or any mask) ca
 a thin diffuser of phase θd; the field travels ``z2`` to the sensor, which records the
 intensity:
 
-    PSF(u) = | P_z2{ C · e^{jθd} · U1 } (u) |²,   U1 = e^{jkz1}/(jλz1) e^{jk|x − ρ1|²/(2z1)}
+    PSF(u) = |P_z2{C · e^{jθd} · U1}(u)|²,   U1 = e^{jkz1}/(jλz1) e^{jk|x − ρ1|²/(2z1)}
 
 with ρ1 = (x1, y1) and P_z the Fresnel transfer-function propagator.
 
@@ -13,7 +13,7 @@ Two ways to evaluate it (``Camera.method``):
 ``"scaling"`` (default) — the Fresnel scaling theorem (DESIGN.md). Expanding the two
 quadratic phases,
 
-    P_z2{g · U1}(u) = (1/M) · e^{jφ(u)} · e^{jkz1}/(jλz1) · P_zeff{g}(u/M + ρ1·z2/(z1 + z2)),
+    P_z2{g·U1}(u) = (1/M) e^{jφ(u)} e^{jkz1}/(jλz1) · P_zeff{g}(u/M + ρ1·z2/(z1 + z2)),
 
     z_eff = z1·z2/(z1 + z2),   M = (z1 + z2)/z1,
 
@@ -22,10 +22,10 @@ is never sampled, so any ``z1`` works at the diffuser's pitch, and ``FFT(g)`` is
 by every depth and every lateral position: a depth costs one inverse FFT, a position one
 interpolation. The magnified field is sampled at the sensor-grid points by separable
 cubic B-spline interpolation (its prefilter folded into the transfer function) of the
-*complex field* — band-limited at the grid's Nyquist — and squared afterwards: the intensity has twice the field's bandwidth, so
-interpolating it would blur speckle. The result is the irradiance at the sensor-grid
-points, like the direct path; integrating over pixels of another pitch is
-:func:`diffcam.sensor.bin_pixels`.
+*complex field* — band-limited at the grid's Nyquist — and squared afterwards: the
+intensity has twice the field's bandwidth, so interpolating it would blur speckle. The
+result is the irradiance at the sensor-grid points, like the direct path; integrating
+over pixels of another pitch is :func:`diffcam.sensor.bin_pixels`.
 
 ``"direct"`` — the literal Eq. 7 on the grid, for checking: the point-source chirp is
 sampled at the aperture, which aliases for close sources (a :class:`SamplingError`
@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import Complex, Float
+from jaxtyping import Float
 
 from .errors import (DiffcamError, ShapeError, check_field, check_finite, check_positive,
                      fmt_length, is_concrete, sampling_problem)

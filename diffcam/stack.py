@@ -121,7 +121,7 @@ def _positions_array(positions):
 
 
 def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
-                   normalise: bool = True, batch_size: int = 4,
+                   normalise: bool = True, batch_size: int | None = None,
                    devices: Sequence | None = None, accept_undersampling: bool = False
                    ) -> Iterator[tuple[int, np.ndarray]]:
     """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
@@ -130,6 +130,8 @@ def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
     if depths.size == 0:
         raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
+    if batch_size is None:  # about 2**20 samples per device per call
+        batch_size = max(1, 2 ** 20 // (camera.padded_shape[0] * camera.padded_shape[1]))
     if not isinstance(batch_size, int) or batch_size < 1:
         raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
     pos = _positions_array(positions)
@@ -168,9 +170,9 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
 
 
 def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
-              normalise: bool = True, batch_size: int = 4, out: str | os.PathLike | None = None,
-              progress: bool | None = None, devices: Sequence | None = None,
-              accept_undersampling: bool = False) -> np.ndarray:
+              normalise: bool = True, batch_size: int | None = None,
+              out: str | os.PathLike | None = None, progress: bool | None = None,
+              devices: Sequence | None = None, accept_undersampling: bool = False) -> np.ndarray:
     """PSFs for every depth in ``z1`` and every lateral position, chunk by chunk.
 
     Args:
@@ -183,6 +185,7 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
         spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.camera.psf`.
         normalise: each PSF sums to one (default) or is the physical irradiance.
         batch_size: depths per device per jitted call; working memory grows with it.
+            Default: about 2**20 grid samples per call (1 from 1024²).
         out: stream the stack to this file instead of memory: ``.npy`` (a memory-mapped
             array; metadata in ``<out>.json``) or ``.tif``/``.tiff`` (ImageJ hyperstack
             written page by page, metadata inside). ``None`` keeps it in memory.
@@ -271,8 +274,9 @@ def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
     want = 3 if meta.positions is None else 4
     if stack.ndim != want or stack.shape[0] != nz or (
             want == 4 and stack.shape[1] != len(meta.positions)):
+        npos = None if meta.positions is None else len(meta.positions)
         raise ShapeError(f"stack shape {stack.shape} does not match the metadata "
-                         f"({nz} depths, positions {None if meta.positions is None else len(meta.positions)}).")
+                         f"({nz} depths, {npos} positions).")
     if path.endswith(".npz"):
         np.savez(path, stack=stack, meta=np.array(meta.to_json()))
     elif path.endswith((".tif", ".tiff")):
