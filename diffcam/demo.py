@@ -1,13 +1,19 @@
-"""``diffcam demo``: the built-in demonstration, writing a report folder.
+"""``diffcam demo``: the paper's Section 3.1 end to end, written to a report folder.
 
-Runs on data shipped with the packages (scikit-image's "cameraman" as the diffuser
-phase, as in the paper's simulation), with nothing downloaded:
+Runs on built-in data only (scikit-image's "cameraman" is the diffuser phase, as in the
+paper; the random diffuser and the test objects are generated), nothing downloaded:
 
-1. checks the propagators against two closed forms (on-axis Fresnel intensity behind a
-   circular aperture; the Airy pattern of a Fourier lens),
-2. builds the paper's diffuser (cameraman scaled to [−π, π], aperture radius 1.2 mm,
-   5 µm pitch) and its PSF for a point at z1 = 25 mm with the sensor at z2 = 1 mm,
-3. writes ``demo.png`` and ``metrics.json`` and prints one line of figures.
+1. Fig. 3 — phase retrieval from near/far intensities: textbook Gerchberg–Saxton
+   (which stagnates) and diffcam's default calibration, scored on the central 300²;
+2. the twin ambiguity resolved by one captured PSF at z1 = 22 mm;
+3. Fig. 5 — PSFs at z1 = 25 mm, z2 = 1 mm from the true and retrieved phases, and
+   Richardson–Lucy (150 iterations) of an "F";
+4. Fig. 6 — the same with a 30 µm random diffuser and a textured "flower";
+5. Fig. 9 — PSFs over z1 = 22 … 30 mm: model vs truth vs the scaling baseline anchored
+   at 22 mm (ideal and realistically captured reference), at z2 = 1 mm and 5 mm.
+
+Writes ``fig3_phase.png``, ``fig5_cameraman.png``, ``fig6_random.png``,
+``fig9_depths.png``, ``metrics.json`` and ``report.md``.
 """
 
 from __future__ import annotations
@@ -19,110 +25,203 @@ from pathlib import Path
 
 import numpy as np
 
-from . import grid
-from .optics import apply_phase, circular_aperture, point_source_field
-from .propagate import fourier_lens, propagate
-from .sampling import plan_sampling
+from . import paper
 
-WAVELENGTH = 532e-9
-DX = 5e-6
-APERTURE_RADIUS = 1.2e-3
-Z1, Z2 = 25e-3, 1e-3
-FOCAL_LENGTH = 5e-2
+_STEPS = 5
 
 
-def cameraman_phase(n: int = 512) -> np.ndarray:
-    """The paper's ground-truth diffuser phase: "cameraman" scaled linearly to [−π, π]."""
-    from skimage.data import camera
-    from skimage.transform import resize
+def _plot_phases(path, fig3):
+    import matplotlib.pyplot as plt
 
-    img = camera().astype(np.float64)
-    if n != img.shape[0]:
-        img = resize(img, (n, n), anti_aliasing=True)
-    img = (img - img.min()) / (img.max() - img.min())
-    return (2 * img - 1) * np.pi
+    n = fig3["truth"].shape[0]
+    c, h = n // 2, 260
+    win = (slice(c - h, c + h), slice(c - h, c + h))
+    mask = fig3["aperture"][win] > 0
+    panels = [("true phase θd", fig3["truth"]),
+              (f"textbook GS (P = {fig3['gs_scores']['pearson']:.3f})", fig3["gs"]),
+              (f"diffcam calibration (P = {fig3['resolved_scores']['pearson']:.3f})",
+               fig3["resolved"])]
+    fig, axes = plt.subplots(1, 4, figsize=(17, 4.4))
+    from .metrics import phase_offset, wrap_phase
 
-
-def _closed_form_checks(n: int) -> dict:
-    """Relative errors of the propagators against two closed forms."""
-    from scipy.special import j1
-
-    dx = 2e-6
-    aperture = circular_aperture((n, n), dx, 40 * dx)
-    a = np.sqrt(float(aperture.sum()) / np.pi) * dx
-    fresnel_number = 2.5
-    z = a * a / (WAVELENGTH * fresnel_number)
-    out = propagate(aperture.astype(np.complex64), dx, WAVELENGTH, z, pad=0)
-    i_axis = float(abs(out[n // 2, n // 2]) ** 2)
-    i_ref = 4 * np.sin(np.pi * fresnel_number / 2) ** 2
-    far, (du, _) = fourier_lens(aperture.astype(np.complex64), dx, WAVELENGTH, FOCAL_LENGTH)
-    prof = np.abs(np.asarray(far[n // 2, n // 2:])) ** 2
-    prof /= prof[0]
-    v = 2 * np.pi / WAVELENGTH * a * np.arange(len(prof)) * du / FOCAL_LENGTH
-    v[0] = 1e-12
-    airy = (2 * j1(v) / v) ** 2
-    keep = v < 10.2
-    return {"fresnel_on_axis_rel_error": abs(i_axis - i_ref) / i_ref,
-            "airy_profile_rms": float(np.sqrt(np.mean((prof[keep] - airy[keep]) ** 2)))}
+    for ax, (title, ph) in zip(axes, panels):
+        d = phase_offset(ph[win], fig3["truth"][win], mask=mask)  # show piston-aligned
+        ax.imshow(np.where(mask, wrap_phase(ph[win] - d), np.nan), cmap="twilight",
+                  vmin=-np.pi, vmax=np.pi)
+        ax.set_title(title)
+        ax.axis("off")
+    far = fig3["far"][c - 128:c + 128, c - 128:c + 128]
+    axes[3].imshow(np.log10(far / far.max() + 1e-6), cmap="magma")
+    axes[3].set_title("far-field intensity (log10), centre")
+    axes[3].axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
-def run_demo(out_dir: str | os.PathLike = "diffcam-report", n: int = 1024,
-             quiet: bool = False) -> dict:
-    """Run the demonstration; return the figures that were written to ``metrics.json``."""
+def _plot_stages(path, rows, title):
+    import matplotlib.pyplot as plt
+
+    head, stages = rows[0], rows[1:]
+    fig, axes = plt.subplots(2, len(stages) + 1, figsize=(3.4 * (len(stages) + 1), 7))
+    axes[0, 0].imshow(head["_sensor"], cmap="gray")
+    axes[0, 0].set_title("sensor image")
+    axes[1, 0].imshow(head["_scene"], cmap="gray")
+    axes[1, 0].set_title("object")
+    for j, row in enumerate(stages, start=1):
+        axes[0, j].imshow(row["_psf"] ** 0.5, cmap="inferno")
+        axes[0, j].set_title(f"PSF: {row['stage']}\nPearson {row['psf_pearson']:.3f}")
+        axes[1, j].imshow(row["_recon"], cmap="gray")
+        axes[1, j].set_title(f"RL: SSIM {row['recon_ssim']:.3f}, P {row['recon_pearson']:.3f}")
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _plot_depths(path, sweeps):
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(sweeps), figsize=(6.5 * len(sweeps), 4.2))
+    for ax, (label, rows) in zip(np.atleast_1d(axes), sweeps.items()):
+        z = [r["z1_mm"] for r in rows]
+        for key, style in (("model", "o-"), ("scaling_ideal", "s--"),
+                           ("scaling_captured", "^:")):
+            ax.plot(z, [r[key] for r in rows], style, label=key.replace("_", " "))
+        ax.set_xlabel("z1 (mm)")
+        ax.set_ylabel("Pearson with the true PSF")
+        ax.set_title(label)
+        ax.legend()
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _table(rows, columns) -> str:
+    def fmt(v):
+        return f"{v:.4f}" if isinstance(v, float) else str(v)
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _public(rows):
+    return [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+
+
+def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = False,
+             settings: paper.Settings | None = None, quiet: bool = False) -> dict:
+    """Run the demonstration; write the report; return the metrics written."""
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    s = settings or (paper.Settings(grid=4000) if full else paper.Settings())
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    say = (lambda *a: None) if quiet else print
+    say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
+    scale = (s.grid / 1024) ** 2 * np.log2(s.grid) / 10
+    say(f"diffcam demo: grid {s.grid}² at 5 µm, GS {s.gs_iterations} iterations; expect about "
+        f"{max(1, round(3 * scale))} min on a 2-core CPU. Report → {out}/")
     t0 = time.perf_counter()
 
-    say("[1/3] propagators against closed forms ...")
-    checks = _closed_form_checks(n)
+    say(f"[1/{_STEPS}] Fig. 3: phase retrieval (textbook GS, then diffcam's calibration) ...")
+    truth = paper.cameraman_phase()
+    fig3 = paper.fig3_phase_retrieval(truth, s)
+    say(f"      GS {s.gs_iterations} it: phase Pearson {fig3['gs_scores']['pearson']:.4f} "
+        f"({fig3['gs_seconds']:.0f} s); calibration: twin-resolved "
+        f"{fig3['calibrated_scores']['twin_resolved']:.4f} ({fig3['calibrated_seconds']:.0f} s)")
 
-    say(f"[2/3] diffuser PSF, z1 = {Z1 * 1e3:g} mm, z2 = {Z2 * 1e3:g} mm, grid {n}² ...")
-    plan = plan_sampling(WAVELENGTH, DX, n, Z1, Z2, APERTURE_RADIUS)
-    phase = grid.pad_to(cameraman_phase(512), (n, n))
-    aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
-    source = point_source_field((n, n), DX, WAVELENGTH, Z1, aperture_radius=APERTURE_RADIUS)
-    field = apply_phase(source * aperture, phase)
-    sensor, choice = propagate(field, DX, WAVELENGTH, Z2, return_choice=True)
-    psf = np.abs(np.asarray(sensor)) ** 2
-    psf /= psf.sum()
+    say(f"[2/{_STEPS}] resolving the twin with a captured PSF at z1 = 22 mm ...")
+    cam = paper.camera(s)
+    reference = paper.captured_reference(fig3["truth"], cam, paper.DEPTHS[0])
+    resolved, used_twin = paper.resolve_twin(fig3["calibrated"], reference, cam,
+                                             paper.DEPTHS[0])
+    fig3["resolved"] = resolved
+    fig3["resolved_scores"] = paper._scores(resolved, fig3["truth"], s.grid)
+    _plot_phases(out / "fig3_phase.png", fig3)
 
-    say("[3/3] writing the report ...")
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
-    half = 300
-    c = n // 2
-    ext = np.array([-half, half, half, -half]) * DX * 1e3
-    axes[0].imshow(np.asarray(phase)[c - half:c + half, c - half:c + half] *
-                   np.asarray(aperture)[c - half:c + half, c - half:c + half],
-                   cmap="twilight", extent=ext)
-    axes[0].set_title("diffuser phase θd (rad) inside the aperture")
-    axes[1].imshow(psf[c - half:c + half, c - half:c + half] ** 0.5, cmap="inferno", extent=ext)
-    axes[1].set_title(f"PSF at z1 = {Z1 * 1e3:g} mm, z2 = {Z2 * 1e3:g} mm (√ intensity)")
-    for ax in axes:
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-    fig.tight_layout()
-    fig.savefig(out / "demo.png", dpi=110)
-    plt.close(fig)
+    say(f"[3/{_STEPS}] Fig. 5: PSFs at z1 = 25 mm and Richardson–Lucy of an 'F' ...")
+    stages = {"true phase": None, f"GS {s.gs_iterations} it": fig3["gs"]}
+    for it in (10, 50):
+        early = paper.calibrate(fig3["near"], fig3["far"], iterations=it).phase
+        stages[f"calibration {it} it"] = paper.resolve_twin(early, reference, cam,
+                                                            paper.DEPTHS[0])[0]
+    stages[f"calibration {s.calibration_iterations} it"] = resolved
+    fig5 = paper.fig5_psf_and_reconstruction(fig3["truth"], stages, paper.letter_f(), s)
+    _plot_stages(out / "fig5_cameraman.png", fig5, "Fig. 5 — cameraman diffuser, object 'F'")
+
+    say(f"[4/{_STEPS}] Fig. 6: random 30 µm diffuser and a 'flower' ...")
+    rnd = paper.fig3_phase_retrieval(paper.random_phase(), s)
+    rnd_resolved, _ = paper.resolve_twin(
+        rnd["calibrated"], paper.captured_reference(rnd["truth"], cam, paper.DEPTHS[0]), cam,
+        paper.DEPTHS[0])
+    fig6 = paper.fig5_psf_and_reconstruction(
+        rnd["truth"], {"true phase": None, f"GS {s.gs_iterations} it": rnd["gs"],
+                       f"calibration {s.calibration_iterations} it": rnd_resolved},
+        paper.flower(), s)
+    _plot_stages(out / "fig6_random.png", fig6, "Fig. 6 — random diffuser, 'flower'")
+
+    say(f"[5/{_STEPS}] Fig. 9: PSFs over z1 = 22 … 30 mm vs the scaling baseline ...")
+    sweeps = {"z2 = 1 mm": paper.fig9_depth_sweep(fig3["truth"], resolved, s),
+              "z2 = 5 mm": paper.fig9_depth_sweep(fig3["truth"], resolved, s, z2=5e-3,
+                                                  crop=min(s.grid, 704))}
+    _plot_depths(out / "fig9_depths.png", sweeps)
 
     metrics = {
-        **checks,
-        "grid": n,
-        "propagator": str(choice),
-        "fresnel_number_z2": plan.fresnel_number_z2,
-        "chirp_margin": plan.chirp_margin,
-        "psf_peak_to_mean": float(psf.max() / psf[psf > 0].mean()),
+        "grid": s.grid,
+        "fig3": {
+            "gs_iterations": s.gs_iterations,
+            "phase_pearson_gs": fig3["gs_scores"]["pearson"],
+            "phase_pearson_gs_twin_resolved": fig3["gs_scores"]["twin_resolved"],
+            "phase_pearson_calibrated": fig3["resolved_scores"]["pearson"],
+            "phase_pearson_calibrated_raw": fig3["resolved_scores"]["raw"],
+            "phase_mse_calibrated": fig3["resolved_scores"]["mse"],
+            "calibration": f"{fig3['calibration_method']} "
+                           f"{s.calibration_iterations} it + twin from one PSF",
+            "twin_chosen": used_twin,
+            "seconds_gs": fig3["gs_seconds"], "seconds_calibration": fig3["calibrated_seconds"],
+            "phase_pearson_paper_gs_2000": 0.7890,
+        },
+        "fig5": _public(fig5[1:]),
+        "fig6": {"phase_pearson_gs": rnd["gs_scores"]["pearson"],
+                 "phase_pearson_calibrated": paper._scores(rnd_resolved, rnd["truth"],
+                                                           s.grid)["pearson"],
+                 "stages": _public(fig6[1:])},
+        "fig9": {k.replace(" ", "").replace("=", "_"): v for k, v in sweeps.items()},
         "wall_time_s": time.perf_counter() - t0,
     }
-    with open(out / "metrics.json", "w") as fh:
-        json.dump(metrics, fh, indent=2)
-    say(f"diffcam demo: Fresnel on-axis error {checks['fresnel_on_axis_rel_error']:.2e}, "
-        f"Airy profile RMS {checks['airy_profile_rms']:.2e}, PSF by {choice.method}, "
-        f"N_F(z2) = {plan.fresnel_number_z2:.0f}, {metrics['wall_time_s']:.1f} s → "
-        f"{out / 'demo.png'}")
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    cols = ["stage", "phase_mse", "psf_pearson", "recon_ssim", "recon_pearson"]
+    f3 = metrics["fig3"]
+    report = [
+        "# diffcam demo report", "",
+        f"Grid {s.grid}² at 5 µm, diffuser 512², aperture radius 1.2 mm, λ = 532 nm, "
+        f"f = 5 cm; wall time {metrics['wall_time_s']:.0f} s.", "",
+        "## Fig. 3 — phase retrieval (central 300², DESIGN.md metric)", "",
+        _table([{"solver": f"textbook GS, {s.gs_iterations} it", "pearson": f3["phase_pearson_gs"],
+                 "twin_resolved": f3["phase_pearson_gs_twin_resolved"],
+                 "seconds": f3["seconds_gs"]},
+                {"solver": f3["calibration"], "pearson": f3["phase_pearson_calibrated"],
+                 "twin_resolved": fig3["resolved_scores"]["twin_resolved"],
+                 "seconds": f3["seconds_calibration"]},
+                {"solver": "paper, GS 2000 it", "pearson": 0.7890}],
+               ["solver", "pearson", "twin_resolved", "seconds"]), "",
+        "![](fig3_phase.png)", "",
+        "## Fig. 5 — cameraman diffuser, z1 = 25 mm, z2 = 1 mm, RL of an 'F'", "",
+        _table(metrics["fig5"], cols), "", "![](fig5_cameraman.png)", "",
+        "## Fig. 6 — random 30 µm diffuser, 'flower'", "",
+        _table(metrics["fig6"]["stages"], cols), "", "![](fig6_random.png)", "",
+        "## Fig. 9 — PSF Pearson per depth (registered), scaling anchored at 22 mm", "",
+    ]
+    for label, rows in sweeps.items():
+        report += [f"### {label}", "",
+                   _table(rows, ["z1_mm", "model", "scaling_ideal", "scaling_captured"]), ""]
+    report += ["![](fig9_depths.png)", ""]
+    (out / "report.md").write_text("\n".join(report))
+    say(f"diffcam demo: phase Pearson GS {f3['phase_pearson_gs']:.3f} → diffcam "
+        f"{f3['phase_pearson_calibrated']:.4f}; PSF Pearson at 25 mm "
+        f"{fig5[-1]['psf_pearson']:.4f}; {metrics['wall_time_s']:.0f} s → {out / 'report.md'}")
     return metrics
