@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DiffcamError
-from .units import parse_length
+from .units import parse_length, parse_length_range
 
 
 def _length(name):
@@ -70,16 +70,169 @@ def save_image(path, image) -> None:
 
 
 def _read_psfs(path):
-    """A PSF or PSF stack from an image file or a diffcam ``.npz`` stack; returns
+    """A PSF or PSF stack from an image file or a stack written by diffcam; returns
     ``(psfs, depths or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
     from .io import read_image
 
     if Path(path).suffix.lower() == ".npz":
         from .stack import load_stack
 
-        stack = load_stack(path)
-        return np.asarray(stack.psfs), np.asarray(stack.z1)
+        stack, meta = load_stack(path)
+        return np.asarray(stack), np.asarray(meta.depths)
+    if Path(path).suffix.lower() in (".tif", ".tiff"):
+        import tifffile
+
+        try:
+            with tifffile.TiffFile(path) as tif:
+                has_meta = "Info" in (tif.imagej_metadata or {})
+        except Exception:
+            has_meta = False
+        if has_meta:
+            from .stack import load_stack
+
+            stack, meta = load_stack(path)
+            return np.asarray(stack), np.asarray(meta.depths)
     return read_image(path).image, None
+
+
+def _camera_for(phase_file, z2, crop):
+    from .camera import Camera
+
+    shape = tuple(np.shape(phase_file.phase))
+    if crop is not None and (crop > shape[0] or crop > shape[1]):
+        raise DiffcamError(f"--crop {crop} is larger than the phase grid {shape}.")
+    return Camera(wavelength=phase_file.wavelength, z2=z2, dx=phase_file.dx,
+                  aperture_radius=phase_file.aperture_radius, shape=shape,
+                  crop=None if crop is None else (crop, crop))
+
+
+def _cmd_psf(args) -> int:
+    from .retrieval.phase_io import load_phase
+    from .stack import StackMeta, camera_record, psf_stack, save_stack
+
+    phase_file = load_phase(args.phase)
+    camera = _camera_for(phase_file, args.z2, args.crop)
+    depths = args.z1
+    suffix = Path(args.out).suffix.lower()
+    if suffix not in (".npz", ".tif", ".tiff"):
+        raise DiffcamError(f"{args.out}: write the stack as .npz or .tif, not {suffix!r}.")
+    stack = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 1)
+    meta = StackMeta(depths=np.asarray(depths), positions=None, pitch=float(camera.dx),
+                     wavelengths=np.array([float(camera.wavelength)]), weights=np.array([1.0]),
+                     camera=camera_record(camera))
+    with atomic_output(args.out) as tmp:
+        save_stack(tmp, stack, meta)
+    print(f"diffcam psf: {len(depths)} PSFs of {stack.shape[-2]}×{stack.shape[-1]} "
+          f"(z1 {depths[0] * 1e3:g}–{depths[-1] * 1e3:g} mm, z2 {args.z2 * 1e3:g} mm) → {args.out}")
+    return 0
+
+
+def _grid_for(aperture_radius, dx):
+    """Calibration grid: twice the aperture diameter (a Nyquist-sampled far field)."""
+    from .reconstruct import fft_size
+
+    return fft_size(int(np.ceil(4 * aperture_radius / dx)))
+
+
+def _cmd_calibrate(args) -> int:
+    import jax
+
+    from .io import read_image
+    from .optics import circular_aperture
+    from .retrieval import CalibrationGeometry, prepare_captures, retrieve_projections
+    from .retrieval.calibrate import calibrate
+    from .retrieval.phase_io import PhaseFile, save_phase
+
+    dx = args.dx or args.pixel
+    n = args.grid or _grid_for(args.aperture_radius, dx)
+    geometry = CalibrationGeometry(dx=dx, wavelength=args.wavelength,
+                                   focal_length=args.focal_length,
+                                   near_distance=args.near_distance)
+    near, far = read_image(args.near).image, read_image(args.far).image
+    prepared = prepare_captures(near, far, geometry, (n, n), sensor_pitch=args.pixel,
+                                background=(args.background, args.background),
+                                saturation=args.saturation)
+    aperture = circular_aperture((n, n), dx, args.aperture_radius)
+    key = jax.random.key(args.seed)
+    print(f"diffcam calibrate: {n}×{n} grid at {dx * 1e6:g} µm, solver {args.solver}, "
+          f"{args.iterations} iterations ...", flush=True)
+    if args.solver == "default":
+        result = calibrate(prepared.near, prepared.far, geometry, aperture, key=key,
+                           iterations=args.iterations, restarts=args.restarts,
+                           masks=(prepared.near_mask, prepared.far_mask))
+    else:
+        result = retrieve_projections(prepared.near, prepared.far, geometry,
+                                      method=args.solver, iterations=args.iterations, key=key,
+                                      restarts=args.restarts, aperture=aperture)
+    info = {"solver": result.stats.get("method", args.solver), "iterations": args.iterations,
+            "focal_length": args.focal_length, "near_distance": args.near_distance,
+            "final_error": float(np.asarray(result.history)[-1]),
+            "twin_resolved": False, "near": str(args.near), "far": str(args.far)}
+    with atomic_output(args.out) as tmp:
+        save_phase(tmp, PhaseFile(np.asarray(result.phase), dx, args.wavelength,
+                                  args.aperture_radius, info))
+    print(f"diffcam calibrate: final error {info['final_error']:.3g} → {args.out} "
+          f"(phase known up to piston and the conjugate twin)")
+    return 0
+
+
+def _cmd_compare(args) -> int:
+    from .metrics import psf_fidelity
+    from .retrieval.phase_io import load_phase
+    from .scaling import scale_psf
+    from .sensor import bin_pixels
+    from .stack import psf_stack
+
+    captured, depths = _read_psfs(args.captured)
+    if captured.ndim != 3:
+        raise DiffcamError(f"{args.captured}: expected a stack of PSFs (nz, ny, nx), got "
+                           f"shape {captured.shape}.")
+    if args.z1 is not None:
+        depths = args.z1
+    if depths is None or len(depths) != len(captured):
+        raise DiffcamError(f"give --z1 with one depth per captured PSF ({len(captured)}).")
+    phase_file = load_phase(args.phase)
+    pitch = args.pixel or phase_file.dx
+    camera = _camera_for(phase_file, args.z2, None)
+    model = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 8)
+    model = np.asarray(bin_pixels(model, phase_file.dx, pitch, captured.shape[-2:]))
+    anchor = int(np.argmin(np.abs(np.asarray(depths) - (args.anchor or depths[0]))))
+    scaled = np.asarray(scale_psf(captured[anchor], pitch, depths[anchor], depths, args.z2,
+                                  kind="area"))
+    f_model = np.asarray(psf_fidelity(model, captured)["pearson"])
+    f_scaled = np.asarray(psf_fidelity(scaled, captured)["pearson"])
+    rows = ["| z1 (mm) | model Pearson | scaling Pearson |", "|---|---|---|"]
+    rows += [f"| {z * 1e3:.3f} | {a:.4f} | {b:.4f} |" for z, a, b in
+             zip(depths, f_model, f_scaled)]
+    print("\n".join(rows))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(np.asarray(depths) * 1e3, f_model, "o-", label="wave model (phase file)")
+    ax.plot(np.asarray(depths) * 1e3, f_scaled, "s--",
+            label=f"scaling from {depths[anchor] * 1e3:g} mm")
+    ax.set_xlabel("z1 (mm)")
+    ax.set_ylabel("Pearson with the captured PSF")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_output(args.out) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    print(f"diffcam compare: → {args.out}")
+    return 0
+
+
+def _lengths(name):
+    def convert(text):
+        try:
+            return parse_length_range(text, name=name)
+        except DiffcamError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+    convert.__name__ = name
+    return convert
 
 
 def _cmd_reconstruct(args) -> int:
@@ -195,6 +348,57 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--downsample", type=int, default=1, help="box-average factor")
     rec.add_argument("-o", "--out", required=True, help="output .png, .tif or .npy")
     rec.set_defaults(func=_cmd_reconstruct)
+
+    cal = sub.add_parser("calibrate", help="diffuser phase from near/far captures",
+                         description="Estimate the diffuser phase from a near-field capture "
+                                     "(diffuser on the sensor) and a far-field capture (back "
+                                     "focal plane of a Fourier lens); writes a phase .npz.")
+    cal.add_argument("near", help="near-field capture (.png, .tif, .npy)")
+    cal.add_argument("far", help="far-field capture at the lens's back focal plane")
+    cal.add_argument("--focal-length", type=_length("focal-length"), required=True)
+    cal.add_argument("--wavelength", type=_length("wavelength"), required=True)
+    cal.add_argument("--pixel", type=_length("pixel"), required=True,
+                     help="sensor pixel pitch of both captures")
+    cal.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True)
+    cal.add_argument("--near-distance", type=_length("near-distance"), default=0.0,
+                     help="diffuser to near-capture plane, free-space equivalent (0.5 mm "
+                          "of n = 1.5 cover glass ≈ 0.33mm)")
+    cal.add_argument("--dx", type=_length("dx"), help="diffuser grid pitch (default: --pixel)")
+    cal.add_argument("--grid", type=int, help="calibration grid (default: 2× the aperture)")
+    cal.add_argument("--background", type=float, default=0.0, help="dark level, counts")
+    cal.add_argument("--saturation", type=float, help="raw count of a saturated pixel")
+    cal.add_argument("--solver", choices=["default", "gs", "hio", "raar"], default="default")
+    cal.add_argument("--iterations", type=int, default=300)
+    cal.add_argument("--restarts", type=int, default=4)
+    cal.add_argument("--seed", type=int, default=0)
+    cal.add_argument("-o", "--out", required=True, help="phase file (.npz)")
+    cal.set_defaults(func=_cmd_calibrate)
+
+    ps = sub.add_parser("psf", help="PSFs at depths from a phase file",
+                        description="Compute the camera's PSF (paper Eq. 7) for point "
+                                    "sources on axis at each depth; writes .npz or a "
+                                    "multi-page ImageJ TIFF with metadata.")
+    ps.add_argument("phase", help="phase file from `diffcam calibrate`")
+    ps.add_argument("--z1", type=_lengths("z1"), required=True,
+                    help="depth(s): 25mm, 22mm,25mm or 22mm:30mm:1mm (end included)")
+    ps.add_argument("--z2", type=_length("z2"), required=True, help="diffuser to sensor")
+    ps.add_argument("--crop", type=int, help="square crop of each PSF (samples)")
+    ps.add_argument("-o", "--out", required=True, help="output .npz or .tif")
+    ps.set_defaults(func=_cmd_psf)
+
+    cmp_ = sub.add_parser("compare", help="captured vs model vs scaled PSFs per depth",
+                          description="Pearson (registered) of the wave model and of the "
+                                      "scaling baseline against captured PSFs, per depth; "
+                                      "prints a table and writes a figure.")
+    cmp_.add_argument("captured", help="captured PSF stack (multi-page TIFF or diffcam .npz)")
+    cmp_.add_argument("--phase", required=True, help="phase file from `diffcam calibrate`")
+    cmp_.add_argument("--z1", type=_lengths("z1"), help="depth of each captured PSF")
+    cmp_.add_argument("--z2", type=_length("z2"), required=True)
+    cmp_.add_argument("--pixel", type=_length("pixel"), help="captured PSFs' pixel pitch")
+    cmp_.add_argument("--anchor", type=_length("anchor"),
+                      help="depth of the PSF the scaling baseline magnifies (default: first)")
+    cmp_.add_argument("-o", "--out", required=True, help="figure (.png)")
+    cmp_.set_defaults(func=_cmd_compare)
     return parser
 
 

@@ -96,3 +96,95 @@ def test_reconstruct_writes_png_and_fails_cleanly(tutorial_files):
         assert "Traceback" not in r.stderr
         assert not bad_out.exists()
         assert not list(d.glob(".bad-*"))
+
+
+@pytest.fixture(scope="module")
+def calibration_files(tmp_path_factory):
+    """Synthetic near/far captures (12-bit, shot noise, background) of a random diffuser
+    and a captured PSF stack of it, as files."""
+    import jax
+    import numpy as np
+    import tifffile
+
+    from diffcam.camera import Camera, random_diffuser
+    from diffcam.optics import circular_aperture
+    from diffcam.retrieval import CalibrationGeometry, synthetic_captures
+    from diffcam.stack import StackMeta, camera_record, psf_stack, save_stack
+
+    d = tmp_path_factory.mktemp("calibration")
+    n, dx, lam = 256, 5e-6, 532e-9
+    geometry = CalibrationGeometry(dx=dx, wavelength=lam, focal_length=n * dx * dx / lam)
+    phase = np.asarray(random_diffuser(jax.random.PRNGKey(1), (n, n), dx, lam,
+                                       feature_size=60e-6, deflection=np.deg2rad(0.3)))
+    aperture = circular_aperture((n, n), dx, 0.3e-3)
+    near, far = synthetic_captures(phase, aperture, geometry, jax.random.PRNGKey(2),
+                                   sensor_pitch=dx, sensor_shape=(n, n))
+    tifffile.imwrite(d / "near.tif", near.astype(np.uint16))
+    tifffile.imwrite(d / "far.tif", far.astype(np.uint16))
+    cam = Camera(wavelength=lam, z2=1e-3, dx=dx, aperture_radius=0.3e-3, shape=(n, n),
+                 crop=(200, 200))
+    depths = np.array([20e-3, 22e-3, 24e-3])
+    save_stack(d / "captured.tif", psf_stack(phase, cam, depths),
+               StackMeta(depths=depths, positions=None, pitch=dx, wavelengths=np.array([lam]),
+                         weights=np.array([1.0]), camera=camera_record(cam)))
+    return d, f"{geometry.focal_length * 1e3:.4f}mm"
+
+
+def test_calibrate_psf_compare_pipeline(calibration_files):
+    """calibrate → psf → compare on files: each writes its output, the PSF stack has the
+    requested depths (range end included) and its metadata, and the model PSFs of the
+    calibrated phase correlate with the captured ones (> 0.9, twin unresolved)."""
+    import numpy as np
+
+    from diffcam.stack import load_stack
+
+    d, focal = calibration_files
+    common = ["--focal-length", focal, "--wavelength", "532nm", "--pixel", "5um",
+              "--aperture-radius", "0.3mm", "--grid", "256", "--background", "82"]
+    r = _diffcam("calibrate", str(d / "near.tif"), str(d / "far.tif"), *common,
+                 "--iterations", "150", "--restarts", "2", "-o", str(d / "phase.npz"))
+    assert r.returncode == 0, r.stderr
+    r = _diffcam("psf", str(d / "phase.npz"), "--z1", "20mm:24mm:2mm", "--z2", "1mm",
+                 "--crop", "200", "-o", str(d / "psfs.tif"))
+    assert r.returncode == 0, r.stderr
+    stack, meta = load_stack(d / "psfs.tif")
+    assert stack.shape == (3, 200, 200) and np.allclose(meta.depths, [20e-3, 22e-3, 24e-3])
+    assert np.allclose(stack.sum(axis=(1, 2)), 1, rtol=1e-4)
+    r = _diffcam("compare", str(d / "captured.tif"), "--phase", str(d / "phase.npz"),
+                 "--z2", "1mm", "-o", str(d / "compare.png"))
+    assert r.returncode == 0, r.stderr
+    model = [float(line.split("|")[2]) for line in r.stdout.splitlines()
+             if line.startswith("| 2")]
+    assert len(model) == 3 and min(model) > 0.9
+    assert (d / "compare.png").stat().st_size > 5000
+
+
+def test_calibrate_psf_compare_failures(calibration_files, tmp_path):
+    """Missing files, wrong units, a corrupt TIFF, mismatched shapes and a non-phase file:
+    one clear line on stderr, exit 2, no output left behind."""
+    import numpy as np
+    import tifffile
+
+    d, focal = calibration_files
+    (tmp_path / "corrupt.tif").write_bytes(b"II*\x00nonsense")
+    tifffile.imwrite(tmp_path / "small.tif", np.ones((100, 120), np.uint16))
+    common = ["--focal-length", focal, "--wavelength", "532nm", "--pixel", "5um",
+              "--aperture-radius", "0.3mm", "--grid", "256"]
+    out = tmp_path / "out.npz"
+    cases = [
+        (["calibrate", str(tmp_path / "none.tif"), str(d / "far.tif"), *common], "no such file"),
+        (["calibrate", str(tmp_path / "corrupt.tif"), str(d / "far.tif"), *common], "corrupt"),
+        (["calibrate", str(d / "near.tif"), str(d / "far.tif"), *common[:-1], "256",
+          "--pixel", "5 parsecs"], "unit"),
+        (["psf", str(d / "near.tif"), "--z1", "20mm", "--z2", "1mm"], "phase file"),
+        (["psf", str(tmp_path / "none.npz"), "--z1", "20mm", "--z2", "1mm"], "no such file"),
+        (["psf", str(d / "phase.npz"), "--z1", "20mm:10mm:1mm", "--z2", "1mm"], "start ≤ stop"),
+        (["compare", str(tmp_path / "small.tif"), "--phase", str(d / "phase.npz"),
+          "--z2", "1mm"], "stack"),
+    ]
+    for args, message in cases:
+        r = _diffcam(*args, "-o", str(out))
+        assert r.returncode == 2, (args, r.stderr)
+        assert message in r.stderr, (args, r.stderr)
+        assert "Traceback" not in r.stderr
+        assert not out.exists() and not list(tmp_path.glob(".out-*"))
