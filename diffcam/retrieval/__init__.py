@@ -7,10 +7,12 @@
 """
 
 from .calibrate import calibrate
-from .captures import (PreparedCaptures, centre_on_axis, centroid, normalise_min_max,
+from .captures import (PreparedCaptures, centre_on_axis, centroid, merge_exposures,
+                       normalise_min_max,
                        prepare_captures, resample_capture, resample_far_field,
                        synthetic_captures)
-from .forward import calibration_intensities, cameraman_phase
+from .forward import (PaperSimulation, calibration_intensities, cameraman_phase,
+                      paper_simulation)
 from .geometry import CalibrationGeometry, check_far_pitch, glass_equivalent_distance
 from .lsq import PhaseGrid, fit_phase, near_far_model, retrieve_lsq
 from .projections import gerchberg_saxton, hio, initial_phase, raar, retrieve_projections
@@ -20,12 +22,14 @@ from .result import RetrievalResult
 __all__ = [
     # geometry, forward model, result
     "CalibrationGeometry", "glass_equivalent_distance", "check_far_pitch",
-    "calibration_intensities", "cameraman_phase", "RetrievalResult",
+    "calibration_intensities", "cameraman_phase", "paper_simulation", "PaperSimulation",
+    "RetrievalResult",
     # solvers
     "calibrate", "retrieve_projections", "gerchberg_saxton", "hio", "raar",
     "initial_phase", "retrieve_lsq", "fit_phase", "near_far_model", "PhaseGrid",
     "fit_to_psfs", "predict_psfs",
     # captures
-    "prepare_captures", "PreparedCaptures", "synthetic_captures", "normalise_min_max",
+    "prepare_captures", "PreparedCaptures", "synthetic_captures", "merge_exposures",
+    "normalise_min_max",
     "centroid", "centre_on_axis", "resample_capture", "resample_far_field",
 ]

@@ -44,8 +44,7 @@ def calibrate(near, far, geometry: CalibrationGeometry, aperture, *, key=None,
     t0 = time.perf_counter()
     key = jax.random.key(0) if key is None else key
     first = retrieve_projections(near, far, geometry, method=method, iterations=iterations,
-                                 key=key, restarts=restarts, aperture=aperture,
-                                 far_pitch=far_pitch)
+                                 key=key, restarts=restarts, far_pitch=far_pitch)
     stages = [dict(first.stats, history=first.history)]
     result = first
     if refine_iterations:

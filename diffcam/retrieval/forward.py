@@ -8,6 +8,8 @@ prefactor), so the two intensities carry their true relative scale.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -17,7 +19,8 @@ from ..optics import apply_phase
 from ..propagate import angular_spectrum, fourier_lens
 from .geometry import CalibrationGeometry
 
-__all__ = ["calibration_intensities", "cameraman_phase"]
+__all__ = ["calibration_intensities", "cameraman_phase", "PaperSimulation",
+           "paper_simulation"]
 
 
 def cameraman_phase(size: int = 512) -> Float[Array, "size size"]:
@@ -52,3 +55,33 @@ def calibration_intensities(phase: Float[Array, "... ny nx"], aperture: Float[Ar
         u, geometry.dx, geometry.wavelength, geometry.near_distance)
     far, _ = fourier_lens(u, geometry.dx, geometry.wavelength, geometry.focal_length)
     return jnp.abs(near) ** 2, jnp.abs(far) ** 2
+
+
+class PaperSimulation(NamedTuple):
+    """The paper's Fig. 3 problem on an N×N grid (see :func:`paper_simulation`)."""
+
+    phase: Float[Array, "n n"]      # θd on the grid (radians; 0 outside the diffuser)
+    aperture: Float[Array, "n n"]   # circular aperture C
+    geometry: CalibrationGeometry
+    near: Float[Array, "n n"]       # exact near-field intensity (at the diffuser)
+    far: Float[Array, "n n"]        # exact far-field intensity (Fourier-lens pitch)
+    truth: Float[Array, "size size"]  # θd on the diffuser crop, for scoring
+    mask: Float[Array, "size size"]   # the scored central square (300/512 of the side)
+
+
+def paper_simulation(n: int = 1024, size: int = 512) -> PaperSimulation:
+    """Paper Section 3.1: a ``size``² cameraman diffuser at 5 µm, aperture radius 1.2 mm,
+    f = 5 cm, λ = 532 nm, embedded in an ``n``² grid; ``size < 512`` shrinks the diffuser,
+    the aperture and the scored square (300 px at 512) in proportion, for fast tests."""
+    from ..grid import pad_to
+    from ..optics import circular_aperture
+    dx = 5e-6
+    geometry = CalibrationGeometry(dx=dx, wavelength=532e-9, focal_length=0.05)
+    truth = cameraman_phase(size)
+    aperture = circular_aperture((n, n), dx, 1.2e-3 * size / 512)
+    phase = pad_to(truth, (n, n))
+    near, far = calibration_intensities(phase, aperture, geometry)
+    scored = round(300 * size / 512)
+    lo = (size - scored) // 2
+    mask = jnp.zeros((size, size), jnp.float32).at[lo:lo + scored, lo:lo + scored].set(1.0)
+    return PaperSimulation(phase, aperture, geometry, near, far, truth, mask)

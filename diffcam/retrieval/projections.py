@@ -4,8 +4,10 @@ The iterate u is the field in the **near-capture plane** (``near_distance`` behi
 diffuser). Free-space propagation is a pure phase e^{jφ(f)} on the spectrum, so the
 Fourier-lens amplitude |FT(diffuser field)| equals |FT(u)| for any near distance: the
 far-field projection P_M is one FFT pair whatever the distance, and the distance enters
-only to start (diffuser → near plane), to impose the aperture support at the diffuser
-plane (optional, two more FFT pairs per iteration) and to return θd at the diffuser.
+only to start (diffuser → near plane) and to return θd at the diffuser. (Imposing the
+aperture as a support at the diffuser plane as well costs two more FFT pairs per
+iteration and, measured on the scaled Fig. 3 problem 0.33 mm behind the diffuser, stalls
+RAAR at 0.87 where the near amplitude alone reaches 1.0: it is not offered.)
 
 Projections (Marchesini 2007 notation, P_S the near-amplitude projection):
 
@@ -57,26 +59,23 @@ def _fit_amplitude(u, amplitude):
     return u * jnp.where(m > 0, amplitude / jnp.where(m > 0, m, 1.0), 0.0)
 
 
-def _operators(near_amp, far_amp, H, support):
-    """P_S and P_M on FFT-ordered near-plane fields; ``H`` None when the near plane is
-    the diffuser plane (then the support lies in the near amplitude already)."""
+def _operators(near_amp, far_amp):
+    """P_S and P_M on FFT-ordered near-plane fields."""
 
     def p_near(u):
         return _fit_amplitude(u, near_amp)
 
     def p_far(u):
-        v = jnp.fft.ifft2(_fit_amplitude(jnp.fft.fft2(u, norm="ortho"), far_amp), norm="ortho")
-        if support is not None:
-            v = apply_transfer(apply_transfer(v, jnp.conj(H)) * support, H)
-        return v
+        return jnp.fft.ifft2(_fit_amplitude(jnp.fft.fft2(u, norm="ortho"), far_amp),
+                             norm="ortho")
 
     return p_near, p_far
 
 
 @partial(jax.jit, static_argnames=("method", "iterations"))
-def _iterate(u0, near_amp, far_amp, H, support, beta, *, method, iterations):
+def _iterate(u0, near_amp, far_amp, beta, *, method, iterations):
     """Run one projection algorithm from the near-plane field ``u0`` (FFT order)."""
-    p_near, p_far = _operators(near_amp, far_amp, H, support)
+    p_near, p_far = _operators(near_amp, far_amp)
     norm = jnp.linalg.norm(near_amp)
 
     def step(u, _):
@@ -122,7 +121,7 @@ def initial_phase(init, shape, key=None, restarts: int = 1) -> Float[Array, "res
     return phase[None]
 
 
-def _check_options(method, iterations, beta, restarts, aperture, shape):
+def _check_options(method, iterations, beta, restarts):
     if method not in METHODS:
         raise DiffcamError(f"method must be one of {METHODS}, got {method!r}.")
     if not isinstance(iterations, int) or iterations < 1:
@@ -131,15 +130,12 @@ def _check_options(method, iterations, beta, restarts, aperture, shape):
         raise DiffcamError(f"restarts must be a positive int, got {restarts!r}.")
     if not 0 < float(beta) <= 1:
         raise DiffcamError(f"beta must be in (0, 1] (0.9 is usual), got {beta!r}.")
-    if aperture is not None and np.shape(aperture) != tuple(shape):
-        raise ShapeError(f"aperture {np.shape(aperture)} and captures {tuple(shape)} differ "
-                         f"in shape.")
 
 
 def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
                          geometry: CalibrationGeometry, *, method: str = "raar",
                          iterations: int = 300, beta: float = 0.9, init="random", key=None,
-                         restarts: int = 1, aperture=None, far_pitch=None) -> RetrievalResult:
+                         restarts: int = 1, far_pitch=None) -> RetrievalResult:
     """Retrieve the diffuser phase from near- and far-field intensities by projections.
 
     Args:
@@ -149,16 +145,14 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
             matched to the near field's energy).
         geometry: the set-up, SI units.
         method: ``"gs"``, ``"hio"`` or ``"raar"``.
-        iterations: number of iterations (one FFT pair each; three with a support
-            constraint at ``near_distance > 0``).
+        iterations: number of iterations (one FFT pair each).
         beta: HIO / RAAR relaxation, in (0, 1].
-        init: ``"random"``, ``"flat"`` or a diffuser-plane phase (ny, nx), radians.
+        init: ``"random"``, ``"flat"`` or a diffuser-plane phase (ny, nx), radians (the
+            starting field is the near amplitude times e^{j·init}, carried to the near
+            plane when ``near_distance > 0``).
         key: ``jax.random`` key for ``init="random"``.
         restarts: independent random starts, run batched with ``vmap`` (memory grows
             with it); the run with the smallest final error is returned.
-        aperture: diffuser-plane amplitude C (ny, nx). With ``near_distance > 0`` it is
-            imposed as a support at the diffuser plane each iteration; it also shapes
-            the starting field. ``None``: the near amplitude (distance 0) or ones.
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
 
     Returns:
@@ -166,7 +160,7 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
     """
     check_captures(near, far)
     shape = np.shape(near)
-    _check_options(method, iterations, beta, restarts, aperture, shape)
+    _check_options(method, iterations, beta, restarts)
     if far_pitch is not None:
         check_far_pitch(far_pitch, geometry, shape)
     t0 = time.perf_counter()
@@ -175,20 +169,14 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
     far_amp = far_amp * jnp.linalg.norm(near_amp) / jnp.linalg.norm(far_amp)
     z = float(geometry.near_distance)
     H = None if z == 0 else transfer_function(shape, geometry.dx, geometry.wavelength, z)
-    if aperture is None:
-        amp0 = near_amp if z == 0 else jnp.ones(shape, jnp.float32)
-        support = None
-    else:
-        amp0 = jnp.asarray(aperture, jnp.float32)
-        support = None if z == 0 else _to_fft_order(amp0 > 0).astype(jnp.complex64)
     phases = initial_phase(init, shape, key, restarts)
-    fields = _to_fft_order(amp0 * jnp.exp(1j * phases))
+    fields = _to_fft_order(near_amp * jnp.exp(1j * phases))
     if H is not None:
         fields = jax.vmap(apply_transfer, (0, None))(fields, H)
     near_f, far_f = _to_fft_order(near_amp), _to_fft_order(far_amp)
     run = partial(_iterate, method=method, iterations=iterations)
-    u, histories = jax.vmap(run, (0, None, None, None, None, None))(
-        fields, near_f, far_f, H, support, jnp.float32(beta))
+    u, histories = jax.vmap(run, (0, None, None, None))(fields, near_f, far_f,
+                                                        jnp.float32(beta))
     best = int(jnp.argmin(histories[:, -1]))
     u = u[best]
     if H is not None:
