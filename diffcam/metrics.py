@@ -232,13 +232,17 @@ def phase_mse(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny n
 def phase_scores(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
                  mask=None) -> dict:
     """All phase figures of DESIGN.md: ``pearson`` (piston-aligned), ``twin_resolved``
-    (the better of the estimate and its twin), ``raw`` (plain Pearson of θest and θtrue)
-    and ``mse`` (rad², piston-aligned)."""
+    (the better of the estimate and its twin), ``raw`` (plain Pearson of θest and θtrue),
+    ``mse`` (rad², piston-aligned) and ``mse_twin_resolved`` (the smaller of the MSEs of
+    the estimate and its twin)."""
+    mse_twin = phase_mse(twin_phase(estimate), truth, mask=mask)
+    mse_est = phase_mse(estimate, truth, mask=mask)
     return {
         "pearson": phase_pearson(estimate, truth, mask=mask),
         "twin_resolved": phase_pearson(estimate, truth, mask=mask, twin=True),
         "raw": pearson(estimate, truth, mask=mask),
-        "mse": phase_mse(estimate, truth, mask=mask),
+        "mse": mse_est,
+        "mse_twin_resolved": jnp.minimum(mse_est, mse_twin),
     }
 
 

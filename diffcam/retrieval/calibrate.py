@@ -22,7 +22,7 @@ __all__ = ["calibrate"]
 
 def calibrate(near, far, geometry: CalibrationGeometry, aperture, *, key=None,
               method: str = "raar", iterations: int = 300, restarts: int = 4,
-              refine_iterations: int = 100, loss: str = "amplitude", solver: str = "lbfgs",
+              refine_iterations: int = 100, loss: str = "intensity", solver: str = "lbfgs",
               masks=None, far_pitch=None) -> RetrievalResult:
     """Diffuser phase from near/far intensities: ``method`` projections (``restarts``
     random starts, ``iterations`` each), then ``refine_iterations`` least-squares steps

@@ -70,7 +70,11 @@ class PhaseGrid:
     @classmethod
     def for_aperture(cls, aperture, factor: int = 1) -> "PhaseGrid":
         """The smallest centred square (a multiple of ``factor``) holding ``aperture > 0``."""
+        if not isinstance(factor, int) or factor < 1:
+            raise DiffcamError(f"coarse factor must be a positive int, got {factor!r}.")
         a = np.asarray(aperture) > 0
+        if not a.any():
+            raise DiffcamError("the aperture is zero everywhere; nothing transmits.")
         ny, nx = a.shape
         iy, ix = np.nonzero(a)
         half = int(max(np.abs(iy - ny // 2).max(), np.abs(ix - nx // 2).max())) + 1
