@@ -19,8 +19,8 @@ def test_demo_writes_report(tmp_path):
     """`diffcam demo` (reduced grid and iterations) writes the figures, metrics.json and
     report.md; the calibrated phase beats textbook GS and its PSF matches the truth."""
     out = tmp_path / "report"
-    r = _diffcam("demo", "--grid", "768", "--gs-iterations", "100",
-                 "--calibration-iterations", "150", "-o", str(out))
+    r = _diffcam("demo", "--grid", "640", "--gs-iterations", "50",
+                 "--calibration-iterations", "120", "-o", str(out))
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     for name in ("fig3_phase.png", "fig5_cameraman.png", "fig6_random.png", "fig9_depths.png"):
