@@ -1,7 +1,6 @@
 """Captures in: preprocessing, resampling to the Fourier-lens pitch, synthetic captures."""
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 

@@ -1,14 +1,12 @@
 """Gerchberg–Saxton, HIO and RAAR between near and far amplitudes (paper Fig. 4)."""
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from diffcam.errors import DiffcamError, ShapeError
 from diffcam.grid import crop_to
 from diffcam.metrics import phase_pearson, phase_scores
-from diffcam.optics import circular_aperture
 from diffcam.retrieval import (CalibrationGeometry, calibration_intensities, gerchberg_saxton,
                                glass_equivalent_distance, paper_simulation, raar,
                                retrieve_projections)
@@ -114,3 +112,12 @@ def test_far_pitch_message_names_the_fix(sim):
     right = sim.geometry.far_pitch((128, 128))
     retrieve_projections(sim.near, sim.far, sim.geometry, far_pitch=right, iterations=1,
                          key=jax.random.key(0))
+
+
+@pytest.mark.slow
+def test_paper_grid_4000():
+    """The paper's own grid: 4000² at 5 µm (far pitch 1.33 µm); RAAR from one random
+    start reaches twin-resolved P ≥ 0.99 on the central 300×300 (paper: 0.7890, GS)."""
+    sim = paper_simulation(4000)
+    r = raar(sim.near, sim.far, sim.geometry, iterations=150, key=jax.random.key(2))
+    assert float(score(r, sim)["twin_resolved"]) > 0.99

@@ -57,6 +57,9 @@ def test_predicted_psfs_match_the_model_at_other_depths(sim, camera):
     pred = predict_psfs(sim.phase, camera, [22e-3, 30e-3])
     assert pred.shape == (2, 128, 128)
     assert float(pearson(pred[1], psf(sim.phase, camera, 30e-3))) > 0.9999
+    binned = predict_psfs(sim.phase, camera, [30e-3], sensor_pitch=10e-6)
+    assert binned.shape == (1, 64, 64)
+    np.testing.assert_allclose(binned.sum(), pred[1].sum(), rtol=1e-3)  # power kept
 
 
 def test_bad_psf_input(sim, camera):

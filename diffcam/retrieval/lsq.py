@@ -31,8 +31,8 @@ import warnings
 from functools import partial
 from typing import Callable, Sequence
 
-import jax
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np

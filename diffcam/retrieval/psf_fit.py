@@ -11,8 +11,10 @@ Geometry in identifiable form: paraxially z1, z2, the pitch dx and the wavelengt
 enter the PSF only through the Fresnel numbers λz/dx², so λ and dx stay fixed (the
 camera's) and distances are fitted; ``stats`` reports them in metres and as
 ζ = λz/dx². Depths are either known (``"fixed"``), one per PSF (``"per_psf"``), or two
-parameters for planes spaced uniformly in 1/z1 (``"inverse_linear"``: 1/z1 = a + b·t
-with the plane index t).
+parameters for planes spaced uniformly in 1/z1 (``"inverse_linear"``: 1/z1 linear in
+the plane index t, fixed by the depths of the first and last fitted planes). Distances
+are fitted as log-ratios to their start values, so every parameter is dimensionless
+and of order one.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from jaxtyping import Float
 
 from ..camera import Camera, psf
 from ..errors import DiffcamError, ShapeError, check_field, check_positive
+from ..sensor import bin_pixels
 from .geometry import CalibrationGeometry, check_captures
 from .lsq import PhaseGrid, fit_phase, near_far_model
 from .projections import initial_phase
@@ -37,29 +40,38 @@ __all__ = ["fit_to_psfs", "predict_psfs", "depths", "DEPTH_MODELS"]
 DEPTH_MODELS = ("fixed", "per_psf", "inverse_linear")
 
 
-def _inverse_linear_init(z1, t):
-    """Least-squares (a, b) of 1/z1 = a + b·t (1/m)."""
-    A = np.stack([np.ones_like(t), t], axis=1)
-    (a, b), *_ = np.linalg.lstsq(A, 1.0 / z1, rcond=None)
-    return np.array([a, b])
-
-
-def depths(extra, z1, depth_model: str, plane_index=None) -> Float[Array, " k"]:
-    """Depths z1 (m) of the planes ``plane_index`` under the fitted ``extra`` parameters."""
+def depths(extra, z1, depth_model: str, plane_index=None, at=None) -> Float[Array, " k"]:
+    """Depths (m) under the fitted ``extra`` parameters: of the fitted PSFs, or with
+    ``depth_model="inverse_linear"`` of the planes ``at`` (plane indices, default the
+    fitted ones). ``z1`` and ``plane_index`` are the start depths and plane indices."""
+    z1 = jnp.asarray(z1, jnp.float32)
     if depth_model == "fixed":
-        return jnp.asarray(z1)
+        return z1
     if depth_model == "per_psf":
-        return jnp.asarray(z1) * jnp.exp(extra["log_z1"])
+        return z1 * jnp.exp(extra["log_z1"])
     t = jnp.asarray(plane_index, jnp.float32)
-    return 1.0 / (extra["inverse_z1"][0] + extra["inverse_z1"][1] * t)
+    first, last = jnp.argmin(t), jnp.argmax(t)
+    inv_a = jnp.exp(-extra["log_z1_ends"][0]) / z1[first]
+    inv_b = jnp.exp(-extra["log_z1_ends"][1]) / z1[last]
+    s = (jnp.asarray(plane_index if at is None else at, jnp.float32) - t[first]) / (
+        t[last] - t[first])
+    return 1.0 / (inv_a + (inv_b - inv_a) * s)
+
+
+def _on_sensor(image, camera, sensor):
+    """Integrate a PSF over sensor pixels (``sensor = (pitch, shape)``), or pass it on."""
+    if sensor is None:
+        return image
+    return bin_pixels(image, camera.dx, sensor[0], sensor[1])
 
 
 class _PSFModel:
     """θd and the extra parameters → (PSF_1 … PSF_K[, near, far]); hashable (static)."""
 
-    def __init__(self, camera, z1, depth_model, plane_index, spectrum, near_far):
+    def __init__(self, camera, z1, depth_model, plane_index, spectrum, near_far, sensor):
         self.camera, self.z1, self.depth_model = camera, z1, depth_model
         self.plane_index, self.spectrum, self.near_far = plane_index, spectrum, near_far
+        self.sensor = sensor  # (pitch, shape) of the PSF pixels, or None
 
     def __call__(self, phase, extra):
         camera = self.camera
@@ -67,8 +79,8 @@ class _PSFModel:
         if "log_z2" in extra:
             camera = eqx.tree_at(lambda c: c.z2, camera, camera.z2 * jnp.exp(extra["log_z2"]))
         z1 = depths(extra, self.z1, self.depth_model, self.plane_index)
-        out = tuple(psf(phase, camera, z1[k], spectrum=self.spectrum)
-                    for k in range(len(self.z1)))
+        out = tuple(_on_sensor(psf(phase, camera, z1[k], spectrum=self.spectrum), camera,
+                               self.sensor) for k in range(len(self.z1)))
         if self.near_far is not None:
             out = out + tuple(self.near_far(phase))
         return out
@@ -78,12 +90,13 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
                 near=None, far=None, geometry: CalibrationGeometry | None = None,
                 fit_z2: bool = False, depth_model: str = "fixed", plane_index=None,
                 init="flat", key=None, coarse: int = 1, masks=None, spectrum=None,
-                **options) -> RetrievalResult:
+                sensor_pitch=None, **options) -> RetrievalResult:
     """Fit θd (with or without near/far captures) to one or more captured PSFs.
 
     Args:
-        psfs: K measured PSFs (k, cy, cx) on ``camera.out_shape`` at the camera's pitch,
-            registered to the optical axis (any scale and background: both are fitted).
+        psfs: K measured PSFs (k, cy, cx) on ``camera.out_shape`` at the camera's pitch
+            (or on pixels of ``sensor_pitch``), registered to the optical axis (any scale
+            and background: both are fitted).
         camera: the :class:`~diffcam.camera.Camera`: grid, pitch dx, λ, z2 (the start
             value when ``fit_z2``), aperture.
         z1: depths of the PSFs, metres, (k,): known values, or start values.
@@ -97,6 +110,10 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
         coarse: phase unknowns every ``coarse`` samples.
         masks: K (or K + 2 with near/far) weight images, 0 at saturated pixels.
         spectrum: broadband light as in :func:`diffcam.camera.psf`.
+        sensor_pitch: pixel pitch of the measured PSFs (m) when it is coarser than the
+            camera's grid: the model then integrates each PSF over those pixels
+            (:func:`diffcam.sensor.bin_pixels`), so the phase can live on a finer grid
+            than binned data.
         **options: :func:`diffcam.retrieval.lsq.fit_phase` options (``loss``, ``solver``,
             ``iterations``, ``smoothness``, ``tv``, ``fit_background``).
 
@@ -106,9 +123,11 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
     """
     psfs = np.asarray(psfs, np.float32)
     check_field(psfs, "psfs")
-    if psfs.ndim != 3 or psfs.shape[-2:] != tuple(camera.out_shape):
-        raise ShapeError(f"psfs must be (k, {camera.out_shape[0]}, {camera.out_shape[1]}) "
-                         f"(the camera's out_shape), got {psfs.shape}.")
+    sensor = _sensor(camera, sensor_pitch)
+    want = tuple(camera.out_shape) if sensor is None else sensor[1]
+    if psfs.ndim != 3 or psfs.shape[-2:] != want:
+        raise ShapeError(f"psfs must be (k, {want[0]}, {want[1]}) (the camera's out_shape, "
+                         f"binned to sensor_pitch if given), got {psfs.shape}.")
     z1 = np.asarray(z1, np.float64).reshape(-1)
     check_positive("z1", z1, "m")
     if z1.size != psfs.shape[0]:
@@ -132,8 +151,9 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
         if z1.size < 2:
             raise DiffcamError("depth_model='inverse_linear' needs at least 2 PSFs.")
         plane_index = tuple(float(t) for t in np.asarray(plane_index).reshape(-1))
-        extra["inverse_z1"] = jnp.asarray(_inverse_linear_init(z1, np.array(plane_index)),
-                                          jnp.float32)
+        if len(set(plane_index)) < 2:
+            raise DiffcamError("depth_model='inverse_linear' needs PSFs of ≥ 2 planes.")
+        extra["log_z1_ends"] = jnp.zeros(2, jnp.float32)
     measured = list(psfs)
     near_far = None
     if (near is None) != (far is None):
@@ -153,7 +173,7 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
     aperture = np.asarray(camera.aperture())
     grid = PhaseGrid.for_aperture(aperture, coarse)
     theta0 = grid.restrict(initial_phase(init, camera.shape, key)[0])
-    model = _PSFModel(camera, tuple(z1), depth_model, plane_index, spectrum, near_far)
+    model = _PSFModel(camera, tuple(z1), depth_model, plane_index, spectrum, near_far, sensor)
     result = fit_phase(model, measured, theta0, grid, support=aperture > 0, masks=masks,
                        extra0=extra or None, **options)
     fitted = result.stats["extra"] or {}
@@ -165,12 +185,24 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
     return result._replace(stats=stats)
 
 
+def _sensor(camera, sensor_pitch):
+    if sensor_pitch is None:
+        return None
+    check_positive("sensor_pitch", sensor_pitch, "m")
+    ratio = float(camera.dx) / float(sensor_pitch)
+    cy, cx = camera.out_shape
+    return float(sensor_pitch), (int(round(cy * ratio)), int(round(cx * ratio)))
+
+
 def predict_psfs(phase: Float[Array, "ny nx"], camera: Camera, z1, *, z2=None,
-                 spectrum=None) -> np.ndarray:
+                 spectrum=None, sensor_pitch=None) -> np.ndarray:
     """PSFs (nz, cy, cx), unit sum, of a (retrieved) phase at depths ``z1`` (m), with an
-    optional fitted ``z2`` (m); :func:`diffcam.stack.psf_stack` underneath."""
+    optional fitted ``z2`` (m), integrated over pixels of ``sensor_pitch`` (m) if given;
+    :func:`diffcam.stack.psf_stack` underneath."""
     from ..stack import psf_stack
     if z2 is not None:
         camera = eqx.tree_at(lambda c: c.z2, camera, jnp.asarray(z2, camera.z2.dtype))
-    return psf_stack(phase, camera, np.asarray(z1, np.float64), spectrum=spectrum,
-                     progress=False)
+    stack = psf_stack(phase, camera, np.asarray(z1, np.float64), spectrum=spectrum,
+                      progress=False)
+    sensor = _sensor(camera, sensor_pitch)
+    return stack if sensor is None else np.asarray(_on_sensor(stack, camera, sensor))
