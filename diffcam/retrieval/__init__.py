@@ -1,9 +1,13 @@
 """Diffuser phase retrieval (issue #4): θd from near/far captures and captured PSFs.
 
+- :mod:`.geometry`    — the near/far set-up (:class:`CalibrationGeometry`) and input checks
+- :mod:`.forward`     — θd → near/far intensities; the paper's Fig. 3 simulation
 - :mod:`.projections` — Gerchberg–Saxton, HIO, RAAR between near and far amplitudes
 - :mod:`.lsq`         — least squares through the differentiable forward model (optimistix)
 - :mod:`.psf_fit`     — fitting θd (and geometry) to captured PSFs through paper Eq. 7
-- :mod:`.captures`    — preprocessing of captures, synthetic captures
+- :mod:`.calibrate`   — the default path: RAAR with restarts, then least squares
+- :mod:`.captures`    — preprocessing of captures, HDR merge, synthetic captures
+- :mod:`.result`      — :class:`RetrievalResult`, returned by every solver
 """
 
 from .calibrate import calibrate
