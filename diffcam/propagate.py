@@ -177,6 +177,21 @@ def _angular_spectrum_kernel(shape, dy, dx, wavelength, z, band_limit):
     return H
 
 
+def _materialised(h: Complex[Array, "n 1"] | Complex[Array, "1 n"]):
+    """``h`` unchanged, but computed on its own before it is broadcast.
+
+    Left alone, XLA's CPU fusion pulls the sin/cos of a 1-D chirp into the N² multiply
+    that consumes it and evaluates them once per *sample* (a step then costs 1.3× an FFT
+    pair instead of 1.03×). A sort keyed by iota is the identity permutation that XLA
+    cannot fuse through (optimization barriers are removed before fusion on CPU); it
+    costs O(N log N) on N values and is differentiable.
+    """
+    flat = h.reshape(-1)
+    key = jax.lax.iota(jnp.int32, flat.shape[0])
+    _, re, im = jax.lax.sort((key, jnp.real(flat), jnp.imag(flat)), num_keys=1)
+    return jax.lax.complex(re, im).reshape(h.shape)
+
+
 def transfer_function(shape, dx, wavelength, z, method: str = "angular_spectrum",
                       *, band_limit: bool = True) -> Complex[Array, "ny nx"]:
     """The kernel that multiplies ``fft2(field)`` (FFT order, piston included).
@@ -194,14 +209,17 @@ def transfer_function(shape, dx, wavelength, z, method: str = "angular_spectrum"
     if method not in METHODS:
         raise DiffcamError(f"method must be one of {METHODS}, got {method!r}.")
     dy, dxx = pitch_yx(dx)
-    p = piston(wavelength, z)
-    if method == "fresnel_tf":
-        hy, hx = _fresnel_tf_kernel(shape, dy, dxx, wavelength, z)
-        return p * hy * hx
-    if method == "fresnel_ir":
-        hy, hx = _fresnel_ir_kernel(shape, dy, dxx, wavelength, z)
-        return p * hy * hx
-    return p * _angular_spectrum_kernel(shape, dy, dxx, wavelength, z, band_limit)
+    return _kernel(shape, dy, dxx, wavelength, z, piston(wavelength, z), method, band_limit)
+
+
+def _kernel(shape, dy, dx, wavelength, z, p, method, band_limit):
+    """The transfer function with piston ``p``: for the Fresnel methods the product of
+    two materialised 1-D factors, which fuses into the multiply that consumes it."""
+    if method == "angular_spectrum":
+        return p * _angular_spectrum_kernel(shape, dy, dx, wavelength, z, band_limit)
+    kernel = _fresnel_tf_kernel if method == "fresnel_tf" else _fresnel_ir_kernel
+    hy, hx = kernel(shape, dy, dx, wavelength, z)
+    return _materialised(p * hy) * _materialised(hx)
 
 
 @jax.jit
@@ -217,15 +235,8 @@ def _propagate_core(field, dy, dx, wavelength, z, p, *, method, pad, band_limit)
     u = field.astype(_complex_dtype(field))
     if pad != (0, 0):
         u = pad_by(u, pad)
-    if method in ("fresnel_tf", "fresnel_ir"):
-        kernel = _fresnel_tf_kernel if method == "fresnel_tf" else _fresnel_ir_kernel
-        hy, hx = kernel(u.shape, dy, dx, wavelength, z)
-        # the outer product of the two 1-D kernels fuses into the one pass between FFTs
-        out = jnp.fft.ifft2(jnp.fft.fft2(u) * (p * hy) * hx)
-    else:
-        H = _angular_spectrum_kernel(u.shape, dy, dx, wavelength, z, band_limit)
-        out = jnp.fft.ifft2(jnp.fft.fft2(u) * (p * H))
-    out = out.astype(u.dtype)
+    H = _kernel(u.shape, dy, dx, wavelength, z, p, method, band_limit)
+    out = jnp.fft.ifft2(jnp.fft.fft2(u) * H).astype(u.dtype)
     if pad != (0, 0):
         out = crop_to(out, shape)
     return out
