@@ -15,14 +15,23 @@ from .errors import DiffcamError
 from .units import parse_length, parse_length_range
 
 
-def _length(name):
+def _units(parse, name):
+    """An argparse type that reads lengths with units; errors become usage errors."""
     def convert(text):
         try:
-            return parse_length(text, name=name)
+            return parse(text, name=name)
         except DiffcamError as e:
             raise argparse.ArgumentTypeError(str(e)) from None
     convert.__name__ = name
     return convert
+
+
+def _length(name):
+    return _units(parse_length, name)
+
+
+def _lengths(name):
+    return _units(parse_length_range, name)
 
 
 @contextlib.contextmanager
@@ -223,16 +232,6 @@ def _cmd_compare(args) -> int:
     plt.close(fig)
     print(f"diffcam compare: → {args.out}")
     return 0
-
-
-def _lengths(name):
-    def convert(text):
-        try:
-            return parse_length_range(text, name=name)
-        except DiffcamError as e:
-            raise argparse.ArgumentTypeError(str(e)) from None
-    convert.__name__ = name
-    return convert
 
 
 def _cmd_reconstruct(args) -> int:
