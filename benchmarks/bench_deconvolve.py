@@ -146,14 +146,14 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="512² only, 2 repeats")
     parser.add_argument("--skimage-max-seconds", type=float, default=600.0,
                         help="time budget per size for scikit-image's repeats")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     sizes, repeats = ([512], 2) if args.quick else (args.sizes, args.repeats)
     print("note: no peer RL implementation (LenslessPiCam, waveprop) is installed; "
           "scikit-image is the reference.")

@@ -15,7 +15,10 @@ import argparse
 import importlib
 
 WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve"]
-QUICK = {"propagate": ["--sizes", "512", "1024"]}
+QUICK = {"propagate": ["--sizes", "512", "1024"],
+         "psf": ["--sizes", "512", "--depths", "8", "--no-memory"],
+         "retrieval": ["--sizes", "512", "--repeats", "2"],
+         "deconvolve": ["--quick"]}
 
 
 def main(argv=None):

@@ -172,17 +172,40 @@ def _cmd_calibrate(args) -> int:
     else:
         result = retrieve_projections(prepared.near, prepared.far, geometry,
                                       method=args.solver, iterations=args.iterations, key=key,
-                                      restarts=args.restarts, aperture=aperture)
+                                      restarts=args.restarts)
+    phase = np.asarray(result.phase)
     info = {"solver": result.stats.get("method", args.solver), "iterations": args.iterations,
             "focal_length": args.focal_length, "near_distance": args.near_distance,
             "final_error": float(np.asarray(result.history)[-1]),
             "twin_resolved": False, "near": str(args.near), "far": str(args.far)}
+    if args.psf is not None:
+        phase, info["twin_chosen"] = _resolve_twin_from_file(phase, dx, args)
+        info["twin_resolved"] = True
     with atomic_output(args.out) as tmp:
-        save_phase(tmp, PhaseFile(np.asarray(result.phase), dx, args.wavelength,
-                                  args.aperture_radius, info))
-    print(f"diffcam calibrate: final error {info['final_error']:.3g} → {args.out} "
-          f"(phase known up to piston and the conjugate twin)")
+        save_phase(tmp, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
+    twin = "twin resolved by the PSF" if info["twin_resolved"] else \
+        "phase known up to piston and the conjugate twin: pass --psf to resolve it"
+    print(f"diffcam calibrate: final error {info['final_error']:.3g} → {args.out} ({twin})")
     return 0
+
+
+def _resolve_twin_from_file(phase, dx, args):
+    """Pick the phase or its twin by one captured PSF (file, depth, z2, same pitch)."""
+    from .camera import Camera
+    from .grid import crop_to
+    from .io import read_image
+    from .retrieval import resolve_twin
+
+    if args.psf_z1 is None or args.psf_z2 is None:
+        raise DiffcamError("--psf needs --psf-z1 and --psf-z2 (the PSF's source depth and "
+                           "the diffuser-to-sensor distance).")
+    captured = read_image(args.psf).image
+    if captured.ndim != 2:
+        raise DiffcamError(f"{args.psf}: expected one PSF image, got shape {captured.shape}.")
+    crop = tuple(min(a, b) for a, b in zip(captured.shape, phase.shape))
+    camera = Camera(wavelength=args.wavelength, z2=args.psf_z2, dx=dx,
+                    aperture_radius=args.aperture_radius, shape=phase.shape, crop=crop)
+    return resolve_twin(phase, crop_to(captured, crop), camera, args.psf_z1)
 
 
 def _cmd_compare(args) -> int:
@@ -370,6 +393,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--iterations", type=int, default=300)
     cal.add_argument("--restarts", type=int, default=4)
     cal.add_argument("--seed", type=int, default=0)
+    cal.add_argument("--psf", help="a captured PSF (same pixel pitch) that resolves the twin")
+    cal.add_argument("--psf-z1", type=_length("psf-z1"), help="source depth of --psf")
+    cal.add_argument("--psf-z2", type=_length("psf-z2"), help="diffuser to sensor for --psf")
     cal.add_argument("-o", "--out", required=True, help="phase file (.npz)")
     cal.set_defaults(func=_cmd_calibrate)
 

@@ -25,11 +25,12 @@ import numpy as np
 
 from .camera import Camera, psf, random_diffuser
 from .grid import pad_to
-from .metrics import pearson, phase_scores, psf_fidelity, ssim, twin_phase
+from .metrics import pearson, phase_scores, psf_fidelity, ssim
 from .optics import circular_aperture
 from .reconstruct import convolution_model, richardson_lucy
-from .retrieval import CalibrationGeometry, calibration_intensities
-from .retrieval import gerchberg_saxton, retrieve_projections
+from .retrieval import (CalibrationGeometry, calibration_intensities, cameraman_phase,
+                        gerchberg_saxton, resolve_twin)
+from .retrieval import calibrate as calibrate_default
 from .scaling import scale_psf
 from .stack import psf_stack
 
@@ -52,18 +53,6 @@ class Settings:
     calibration_iterations: int = 300
     rl_iterations: int = 150
     psf_crop: int = 576
-
-
-def cameraman_phase(n: int = DIFFUSER_SIZE) -> np.ndarray:
-    """The paper's ground-truth diffuser phase: "cameraman" scaled linearly to [−π, π]."""
-    from skimage.data import camera as cameraman
-    from skimage.transform import resize
-
-    img = cameraman().astype(np.float64)
-    if n != img.shape[0]:
-        img = resize(img, (n, n), anti_aliasing=True)
-    img = (img - img.min()) / (img.max() - img.min())
-    return ((2 * img - 1) * np.pi).astype(np.float32)
 
 
 def letter_f(size: int = 70) -> np.ndarray:
@@ -113,21 +102,13 @@ def _scores(estimate, truth, n):
     return {k: float(v) for k, v in s.items()}
 
 
-def calibrate(near, far, *, iterations: int, key=None):
-    """diffcam's default calibration path from near/far intensities (a RetrievalResult)."""
-    return retrieve_projections(near, far, geometry(), method="raar", iterations=iterations,
-                                key=jax.random.PRNGKey(0) if key is None else key)
-
-
-def resolve_twin(phase, reference_psf, cam: Camera, z1_ref: float):
-    """Near/far data fix θd only up to the twin −θd(−x); a captured PSF (a third
-    measurement) decides: keep whichever of the two predicts it better (registered
-    Pearson). Returns ``(phase, twin_was_chosen)``."""
-    twin = twin_phase(jnp.asarray(phase))
-    candidates = jnp.stack([psf(jnp.asarray(phase), cam, z1_ref), psf(twin, cam, z1_ref)])
-    score = psf_fidelity(candidates, jnp.asarray(reference_psf))["pearson"]
-    use_twin = bool(score[1] > score[0])
-    return (np.asarray(twin) if use_twin else np.asarray(phase)), use_twin
+def calibrate(near, far, *, iterations: int, refine_iterations: int = 50, restarts: int = 2):
+    """diffcam's default calibration path (:func:`diffcam.retrieval.calibrate`: RAAR with
+    random restarts, then least squares) on the paper's aperture; a RetrievalResult."""
+    n = np.shape(near)[-1]
+    aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
+    return calibrate_default(near, far, geometry(), aperture, iterations=iterations,
+                             restarts=restarts, refine_iterations=refine_iterations)
 
 
 def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0) -> dict:
@@ -148,7 +129,8 @@ def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0) -> d
             "gs": np.asarray(gs.phase), "calibrated": np.asarray(cal.phase),
             "gs_scores": _scores(gs.phase, truth, n), "gs_seconds": t_gs,
             "calibrated_scores": _scores(cal.phase, truth, n), "calibrated_seconds": t_cal,
-            "calibration_method": cal.stats.get("method", "raar"),
+            "flat_scores": _scores(np.zeros_like(truth), truth, n),
+            "calibration_method": cal.stats["method"],
             "near": np.asarray(near)}
 
 

@@ -31,6 +31,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from diffcam import paper
+from diffcam.retrieval import cameraman_phase
 from diffcam.metrics import phase_offset, wrap_phase
 
 SMALL = os.environ.get("DIFFCAM_NOTEBOOK_SMALL") == "1"
@@ -38,7 +39,7 @@ settings = paper.Settings(grid=640 if SMALL else 1024, gs_iterations=50 if SMALL
                           calibration_iterations=100 if SMALL else 300)
 
 # %%
-result = paper.fig3_phase_retrieval(paper.cameraman_phase(), settings)
+result = paper.fig3_phase_retrieval(cameraman_phase(), settings)
 for name in ("gs", "calibrated"):
     s = result[f"{name}_scores"]
     print(f"{name:>10}: Pearson {s['pearson']:.4f}, twin-resolved {s['twin_resolved']:.4f}, "

@@ -18,7 +18,7 @@
 # Fresnel scaling theorem), from the true diffuser phase and from phases retrieved with
 # more and more iterations. A test object convolved with the *true* PSF is deconvolved
 # (150 Richardson–Lucy iterations) with each PSF. The retrieved phase carries the twin
-# ambiguity; one captured PSF at 22 mm resolves it (`paper.resolve_twin`).
+# ambiguity; one captured PSF at 22 mm resolves it (`diffcam.retrieval.resolve_twin`).
 
 # %%
 import os
@@ -27,6 +27,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from diffcam import paper
+from diffcam.retrieval import cameraman_phase, resolve_twin
 
 SMALL = os.environ.get("DIFFCAM_NOTEBOOK_SMALL") == "1"
 settings = paper.Settings(grid=640 if SMALL else 1024, gs_iterations=30 if SMALL else 2000,
@@ -34,13 +35,14 @@ settings = paper.Settings(grid=640 if SMALL else 1024, gs_iterations=30 if SMALL
                           rl_iterations=30 if SMALL else 150, psf_crop=512 if SMALL else 576)
 
 # %%
-fig3 = paper.fig3_phase_retrieval(paper.cameraman_phase(), settings)
+fig3 = paper.fig3_phase_retrieval(cameraman_phase(), settings)
 cam = paper.camera(settings)
 reference = paper.captured_reference(fig3["truth"], cam, paper.DEPTHS[0])
 stages = {"true phase": None, "textbook GS": fig3["gs"]}
 for it in (10, settings.calibration_iterations):
-    phase = paper.calibrate(fig3["near"], fig3["far"], iterations=it).phase
-    stages[f"calibration {it} it"] = paper.resolve_twin(phase, reference, cam,
+    phase = paper.calibrate(fig3["near"], fig3["far"], iterations=it, refine_iterations=0,
+                            restarts=1).phase
+    stages[f"calibration {it} it"] = resolve_twin(phase, reference, cam,
                                                         paper.DEPTHS[0])[0]
 rows = paper.fig5_psf_and_reconstruction(fig3["truth"], stages, paper.letter_f(), settings)
 for r in rows[1:]:
@@ -62,7 +64,7 @@ plt.tight_layout()
 
 # %%
 rnd = paper.fig3_phase_retrieval(paper.random_phase(), settings)
-resolved, _ = paper.resolve_twin(
+resolved, _ = resolve_twin(
     rnd["calibrated"], paper.captured_reference(rnd["truth"], cam, paper.DEPTHS[0]), cam,
     paper.DEPTHS[0])
 rows6 = paper.fig5_psf_and_reconstruction(

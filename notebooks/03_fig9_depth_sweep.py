@@ -27,6 +27,7 @@ import os
 import matplotlib.pyplot as plt
 
 from diffcam import paper
+from diffcam.retrieval import cameraman_phase, resolve_twin
 
 SMALL = os.environ.get("DIFFCAM_NOTEBOOK_SMALL") == "1"
 settings = paper.Settings(grid=640 if SMALL else 1024, gs_iterations=10,
@@ -34,9 +35,9 @@ settings = paper.Settings(grid=640 if SMALL else 1024, gs_iterations=10,
                           psf_crop=512 if SMALL else 576)
 
 # %%
-fig3 = paper.fig3_phase_retrieval(paper.cameraman_phase(), settings)
+fig3 = paper.fig3_phase_retrieval(cameraman_phase(), settings)
 cam = paper.camera(settings)
-phase, _ = paper.resolve_twin(fig3["calibrated"],
+phase, _ = resolve_twin(fig3["calibrated"],
                               paper.captured_reference(fig3["truth"], cam, paper.DEPTHS[0]),
                               cam, paper.DEPTHS[0])
 sweeps = {f"z2 = {z2 * 1e3:g} mm": paper.fig9_depth_sweep(fig3["truth"], phase, settings, z2=z2,

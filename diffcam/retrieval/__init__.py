@@ -20,7 +20,8 @@ from .forward import (PaperSimulation, calibration_intensities, cameraman_phase,
 from .geometry import CalibrationGeometry, check_far_pitch, glass_equivalent_distance
 from .lsq import PhaseGrid, fit_phase, near_far_model, retrieve_lsq
 from .projections import gerchberg_saxton, hio, initial_phase, raar, retrieve_projections
-from .psf_fit import fit_to_psfs, predict_psfs
+from .phase_io import PhaseFile, load_phase, save_phase
+from .psf_fit import fit_to_psfs, predict_psfs, resolve_twin
 from .result import RetrievalResult
 
 __all__ = [
@@ -31,7 +32,7 @@ __all__ = [
     # solvers
     "calibrate", "retrieve_projections", "gerchberg_saxton", "hio", "raar",
     "initial_phase", "retrieve_lsq", "fit_phase", "near_far_model", "PhaseGrid",
-    "fit_to_psfs", "predict_psfs",
+    "fit_to_psfs", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
     # captures
     "prepare_captures", "PreparedCaptures", "synthetic_captures", "merge_exposures",
     "normalise_min_max",

@@ -35,7 +35,7 @@ from .lsq import PhaseGrid, fit_phase, near_far_model
 from .projections import initial_phase
 from .result import RetrievalResult
 
-__all__ = ["fit_to_psfs", "predict_psfs", "depths", "DEPTH_MODELS"]
+__all__ = ["fit_to_psfs", "predict_psfs", "resolve_twin", "depths", "DEPTH_MODELS"]
 
 DEPTH_MODELS = ("fixed", "per_psf", "inverse_linear")
 
@@ -206,3 +206,22 @@ def predict_psfs(phase: Float[Array, "ny nx"], camera: Camera, z1, *, z2=None,
                       progress=False)
     sensor = _sensor(camera, sensor_pitch)
     return stack if sensor is None else np.asarray(_on_sensor(stack, camera, sensor))
+
+
+def resolve_twin(phase: Float[Array, "ny nx"], reference_psf: Float[Array, "cy cx"],
+                 camera: Camera, z1: float) -> tuple[np.ndarray, bool]:
+    """Choose between a near/far-retrieved phase and its conjugate twin −θd(−x).
+
+    Near and far intensities cannot tell them apart; one captured PSF at depth ``z1``
+    (metres; ``camera.out_shape``, any scale) can: the candidate whose PSF matches it
+    better (registered Pearson, :func:`diffcam.metrics.psf_fidelity`) is returned, with
+    ``True`` if that was the twin. For a fit that also refines the phase against the
+    PSF, use :func:`fit_to_psfs` with ``init=phase``.
+    """
+    from ..metrics import psf_fidelity, twin_phase
+
+    twin = twin_phase(jnp.asarray(phase))
+    candidates = jnp.stack([psf(jnp.asarray(phase), camera, z1), psf(twin, camera, z1)])
+    score = psf_fidelity(candidates, jnp.asarray(reference_psf))["pearson"]
+    use_twin = bool(score[1] > score[0])
+    return np.asarray(twin if use_twin else phase), use_twin
