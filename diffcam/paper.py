@@ -28,8 +28,7 @@ from .grid import pad_to
 from .metrics import pearson, phase_scores, psf_fidelity, ssim
 from .optics import circular_aperture
 from .reconstruct import convolution_model, richardson_lucy
-from .retrieval import (CalibrationGeometry, calibration_intensities, cameraman_phase,
-                        gerchberg_saxton, resolve_twin)
+from .retrieval import CalibrationGeometry, gerchberg_saxton, paper_simulation
 from .retrieval import calibrate as calibrate_default
 from .scaling import scale_psf
 from .stack import psf_stack
@@ -112,12 +111,12 @@ def calibrate(near, far, *, iterations: int, refine_iterations: int = 50, restar
 
 
 def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0) -> dict:
-    """Near/far intensities of ``truth_512`` embedded in the grid; textbook GS and the
-    default calibration; phase figures and wall times."""
+    """Near/far intensities of the diffuser ``truth_512`` in the paper's set-up
+    (:func:`diffcam.retrieval.paper_simulation` on the ``s.grid`` grid); textbook GS and
+    the default calibration; phase figures and wall times."""
     n = s.grid
-    truth = np.asarray(pad_to(jnp.asarray(truth_512), (n, n)))
-    aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
-    near, far = calibration_intensities(jnp.asarray(truth), aperture, geometry())
+    sim = paper_simulation(n, DIFFUSER_SIZE, phase=truth_512)
+    truth, aperture, near, far = np.asarray(sim.phase), sim.aperture, sim.near, sim.far
     t = time.perf_counter()
     gs = gerchberg_saxton(near, far, geometry(), iterations=s.gs_iterations,
                           key=jax.random.PRNGKey(seed))

@@ -15,6 +15,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
+from ..errors import ShapeError
 from ..optics import apply_phase
 from ..propagate import angular_spectrum, fourier_lens
 from .geometry import CalibrationGeometry
@@ -69,15 +70,18 @@ class PaperSimulation(NamedTuple):
     mask: Float[Array, "size size"]   # the scored central square (300/512 of the side)
 
 
-def paper_simulation(n: int = 1024, size: int = 512) -> PaperSimulation:
+def paper_simulation(n: int = 1024, size: int = 512, phase=None) -> PaperSimulation:
     """Paper Section 3.1: a ``size``² cameraman diffuser at 5 µm, aperture radius 1.2 mm,
     f = 5 cm, λ = 532 nm, embedded in an ``n``² grid; ``size < 512`` shrinks the diffuser,
-    the aperture and the scored square (300 px at 512) in proportion, for fast tests."""
+    the aperture and the scored square (300 px at 512) in proportion, for fast tests.
+    ``phase`` (``size``², radians) replaces the cameraman, e.g. a random diffuser (Fig. 6)."""
     from ..grid import pad_to
     from ..optics import circular_aperture
     dx = 5e-6
     geometry = CalibrationGeometry(dx=dx, wavelength=532e-9, focal_length=0.05)
-    truth = cameraman_phase(size)
+    truth = cameraman_phase(size) if phase is None else jnp.asarray(phase, jnp.float32)
+    if truth.shape != (size, size):
+        raise ShapeError(f"phase must be {size}×{size}, got {truth.shape}.")
     aperture = circular_aperture((n, n), dx, 1.2e-3 * size / 512)
     phase = pad_to(truth, (n, n))
     near, far = calibration_intensities(phase, aperture, geometry)
