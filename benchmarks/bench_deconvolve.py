@@ -16,20 +16,15 @@ times where it takes minutes (``--skimage-max-seconds``). Results go to
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
-import statistics
-import time
-from pathlib import Path
 
-import jax
 import numpy as np
 
+from benchmarks.harness import markdown_table, time_interleaved, write_json
 from diffcam.reconstruct import admm_tv, richardson_lucy
 
 NUM_ITER = 150
-RESULTS = Path(__file__).resolve().parent / "results" / "deconvolve.json"
+SKIMAGE = "scikit-image richardson_lucy (clip=False)"
 
 
 def _problem(n: int, seed: int = 0):
@@ -41,75 +36,47 @@ def _problem(n: int, seed: int = 0):
 
 
 def _candidates(image, psf):
-    """name -> (callable returning a NumPy array, is_jax)."""
+    """name -> zero-argument callable returning the estimate."""
     cands = {
-        "diffcam RL same, skimage convention": (
-            lambda: np.asarray(richardson_lucy(image, psf, NUM_ITER, convention="skimage").image),
-            True),
-        "diffcam RL same (adjoint)": (
-            lambda: np.asarray(richardson_lucy(image, psf, NUM_ITER).image), True),
-        "diffcam RL circular": (
-            lambda: np.asarray(richardson_lucy(image, psf, NUM_ITER, boundary="circular").image),
-            True),
-        "diffcam RL crop model": (
-            lambda: np.asarray(richardson_lucy(image, psf, NUM_ITER, boundary="crop").image),
-            True),
+        "diffcam RL same, skimage convention":
+            lambda: richardson_lucy(image, psf, NUM_ITER, convention="skimage").image,
+        "diffcam RL same (adjoint)": lambda: richardson_lucy(image, psf, NUM_ITER).image,
+        "diffcam RL circular":
+            lambda: richardson_lucy(image, psf, NUM_ITER, boundary="circular").image,
+        "diffcam RL crop model":
+            lambda: richardson_lucy(image, psf, NUM_ITER, boundary="crop").image,
     }
     try:
         from skimage.restoration import richardson_lucy as skimage_rl
-        cands["scikit-image richardson_lucy (clip=False)"] = (
-            lambda: skimage_rl(image, psf, NUM_ITER, clip=False), False)
+        cands[SKIMAGE] = lambda: skimage_rl(image, psf, NUM_ITER, clip=False)
     except ImportError:
         print("note: scikit-image missing; its row is skipped")
     return cands
 
 
-def _time(fn):
-    start = time.perf_counter()
-    out = fn()
-    return time.perf_counter() - start, out
-
-
 def run(sizes=(512, 1024, 2048), repeats: int = 5, skimage_max_seconds: float = 600.0
         ) -> list[dict]:
-    """Time every candidate at every size; return one dict per (size, candidate)."""
+    """Time every candidate at every size (interleaved, :mod:`benchmarks.harness`); a
+    candidate is repeated only while its total stays under ``skimage_max_seconds``."""
     rows = []
     for n in sizes:
         image, psf = _problem(n)
-        cands = _candidates(image, psf)
         load_before = os.getloadavg()
-        first, times, outputs = {}, {k: [] for k in cands}, {}
-        for name, (fn, is_jax) in cands.items():     # warm-up = compile for JAX
-            if is_jax:
-                first[name], outputs[name] = _time(fn)
-        budget = {k: repeats for k in cands}
-        for r in range(repeats):
-            for name, (fn, is_jax) in cands.items():
-                if r >= budget[name]:
-                    continue
-                t, out = _time(fn)
-                times[name].append(t)
-                outputs.setdefault(name, out)
-                if not is_jax and t * repeats > skimage_max_seconds:
-                    budget[name] = max(1, int(skimage_max_seconds // t))
-        load_after = os.getloadavg()
-        ref = outputs.get("scikit-image richardson_lucy (clip=False)")
-        sk_median = statistics.median(times[next(k for k in cands if "scikit" in k)]) \
-            if ref is not None else None
-        for name in cands:
-            median = statistics.median(times[name])
+        stats = time_interleaved(_candidates(image, psf), repeats, skimage_max_seconds)
+        load = f"{load_before[0]:.1f}→{os.getloadavg()[0]:.1f}"
+        ref = stats.get(SKIMAGE)
+        for name, st in stats.items():
             row = {"workload": f"RL {NUM_ITER} it", "size": n, "candidate": name,
-                   "median_s": median, "repeats": len(times[name]),
-                   "compile_s": (first[name] - median) if name in first else None,
-                   "load_before": load_before, "load_after": load_after}
+                   "median_s": st["median_s"], "repeats": st["repeats"],
+                   "compile_s": st["first_s"] - st["median_s"], "load": load}
             if ref is not None:
-                row["speedup_vs_skimage"] = sk_median / median
-                if "skimage convention" in name or "scikit" in name:
-                    out = outputs[name]
-                    row["rel_l2_vs_skimage"] = float(np.linalg.norm(out - ref)
-                                                     / np.linalg.norm(ref))
+                row["speedup_vs_skimage"] = ref["median_s"] / st["median_s"]
+                if "skimage convention" in name:
+                    out, want = np.asarray(st["output"]), np.asarray(ref["output"])
+                    row["rel_l2_vs_skimage"] = float(np.linalg.norm(out - want)
+                                                     / np.linalg.norm(want))
             rows.append(row)
-            print(f"  {n}² {name}: {median:.3f} s x{len(times[name])}", flush=True)
+            print(f"  {n}² {name}: {st['median_s']:.3f} s x{st['repeats']}", flush=True)
     rows.append(_admm_tutorial(repeats))
     return rows
 
@@ -120,30 +87,15 @@ def _admm_tutorial(repeats: int) -> dict:
     from diffcam.io import normalise_l2
     pair = load_tutorial_pair()
     psf, image = normalise_l2(pair.psf), normalise_l2(pair.image)
-    fn = lambda: np.asarray(admm_tv(image, psf, 5).image)  # noqa: E731
-    first, _ = _time(fn)
-    times = [_time(fn)[0] for _ in range(max(repeats, 5))]
-    median = statistics.median(times)
+    load_before = os.getloadavg()
+    st = time_interleaved({"admm": lambda: admm_tv(image, psf, 5).image}, max(repeats, 5))
     return {"workload": "ADMM-TV 5 it, tutorial pair", "size": "300x400",
-            "candidate": "diffcam admm_tv (crop model, grid 640x810)", "median_s": median,
-            "repeats": len(times), "compile_s": first - median,
-            "load_before": os.getloadavg(), "load_after": os.getloadavg(),
-            "published_elsewhere": "LenslessPiCam numpy 1.26 s, torch CPU 4.32 s, "
+            "candidate": "diffcam admm_tv (crop model, grid 640x810)",
+            "median_s": st["admm"]["median_s"], "repeats": st["admm"]["repeats"],
+            "compile_s": st["admm"]["first_s"] - st["admm"]["median_s"],
+            "load": f"{load_before[0]:.1f}→{os.getloadavg()[0]:.1f}",
+            "published_elsewhere": "LenslessPiCam ADMM 5 it: numpy 1.26 s, torch CPU 272 ms, "
                                    "DiffuserCam reference 6.81 s (i9-10900X)"}
-
-
-def markdown(rows: list[dict]) -> str:
-    lines = ["| workload | size | candidate | median | repeats | compile | vs skimage | "
-             "rel. L2 vs skimage | load (1 min) |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        speed = f"{r['speedup_vs_skimage']:.1f}x" if "speedup_vs_skimage" in r else ""
-        diff = f"{r['rel_l2_vs_skimage']:.1e}" if "rel_l2_vs_skimage" in r else ""
-        comp = f"{r['compile_s']:.2f} s" if r.get("compile_s") is not None else ""
-        lines.append(f"| {r['workload']} | {r['size']} | {r['candidate']} | "
-                     f"{r['median_s']:.3f} s | {r['repeats']} | {comp} | {speed} | {diff} | "
-                     f"{r['load_before'][0]:.1f}→{r['load_after'][0]:.1f} |")
-    return "\n".join(lines)
 
 
 def main(argv=None) -> None:
@@ -158,14 +110,10 @@ def main(argv=None) -> None:
     print("note: no peer RL implementation (LenslessPiCam, waveprop) is installed; "
           "scikit-image is the reference.")
     rows = run(sizes, repeats, args.skimage_max_seconds)
-    table = markdown(rows)
-    print(table)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps({
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "jax": jax.__version__, "backend": jax.default_backend()},
-        "rows": rows}, indent=2))
-    print(f"wrote {RESULTS}")
+    print(markdown_table(rows, ["workload", "size", "candidate", "median_s", "repeats",
+                                "compile_s", "speedup_vs_skimage", "rel_l2_vs_skimage",
+                                "load"]))
+    print("wrote", write_json("deconvolve", rows))
 
 
 if __name__ == "__main__":

@@ -37,12 +37,14 @@ def time_interleaved(candidates: dict[str, Callable[[], object]], repeats: int =
     Each candidate is called once untimed-for-the-median (its first-call time is the
     ``first_s``, i.e. compile + run for jitted code), then ``repeats`` times in
     round-robin order. A candidate whose single call exceeds ``budget_s`` is timed
-    fewer times (at least once), and ``repeats`` says how many.
+    fewer times (at least once), and ``repeats`` says how many. ``output`` is what the
+    first call returned, for accuracy checks beside the timing.
     """
     stats = {name: {"first_s": None, "times": []} for name in candidates}
+    outputs = {}
     for name, fn in candidates.items():
         t = time.perf_counter()
-        block(fn())
+        outputs[name] = block(fn())
         stats[name]["first_s"] = time.perf_counter() - t
     for _ in range(repeats):
         for name, fn in candidates.items():
@@ -56,7 +58,8 @@ def time_interleaved(candidates: dict[str, Callable[[], object]], repeats: int =
     for name, s in stats.items():
         times = s["times"] or [s["first_s"]]
         out[name] = {"median_s": statistics.median(times), "min_s": min(times),
-                     "first_s": s["first_s"], "repeats": len(s["times"])}
+                     "first_s": s["first_s"], "repeats": len(s["times"]),
+                     "output": outputs[name]}
     return out
 
 
