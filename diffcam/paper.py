@@ -29,14 +29,14 @@ from .metrics import pearson, phase_scores, psf_fidelity, ssim
 from .optics import circular_aperture
 from .reconstruct import convolution_model, richardson_lucy
 from .retrieval import CalibrationGeometry, gerchberg_saxton, paper_simulation
+from .retrieval.forward import (PAPER_APERTURE_RADIUS, PAPER_DX, PAPER_FOCAL_LENGTH,
+                                PAPER_WAVELENGTH)
 from .retrieval import calibrate as calibrate_default
 from .scaling import scale_psf
 from .stack import psf_stack
 
-WAVELENGTH = 532e-9
-DX = 5e-6
-APERTURE_RADIUS = 1.2e-3
-FOCAL_LENGTH = 5e-2
+WAVELENGTH, DX = PAPER_WAVELENGTH, PAPER_DX
+APERTURE_RADIUS, FOCAL_LENGTH = PAPER_APERTURE_RADIUS, PAPER_FOCAL_LENGTH
 DIFFUSER_SIZE = 512
 Z1, Z2 = 25e-3, 1e-3
 DEPTHS = np.arange(22, 31) * 1e-3

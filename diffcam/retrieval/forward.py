@@ -58,6 +58,13 @@ def calibration_intensities(phase: Float[Array, "... ny nx"], aperture: Float[Ar
     return jnp.abs(near) ** 2, jnp.abs(far) ** 2
 
 
+# The paper's simulation (Section 3.1, DESIGN.md), SI units
+PAPER_DX = 5e-6
+PAPER_WAVELENGTH = 532e-9
+PAPER_FOCAL_LENGTH = 5e-2
+PAPER_APERTURE_RADIUS = 1.2e-3
+
+
 class PaperSimulation(NamedTuple):
     """The paper's Fig. 3 problem on an N×N grid (see :func:`paper_simulation`)."""
 
@@ -77,12 +84,13 @@ def paper_simulation(n: int = 1024, size: int = 512, phase=None) -> PaperSimulat
     ``phase`` (``size``², radians) replaces the cameraman, e.g. a random diffuser (Fig. 6)."""
     from ..grid import pad_to
     from ..optics import circular_aperture
-    dx = 5e-6
-    geometry = CalibrationGeometry(dx=dx, wavelength=532e-9, focal_length=0.05)
+    dx = PAPER_DX
+    geometry = CalibrationGeometry(dx=dx, wavelength=PAPER_WAVELENGTH,
+                                   focal_length=PAPER_FOCAL_LENGTH)
     truth = cameraman_phase(size) if phase is None else jnp.asarray(phase, jnp.float32)
     if truth.shape != (size, size):
         raise ShapeError(f"phase must be {size}×{size}, got {truth.shape}.")
-    aperture = circular_aperture((n, n), dx, 1.2e-3 * size / 512)
+    aperture = circular_aperture((n, n), dx, PAPER_APERTURE_RADIUS * size / 512)
     phase = pad_to(truth, (n, n))
     near, far = calibration_intensities(phase, aperture, geometry)
     scored = round(300 * size / 512)
