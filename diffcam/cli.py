@@ -148,7 +148,8 @@ def _cmd_calibrate(args) -> int:
 
     from .io import read_image
     from .optics import circular_aperture
-    from .retrieval import CalibrationGeometry, prepare_captures, retrieve_projections
+    from .retrieval import (CalibrationGeometry, prepare_captures, psf_plane, resolve_twin,
+                            retrieve_projections)
     from .retrieval.calibrate import calibrate
     from .retrieval.phase_io import PhaseFile, save_phase
 
@@ -163,24 +164,30 @@ def _cmd_calibrate(args) -> int:
                                 saturation=args.saturation)
     aperture = circular_aperture((n, n), dx, args.aperture_radius)
     key = jax.random.key(args.seed)
+    reference = None if args.psf is None else _reference_psf(dx, (n, n), args)
+    planes = () if reference is None else [psf_plane(reference[0], reference[1], args.psf_z1)]
+    # with a PSF plane one flat start converges (random starts can stall on it)
+    start = dict(init="flat", restarts=1) if planes else dict(key=key, restarts=args.restarts)
     print(f"diffcam calibrate: {n}×{n} grid at {dx * 1e6:g} µm, solver {args.solver}, "
-          f"{args.iterations} iterations ...", flush=True)
+          f"{args.iterations} iterations{', PSF as a third plane' if planes else ''} ...",
+          flush=True)
     if args.solver == "default":
-        result = calibrate(prepared.near, prepared.far, geometry, aperture, key=key,
-                           iterations=args.iterations, restarts=args.restarts,
-                           masks=(prepared.near_mask, prepared.far_mask))
+        result = calibrate(prepared.near, prepared.far, geometry, aperture,
+                           iterations=args.iterations, planes=planes,
+                           masks=(prepared.near_mask, prepared.far_mask), **start)
     else:
         result = retrieve_projections(prepared.near, prepared.far, geometry,
-                                      method=args.solver, iterations=args.iterations, key=key,
-                                      restarts=args.restarts)
+                                      method=args.solver, iterations=args.iterations,
+                                      planes=planes, **start)
     phase = np.asarray(result.phase)
     info = {"solver": result.stats.get("method", args.solver), "iterations": args.iterations,
             "focal_length": args.focal_length, "near_distance": args.near_distance,
             "final_error": float(np.asarray(result.history)[-1]),
             "twin_resolved": False, "near": str(args.near), "far": str(args.far)}
-    if args.psf is not None:
-        phase, info["twin_chosen"] = _resolve_twin_from_file(phase, dx, args)
-        info["twin_resolved"] = True
+    if reference is not None:
+        psf_ref, camera = reference
+        phase, info["twin_chosen"] = resolve_twin(phase, psf_ref, camera, args.psf_z1)
+        info.update(twin_resolved=True, psf=str(args.psf))
     with atomic_output(args.out) as tmp:
         save_phase(tmp, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
     twin = "twin resolved by the PSF" if info["twin_resolved"] else \
@@ -189,12 +196,12 @@ def _cmd_calibrate(args) -> int:
     return 0
 
 
-def _resolve_twin_from_file(phase, dx, args):
-    """Pick the phase or its twin by one captured PSF (file, depth, z2, same pitch)."""
+def _reference_psf(dx, shape, args):
+    """The captured PSF of ``--psf`` (same pitch as the grid) and its camera:
+    ``(psf on the camera's crop, Camera)``."""
     from .camera import Camera
     from .grid import crop_to
     from .io import read_image
-    from .retrieval import resolve_twin
 
     if args.psf_z1 is None or args.psf_z2 is None:
         raise DiffcamError("--psf needs --psf-z1 and --psf-z2 (the PSF's source depth and "
@@ -202,10 +209,10 @@ def _resolve_twin_from_file(phase, dx, args):
     captured = read_image(args.psf).image
     if captured.ndim != 2:
         raise DiffcamError(f"{args.psf}: expected one PSF image, got shape {captured.shape}.")
-    crop = tuple(min(a, b) for a, b in zip(captured.shape, phase.shape))
+    crop = tuple(min(a, b) for a, b in zip(captured.shape, shape))
     camera = Camera(wavelength=args.wavelength, z2=args.psf_z2, dx=dx,
-                    aperture_radius=args.aperture_radius, shape=phase.shape, crop=crop)
-    return resolve_twin(phase, crop_to(captured, crop), camera, args.psf_z1)
+                    aperture_radius=args.aperture_radius, shape=shape, crop=crop)
+    return crop_to(captured, crop), camera
 
 
 def _cmd_compare(args) -> int:
@@ -393,7 +400,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--iterations", type=int, default=300)
     cal.add_argument("--restarts", type=int, default=4)
     cal.add_argument("--seed", type=int, default=0)
-    cal.add_argument("--psf", help="a captured PSF (same pixel pitch) that resolves the twin")
+    cal.add_argument("--psf", help="a captured on-axis PSF at the grid pitch, background "
+                     "subtracted: a third intensity plane for the projections (it resolves "
+                     "the twin and un-stalls strongly scattering diffusers)")
     cal.add_argument("--psf-z1", type=_length("psf-z1"), help="source depth of --psf")
     cal.add_argument("--psf-z2", type=_length("psf-z2"), help="diffuser to sensor for --psf")
     cal.add_argument("-o", "--out", required=True, help="phase file (.npz)")

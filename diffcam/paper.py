@@ -28,7 +28,7 @@ from .grid import pad_to
 from .metrics import pearson, phase_scores, psf_fidelity, ssim
 from .optics import circular_aperture
 from .reconstruct import convolution_model, richardson_lucy
-from .retrieval import CalibrationGeometry, gerchberg_saxton, paper_simulation
+from .retrieval import CalibrationGeometry, gerchberg_saxton, paper_simulation, psf_plane
 from .retrieval.forward import (PAPER_APERTURE_RADIUS, PAPER_DX, PAPER_FOCAL_LENGTH,
                                 PAPER_WAVELENGTH)
 from .retrieval import calibrate as calibrate_default
@@ -101,19 +101,26 @@ def _scores(estimate, truth, n):
     return {k: float(v) for k, v in s.items()}
 
 
-def calibrate(near, far, *, iterations: int, refine_iterations: int = 50, restarts: int = 2):
+def calibrate(near, far, *, iterations: int, refine_iterations: int = 50, restarts: int = 2,
+              planes=()):
     """diffcam's default calibration path (:func:`diffcam.retrieval.calibrate`: RAAR with
-    random restarts, then least squares) on the paper's aperture; a RetrievalResult."""
+    random restarts, then least squares) on the paper's aperture; a RetrievalResult.
+    With ``planes`` (a captured PSF, :func:`diffcam.retrieval.psf_plane`) one flat start
+    replaces the restarts."""
     n = np.shape(near)[-1]
     aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
+    start = dict(init="flat", restarts=1) if planes else dict(restarts=restarts)
     return calibrate_default(near, far, geometry(), aperture, iterations=iterations,
-                             restarts=restarts, refine_iterations=refine_iterations)
+                             refine_iterations=refine_iterations, planes=planes, **start)
 
 
-def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0) -> dict:
+def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0,
+                         psf_z1: float | None = None) -> dict:
     """Near/far intensities of the diffuser ``truth_512`` in the paper's set-up
     (:func:`diffcam.retrieval.paper_simulation` on the ``s.grid`` grid); textbook GS and
-    the default calibration; phase figures and wall times."""
+    the default calibration; phase figures and wall times. With ``psf_z1`` (metres), also
+    the calibration with one captured PSF at that depth as a third plane (``"with_psf"``
+    keys)."""
     n = s.grid
     sim = paper_simulation(n, DIFFUSER_SIZE, phase=truth_512)
     truth, aperture, near, far = np.asarray(sim.phase), sim.aperture, sim.near, sim.far
@@ -124,13 +131,22 @@ def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0) -> d
     t = time.perf_counter()
     cal = calibrate(near, far, iterations=s.calibration_iterations)
     t_cal = time.perf_counter() - t
-    return {"truth": truth, "aperture": np.asarray(aperture), "far": np.asarray(far),
-            "gs": np.asarray(gs.phase), "calibrated": np.asarray(cal.phase),
-            "gs_scores": _scores(gs.phase, truth, n), "gs_seconds": t_gs,
-            "calibrated_scores": _scores(cal.phase, truth, n), "calibrated_seconds": t_cal,
-            "flat_scores": _scores(np.zeros_like(truth), truth, n),
-            "calibration_method": cal.stats["method"],
-            "near": np.asarray(near)}
+    out = {"truth": truth, "aperture": np.asarray(aperture), "far": np.asarray(far),
+           "gs": np.asarray(gs.phase), "calibrated": np.asarray(cal.phase),
+           "gs_scores": _scores(gs.phase, truth, n), "gs_seconds": t_gs,
+           "calibrated_scores": _scores(cal.phase, truth, n), "calibrated_seconds": t_cal,
+           "flat_scores": _scores(np.zeros_like(truth), truth, n),
+           "calibration_method": cal.stats["method"],
+           "near": np.asarray(near)}
+    if psf_z1 is not None:
+        cam = camera(s)
+        plane = psf_plane(psf(jnp.asarray(truth), cam, psf_z1), cam, psf_z1)
+        t = time.perf_counter()
+        with_psf = calibrate(near, far, iterations=s.calibration_iterations, planes=[plane])
+        out.update(with_psf=np.asarray(with_psf.phase),
+                   with_psf_seconds=time.perf_counter() - t,
+                   with_psf_scores=_scores(with_psf.phase, truth, n))
+    return out
 
 
 def camera(s: Settings, z2: float = Z2, crop: int | None = None) -> Camera:

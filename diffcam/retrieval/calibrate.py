@@ -21,9 +21,9 @@ __all__ = ["calibrate"]
 
 
 def calibrate(near, far, geometry: CalibrationGeometry, aperture, *, key=None,
-              method: str = "raar", iterations: int = 300, restarts: int = 4,
+              method: str = "raar", iterations: int = 300, restarts: int = 4, init="random",
               refine_iterations: int = 100, loss: str = "intensity", solver: str = "lbfgs",
-              masks=None, far_pitch=None) -> RetrievalResult:
+              masks=None, far_pitch=None, planes=()) -> RetrievalResult:
     """Diffuser phase from near/far intensities: ``method`` projections (``restarts``
     random starts, ``iterations`` each), then ``refine_iterations`` least-squares steps
     (``loss``, ``solver``; 0 skips them).
@@ -34,8 +34,15 @@ def calibrate(near, far, geometry: CalibrationGeometry, aperture, *, key=None,
         geometry: the set-up, SI units.
         aperture: diffuser-plane amplitude C (ny, nx).
         key: ``jax.random`` key (default ``jax.random.key(0)``).
+        init: start of the projections, as in
+            :func:`~diffcam.retrieval.retrieve_projections` (``"flat"`` needs
+            ``restarts=1``; with ``planes`` it is the safer start).
         masks: ``(near_mask, far_mask)``, 0 at saturated pixels (least-squares stage).
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
+        planes: extra intensities for the projection stage
+            (:class:`~diffcam.retrieval.DefocusedPlane`, e.g. a captured PSF through
+            :func:`~diffcam.retrieval.psf_plane`): they break the twin and let strongly
+            scattering diffusers converge.
 
     Returns:
         :class:`RetrievalResult` of the last stage (``history`` its error history);
@@ -44,7 +51,8 @@ def calibrate(near, far, geometry: CalibrationGeometry, aperture, *, key=None,
     t0 = time.perf_counter()
     key = jax.random.key(0) if key is None else key
     first = retrieve_projections(near, far, geometry, method=method, iterations=iterations,
-                                 key=key, restarts=restarts, far_pitch=far_pitch)
+                                 key=key, restarts=restarts, init=init, far_pitch=far_pitch,
+                                 planes=planes)
     stages = [dict(first.stats, history=first.history)]
     result = first
     if refine_iterations:

@@ -1,0 +1,114 @@
+"""Extra intensity planes for the projection solvers (phase diversity).
+
+Near and far intensities leave θd undetermined up to its twin, and for a strongly
+scattering diffuser (a random phase spanning many 2π) the near/far projections stall
+far from it. One more intensity at a known distance behind the diffuser under a plane
+wave, a *defocused plane*, removes both problems: RAAR with the far-field and plane
+projections averaged converges on the paper's Fig. 6 random diffuser where near/far
+alone stall (see :mod:`diffcam.retrieval.projections`).
+
+A captured PSF is such a plane. By the Fresnel scaling theorem (DESIGN.md), the PSF of a
+point at z1 on a sensor z2 behind the diffuser is, up to a constant, the plane-wave
+intensity z_eff = z1·z2/(z1 + z2) behind the diffuser magnified by M = (z1 + z2)/z1:
+:func:`psf_plane` undoes the magnification onto the diffuser grid.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import Float
+
+from ..camera import Camera
+from ..errors import DiffcamError, ShapeError, check_field, check_positive
+
+__all__ = ["DefocusedPlane", "psf_plane", "check_planes"]
+
+_EDGE = 2  # samples next to a capture's border left out (its periodic wrap)
+
+
+class DefocusedPlane(NamedTuple):
+    """A plane-wave intensity ``distance`` behind the diffuser, on the calibration grid.
+
+    Attributes:
+        intensity: (ny, nx) on the diffuser-plane grid (pitch ``geometry.dx``), any scale
+            (it is matched to the near field's energy, so it must hold all the light).
+        distance: free-space distance from the diffuser, metres (> 0).
+        mask: (ny, nx), 1 where ``intensity`` was measured, 0 where it is unknown (the
+            solvers leave the field there as it is).
+    """
+
+    intensity: Float[Array, "ny nx"]
+    distance: float
+    mask: Float[Array, "ny nx"]
+
+
+def psf_plane(psf: Float[Array, "cy cx"], camera: Camera, z1: float) -> DefocusedPlane:
+    """A captured on-axis PSF at depth ``z1`` as a :class:`DefocusedPlane`.
+
+    Args:
+        psf: the PSF on ``camera.out_shape`` at pitch ``camera.dx``, registered to the
+            optical axis, background subtracted (any scale).
+        camera: the camera that captured it: pitch, z2, wavelength, grid.
+        z1: the point source's depth, metres.
+
+    Returns:
+        The plane z_eff = z1·z2/(z1 + z2) behind the diffuser on ``camera.shape``: the PSF
+        demagnified by M = (z1 + z2)/z1 by band-limited (periodic sinc) interpolation,
+        masked to the part of the grid the capture covers. (An intensity holds twice
+        the field's bandwidth: a cubic spline misses 10 % of a 1° diffuser's PSF at
+        5 µm, enough to stall the retrieval.)
+    """
+    check_field(psf, "psf")
+    check_positive("z1", z1, "m")
+    p = np.asarray(psf, np.float32)
+    if p.ndim != 2 or p.shape != tuple(camera.out_shape):
+        raise ShapeError(f"psf must be the camera's out_shape {tuple(camera.out_shape)}, "
+                         f"got {p.shape}.")
+    if p.min() < 0 or p.max() <= 0:
+        raise DiffcamError(f"psf has negative values or no light (min {p.min():.3g}, max "
+                           f"{p.max():.3g}); subtract the background with "
+                           f"diffcam.io.subtract_background and clip at 0.")
+    z1, z2 = float(z1), float(camera.z2)
+    mag = (z1 + z2) / z1
+    shape = tuple(camera.shape)
+    weights, masks = [], []
+    for n, c in zip(shape, p.shape):
+        t = (np.arange(n) - n // 2) * mag  # plane samples, in PSF samples from its centre
+        weights.append(_periodic_sinc(t[:, None] + c // 2 - np.arange(c)[None, :], c))
+        masks.append(np.abs(t) <= c // 2 - _EDGE)
+    plane = np.clip(weights[0] @ p.astype(np.float64) @ weights[1].T, 0, None)
+    mask = (masks[0][:, None] & masks[1][None, :]).astype(np.float32)
+    return DefocusedPlane(jnp.asarray(plane * mask, jnp.float32), z1 * z2 / (z1 + z2),
+                          jnp.asarray(mask))
+
+
+def _periodic_sinc(d, c):
+    """Band-limited interpolation weights on ``c`` periodic samples, ``d`` samples away:
+    sin(πd)/(c·sin(πd/c)) (odd c), sin(πd)/(c·tan(πd/c)) (even c, Nyquist halved)."""
+    d = np.asarray(d, np.float64)
+    s = np.sin(np.pi * d / c)
+    den = c * (s if c % 2 else np.tan(np.pi * d / c))
+    near_zero = np.abs(s) < 1e-12
+    return np.where(near_zero, np.cos(np.pi * d) ** 0 * (np.round(d) % c == 0),
+                    np.sin(np.pi * d) / np.where(near_zero, 1.0, den))
+
+
+def check_planes(planes, shape) -> tuple[DefocusedPlane, ...]:
+    """Validate extra planes against the captures' ``shape``; returns them as a tuple."""
+    planes = tuple(planes)
+    for k, plane in enumerate(planes):
+        if not isinstance(plane, DefocusedPlane):
+            raise DiffcamError(f"planes[{k}] must be a DefocusedPlane (see "
+                               f"diffcam.retrieval.psf_plane), got {type(plane).__name__}.")
+        check_field(plane.intensity, f"planes[{k}].intensity")
+        if np.shape(plane.intensity) != tuple(shape) or np.shape(plane.mask) != tuple(shape):
+            raise ShapeError(f"planes[{k}] is {np.shape(plane.intensity)} (mask "
+                             f"{np.shape(plane.mask)}); the captures are {tuple(shape)}.")
+        check_positive(f"planes[{k}].distance", plane.distance, "m")
+        if float(np.min(plane.intensity)) < 0 or float(np.max(plane.intensity)) <= 0:
+            raise DiffcamError(f"planes[{k}].intensity has negative values or no light.")
+    return planes
