@@ -52,7 +52,7 @@ from .errors import (DiffcamError, ShapeError, check_field, check_finite, check_
                      fmt_length, is_concrete, sampling_problem)
 from .grid import crop_to, pad_to
 from .optics import circular_aperture, point_source_max_frequency
-from .propagate import critical_distance, transfer_function
+from .propagate import _materialised, critical_distance, transfer_function
 from .sensor import bspline_prefilter, cubic_rows
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "psf", "diffuser_phase", "random_diffuser",
@@ -265,9 +265,11 @@ def _as_spectrum(spectrum, camera):
 # ------------------------------------------------------------------------------ cores
 
 def _chirp(n, dx, centre, wavelength, z):
-    """1-D factor exp(jπ(t − centre)²/(λz)) of a separable spherical wave on ``n`` samples."""
+    """1-D factor exp(jπ(t − centre)²/(λz)) of a separable spherical wave on ``n`` samples
+    (materialised: its sin/cos are evaluated n times, not once per sample of the N²
+    product, see :func:`diffcam.propagate._materialised`)."""
     t = (jnp.arange(n) - n // 2) * dx - centre
-    return jnp.exp(1j * jnp.pi * (t * t) / (wavelength * z))
+    return _materialised(jnp.exp(1j * jnp.pi * (t * t) / (wavelength * z)))
 
 
 def _base_fields(phase, camera, wavelengths):
