@@ -53,7 +53,7 @@ from .errors import (DiffcamError, ShapeError, check_field, check_finite, check_
 from .grid import crop_to, pad_to
 from .optics import circular_aperture, point_source_max_frequency
 from .propagate import _materialised, critical_distance, transfer_function
-from .sensor import bspline_prefilter, cubic_rows
+from .sensor import bspline_prefilter, cubic_sample
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "psf", "diffuser_phase", "random_diffuser",
            "with_method", "METHODS"]
@@ -315,9 +315,17 @@ def _sample_magnified(field, camera, wavelength, z1, x1, y1):
     shift = z2 / (z1 + z2) / camera.dx  # source offset → sample offset, per metre
     ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
     tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
-    s = cubic_rows(jnp.swapaxes(cubic_rows(field, ty), -1, -2), tx)
-    intensity = (s.real ** 2 + s.imag ** 2) / (mag * wavelength * z1) ** 2
-    return jnp.swapaxes(intensity, -1, -2)
+    s = cubic_sample(cubic_sample(field, ty, -2), tx, -1) / (mag * wavelength * z1)
+    return _fusion_barrier(s.real ** 2 + s.imag ** 2, camera.dx)
+
+
+def _fusion_barrier(x, token):
+    """``x`` unchanged, but materialised. XLA's CPU fusion otherwise copies the gathers
+    that produce a sampled PSF into each of its consumers (the normalising sum, the
+    divide, the spectrum's running sum) and evaluates them once per consumer: 23× an FFT
+    pair per PSF at 1024² instead of 1.4×. A conditional on a runtime-true ``token > 0``
+    (unbatched: ``camera.dx``) is a boundary fusion cannot cross."""
+    return jax.lax.cond(token > 0, lambda a: a, lambda a: -a, x)
 
 
 def _normalised(intensity, normalise):

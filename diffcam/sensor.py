@@ -42,11 +42,11 @@ def bspline_prefilter(n):
     return 6 / (4 + 2 * jnp.cos(2 * jnp.pi * jnp.fft.fftfreq(n)))
 
 
-def cubic_rows(f, t):
-    """Evaluate the cubic spline with coefficients ``f`` along axis −2 at fractional
-    indices ``t`` (coefficients beyond the grid are zero). Row gathers only: they copy
-    contiguous memory, unlike gathers along the last axis."""
-    n = f.shape[-2]
+def cubic_sample(f, t, axis: int):
+    """Evaluate the cubic spline with coefficients ``f`` along ``axis`` (−2 or −1) at
+    fractional indices ``t`` (coefficients beyond the grid are zero): four gathers of
+    near-consecutive rows or columns, cache-friendly either way (no transposes)."""
+    n = f.shape[axis]
     i0 = jnp.floor(t)
     w = _bspline_weights(t - i0)
     i0 = i0.astype(jnp.int32)
@@ -54,7 +54,8 @@ def cubic_rows(f, t):
     for k in range(4):
         idx = i0 - 1 + k
         wk = jnp.where((idx >= 0) & (idx < n), w[:, k], 0.0).astype(f.real.dtype)
-        out = out + jnp.take(f, jnp.clip(idx, 0, n - 1), axis=-2, mode="clip") * wk[:, None]
+        wk = wk[:, None] if axis == -2 else wk
+        out = out + jnp.take(f, jnp.clip(idx, 0, n - 1), axis=axis, mode="clip") * wk
     return out
 
 
@@ -131,8 +132,7 @@ def resample(intensity: Float[Array, "... ny nx"], dx, out_pitch, out_shape,
         tx, hx = centres(mx, nx, centre[1])
         coef = jnp.fft.ifft2(jnp.fft.fft2(f) * (bspline_prefilter(ny)[:, None]
                                                 * bspline_prefilter(nx)[None, :])).real
-        out = cubic_rows(jnp.swapaxes(cubic_rows(coef, ty), -1, -2), tx)
-        return jnp.swapaxes(out, -1, -2) * (4 * hy * hx)
+        return cubic_sample(cubic_sample(coef, ty, -2), tx, -1) * (4 * hy * hx)
     if max_width is None:
         if not is_concrete(dx, out_pitch, magnification):
             raise DiffcamError("resample(kind='area') needs max_width (the largest "
