@@ -130,7 +130,7 @@ def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = Fals
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     scale = (s.grid / 1024) ** 2 * np.log2(s.grid) / 10
     say(f"diffcam demo: grid {s.grid}² at 5 µm, GS {s.gs_iterations} iterations; expect about "
-        f"{max(1, round(3 * scale))} min on a 2-core CPU. Report → {out}/")
+        f"{max(1, round(3 * scale ** 0.8))} min on a 2-core CPU. Report → {out}/")
     t0 = time.perf_counter()
 
     say(f"[1/{_STEPS}] Fig. 3: phase retrieval (textbook GS, then diffcam's calibration) ...")
