@@ -341,7 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
                                       "write PNG figures and metrics.json to a folder.")
     demo.add_argument("-o", "--out", default="diffcam-report", help="report folder")
     demo.add_argument("--full", action="store_true",
-                      help="the paper's 4000×4000 grid (about 30 min and 6 GB of memory on 2 cores)")
+                      help="the paper's 4000×4000 grid (about 30 min and 6 GB of memory "
+                           "on 2 cores)")
     demo.add_argument("--grid", type=int, help="simulation grid, samples per side "
                                                "(default 1024; 4000 with --full)")
     demo.add_argument("--gs-iterations", type=int, help="textbook GS iterations (2000)")

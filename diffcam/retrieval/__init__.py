@@ -33,7 +33,8 @@ __all__ = [
     "RetrievalResult",
     # solvers
     "calibrate", "retrieve_projections", "gerchberg_saxton", "hio", "raar",
-    "initial_phase", "DefocusedPlane", "psf_plane", "retrieve_lsq", "fit_phase", "near_far_model", "PhaseGrid",
+    "initial_phase", "DefocusedPlane", "psf_plane",
+    "retrieve_lsq", "fit_phase", "near_far_model", "PhaseGrid",
     "fit_to_psfs", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
     # captures
     "prepare_captures", "PreparedCaptures", "synthetic_captures", "merge_exposures",
