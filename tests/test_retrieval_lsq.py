@@ -11,7 +11,7 @@ from diffcam.grid import crop_to
 from diffcam.metrics import phase_scores
 from diffcam.retrieval import (PhaseGrid, calibrate, near_far_model, paper_simulation, raar,
                                retrieve_lsq)
-from diffcam.retrieval.lsq import _residual
+from diffcam.retrieval.lsq import _linear_fit, _residual
 
 
 @pytest.fixture(scope="module")
@@ -104,11 +104,31 @@ def test_residuals_have_finite_gradients(sim, x64):
     """Gradient of each loss against finite differences, including where the prediction
     or the measurement is zero (the safe sqrt / log)."""
     y = jnp.array([0.0, 0.5, 2.0, 1e-3])
-    for loss in ("intensity", "amplitude", "poisson"):
+    for loss in ("intensity", "weighted_intensity", "amplitude", "poisson"):
         f = lambda p: jnp.sum(_residual(p, y, 1.0, loss) ** 2)  # noqa: E731
         check_grads(f, (jnp.array([0.3, 0.7, 1.5, 0.2]),), order=1, modes=["rev"])
         g = jax.grad(f)(jnp.array([0.0, 0.7, 1.5, 0.0]))
         assert np.all(np.isfinite(np.asarray(g)))
+
+
+@pytest.mark.parametrize("fit_background", [True, False])
+def test_weighted_loss_needs_no_derivative_through_scale_and_background(x64, fit_background):
+    """Variable projection: (s, b) minimise the weighted loss Σ(s·p + b − y)²/(y + 1), so
+    the derivative of the projected loss equals its partial derivative at fixed (s, b)
+    (envelope theorem), which is what the fit differentiates."""
+    rng = np.random.default_rng(0)
+    p = jnp.asarray(rng.uniform(0.1, 2.0, 64))
+    y = jnp.asarray(rng.uniform(0.0, 3.0, 64))
+
+    def projected(p, stop):
+        s, b = _linear_fit(p, y, 1.0 / (y + 1.0), fit_background)
+        if stop:
+            s, b = jax.lax.stop_gradient((s, b))
+        return jnp.sum(_residual(s * p + b, y, 1.0, "weighted_intensity") ** 2)
+
+    exact = jax.grad(projected)(p, False)
+    assert float(jnp.linalg.norm(exact)) > 1e-3  # the check is not vacuous
+    np.testing.assert_allclose(jax.grad(projected)(p, True), exact, rtol=1e-9, atol=1e-12)
 
 
 def test_model_is_jittable_and_vmappable(sim):

@@ -5,10 +5,19 @@ measured image k is modelled as s_k·I_k(θd) + b_k with a scale and a backgroun
 are solved in closed form (weighted linear least squares) inside the residual function
 (variable projection), which conditions the problem far better than fitting them
 beside θd.
-Residuals, per pixel and weighted by a mask (0 at saturated pixels):
+Residuals, per pixel and weighted by a mask (0 at saturated pixels); y is each image
+normalised to unit mean:
 
-- ``"intensity"``  s·I + b − y         (the default: smooth, and from a flat start with
-  a PSF as third measurement it converges where the amplitude loss stalls)
+- ``"intensity"``  s·I + b − y         (the default of :func:`fit_phase`: smooth, but its
+  curvature scales with the intensity, so the bright centre of a far field dominates
+  it and the phase detail that scatters light to the dim tails converges very slowly)
+- ``"weighted_intensity"``  (s·I + b − y)/√(y + 1): intensity residuals over the
+  shot-noise standard deviation √y (Neyman's χ²), its variance floored at the image's
+  mean (1). Near the solution, where y ≫ 1, it equals 2(√(s·I + b) − √y): the
+  amplitude loss's even curvature over bright and dim pixels, but smooth where I → 0.
+  s and b minimise this same weighted sum, so (variable projection) the gradient
+  does not flow through them. The default of :func:`diffcam.retrieval.fit_to_psfs`
+  with near/far captures.
 - ``"amplitude"``  √(s·I + b) − √y    (the error GS reduces)
 - ``"poisson"``    the deviance residual sign(μ − y)·√(2(μ − y − y·log(μ/y))),
   μ = s·I + b: the sum of squares is the Poisson deviance, so Poisson maximum
@@ -49,9 +58,11 @@ from .result import RetrievalResult
 
 __all__ = ["fit_phase", "retrieve_lsq", "near_far_model", "PhaseGrid", "LOSSES", "SOLVERS"]
 
-LOSSES = ("amplitude", "intensity", "poisson")
+LOSSES = ("amplitude", "intensity", "weighted_intensity", "poisson")
 SOLVERS = ("lbfgs", "ncg", "gauss_newton", "jaxopt_lbfgs")
 _EPS = 1e-6
+# variance floor of the "weighted_intensity" loss, in units of the image's mean intensity
+_VARIANCE_FLOOR = 1.0
 
 
 class PhaseGrid:
@@ -125,6 +136,8 @@ def near_far_model(aperture: Float[Array, "ny nx"], geometry: CalibrationGeometr
 
 
 def _residual(pred, y, w, loss):
+    if loss == "weighted_intensity":
+        return w * (pred - y) * jax.lax.rsqrt(y + _VARIANCE_FLOOR)
     if loss == "amplitude":
         return w * (jnp.sqrt(jnp.maximum(pred, 0.0) + _EPS) - jnp.sqrt(y + _EPS))
     if loss == "intensity":
@@ -132,6 +145,19 @@ def _residual(pred, y, w, loss):
     mu = jnp.maximum(pred, _EPS)
     dev = 2 * (mu - y - jnp.where(y > 0, y * jnp.log(jnp.where(y > 0, y, 1.0) / mu), 0.0))
     return w * jnp.sign(mu - y) * jnp.sqrt(jnp.maximum(dev, 0.0) + _EPS)
+
+
+def _linear_fit(pred, y, v, fit_background):
+    """Scale s and background b minimising Σ v·(s·pred + b − y)² (closed form, with sums
+    centred on the weighted means so that float32 does not cancel)."""
+    if not fit_background:
+        s = jnp.sum(v * pred * y) / jnp.sum(v * pred * pred)
+        return s, jnp.zeros_like(s)
+    sv = jnp.sum(v)
+    pred_mean, y_mean = jnp.sum(v * pred) / sv, jnp.sum(v * y) / sv
+    dp = pred - pred_mean
+    s = jnp.sum(v * dp * (y - y_mean)) / jnp.sum(v * dp * dp)
+    return s, y_mean - s * pred_mean
 
 
 def _phase_diffs(phase, support):
@@ -230,7 +256,7 @@ def fit_phase(predict: Callable, measured: Sequence[Array], theta0: Float[Array,
         phase_grid: the phase parameterisation.
         support: (ny, nx) mask where the regularisers act (default: everywhere).
         masks: K weight images (0 = ignore, e.g. saturated pixels), or ``None``.
-        loss: ``"amplitude"``, ``"intensity"`` or ``"poisson"``.
+        loss: one of :data:`LOSSES` (see the module docstring).
         solver: one of :data:`SOLVERS`.
         iterations: solver steps.
         smoothness, tv: regularisation weights (per unit residual², dimensionless).
@@ -278,19 +304,20 @@ def fit_phase(predict: Callable, measured: Sequence[Array], theta0: Float[Array,
 def _fit_jit(predict, phase_grid, measured, masks, norms, support, params, *, loss, solver,
              iterations, smoothness, tv, fit_background, inner_steps):
     def scales(preds):
-        """Per-image (s_k, b_k) by weighted linear least squares (variable projection)."""
+        """Per-image (s_k, b_k) by weighted linear least squares (variable projection).
+
+        For ``"weighted_intensity"`` they minimise the loss itself, whose derivative in
+        (s_k, b_k) is then zero: the gradient in θ is the same without differentiating
+        through them (Gauss–Newton then uses Kaufman's variable-projection Jacobian),
+        and float32 cancellation in that path cannot spoil it."""
         out = []
         for pred, y, w, n in zip(preds, measured, masks, norms):
             y = y / n
-            if not fit_background:
-                s = jnp.sum(w * pred * y) / jnp.sum(w * pred * pred)
-                out.append((s, jnp.zeros_like(s)))
-                continue
-            sw, sp, sy = jnp.sum(w), jnp.sum(w * pred), jnp.sum(w * y)
-            spp, spy = jnp.sum(w * pred * pred), jnp.sum(w * pred * y)
-            det = sw * spp - sp * sp
-            s = (sw * spy - sp * sy) / det
-            out.append((s, (sy - s * sp) / sw))
+            if loss == "weighted_intensity":
+                v = w * w / (y + _VARIANCE_FLOOR)
+                out.append(jax.lax.stop_gradient(_linear_fit(pred, y, v, fit_background)))
+            else:
+                out.append(_linear_fit(pred, y, w, fit_background))
         return out
 
     def residuals(p):

@@ -7,6 +7,14 @@ by :func:`diffcam.retrieval.lsq.fit_phase`. A PSF is a defocused, magnified inte
 of the diffuser field, so it also breaks the conjugate-twin ambiguity of near/far
 data.
 
+With near/far captures the residuals are weighted by the shot-noise standard deviation
+of each pixel (``loss="weighted_intensity"``): a far field is a bright centre over dim
+tails, and plain intensity residuals let the centre dominate, so from a flat start the
+fit crawls and stalls (paper Fig. 3 problem at 1024², near + far + one PSF at
+z1 = 25 mm, z2 = 1 mm: phase Pearson 0.90, MSE 0.73 rad² after 200 L-BFGS steps and
+still 0.90 after 1000), while the weighted fit reaches the phase itself, not its twin,
+in 150 steps (MSE 1e-4 rad²).
+
 Geometry in identifiable form: paraxially z1, z2, the pitch dx and the wavelength λ
 enter the PSF only through the Fresnel numbers λz/dx², so λ and dx stay fixed (the
 camera's) and distances are fitted; ``stats`` reports them in metres and as
@@ -90,7 +98,7 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
                 near=None, far=None, geometry: CalibrationGeometry | None = None,
                 fit_z2: bool = False, depth_model: str = "fixed", plane_index=None,
                 init="flat", key=None, coarse: int = 1, masks=None, spectrum=None,
-                sensor_pitch=None, **options) -> RetrievalResult:
+                sensor_pitch=None, loss: str | None = None, **options) -> RetrievalResult:
     """Fit θd (with or without near/far captures) to one or more captured PSFs.
 
     Args:
@@ -114,7 +122,11 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
             camera's grid: the model then integrates each PSF over those pixels
             (:func:`diffcam.sensor.bin_pixels`), so the phase can live on a finer grid
             than binned data.
-        **options: :func:`diffcam.retrieval.lsq.fit_phase` options (``loss``, ``solver``,
+        loss: residuals, one of :data:`diffcam.retrieval.lsq.LOSSES`. Default: with
+            near/far captures ``"weighted_intensity"`` (each residual over √(y + ȳ), y
+            the measured intensity and ȳ its mean, which keeps the dim tails of the far
+            field in the fit), else ``"intensity"``.
+        **options: :func:`diffcam.retrieval.lsq.fit_phase` options (``solver``,
             ``iterations``, ``smoothness``, ``tv``, ``fit_background``).
 
     Returns:
@@ -173,9 +185,11 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
     aperture = np.asarray(camera.aperture())
     grid = PhaseGrid.for_aperture(aperture, coarse)
     theta0 = grid.restrict(initial_phase(init, camera.shape, key)[0])
+    if loss is None:
+        loss = "intensity" if near_far is None else "weighted_intensity"
     model = _PSFModel(camera, tuple(z1), depth_model, plane_index, spectrum, near_far, sensor)
     result = fit_phase(model, measured, theta0, grid, support=aperture > 0, masks=masks,
-                       extra0=extra or None, **options)
+                       loss=loss, extra0=extra or None, **options)
     fitted = result.stats["extra"] or {}
     z2 = float(camera.z2) * float(np.exp(fitted.get("log_z2", 0.0)))
     z1_fit = np.asarray(depths(fitted, z1, depth_model, plane_index), np.float64)
