@@ -4,7 +4,8 @@
 
 For each grid size N (aperture radius 0.3·N·dx at 5 µm, z2 = 1 mm, random phase):
 
-- ``fresnel_tf``: one step of :func:`diffcam.propagate.fresnel_tf` on N² (the unit);
+- ``fresnel_tf``: one jitted step of :func:`diffcam.propagate.fresnel_tf` on N² (the
+  unit; an eager call adds validation, 1.2–1.3× at 1024²);
 - ``direct`` / ``scaling``: :func:`diffcam.stack.psf_stack` over ``depths`` z1 in
   22–30 mm, per PSF (field, propagation, intensity, normalisation; no sensor step);
 - ``numpy (plain)``: the same direct Eq. 7 as a plain numpy loop, numpy's defaults
@@ -138,9 +139,10 @@ def run(sizes=(1024, 2048), n_depths=64, repeats=5, memory=True) -> list[dict]:
         h2_64 = np.exp(-1j * np.pi * LAM * Z2 * (fy[:, None] ** 2 + fy[None, :] ** 2))
         n_np = 4 if n <= 2048 else 1
         w = jnp.asarray(rng.random((n, n)), jnp.float32)
+        step = jax.jit(lambda u: fresnel_tf(u, DX, LAM, Z2))  # the unit: a jitted step
         grad = jax.jit(jax.grad(lambda ph: jnp.sum(w * psf(ph, cams["scaling"], 25e-3))))
         cands = {
-            "fresnel_tf": lambda: fresnel_tf(field, DX, LAM, Z2),
+            "fresnel_tf": lambda: step(field),
             "direct": lambda: psf_stack(phase, cams["direct"], depths,
                                         accept_undersampling=True, progress=False),
             "scaling": lambda: psf_stack(phase, cams["scaling"], depths, progress=False),
