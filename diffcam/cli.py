@@ -166,19 +166,18 @@ def _cmd_calibrate(args) -> int:
     key = jax.random.key(args.seed)
     reference = None if args.psf is None else _reference_psf(dx, (n, n), args)
     planes = () if reference is None else [psf_plane(reference[0], reference[1], args.psf_z1)]
-    # with a PSF plane one flat start converges (random starts can stall on it)
-    start = dict(init="flat", restarts=1) if planes else dict(key=key, restarts=args.restarts)
     print(f"diffcam calibrate: {n}×{n} grid at {dx * 1e6:g} µm, solver {args.solver}, "
           f"{args.iterations} iterations{', PSF as a third plane' if planes else ''} ...",
           flush=True)
     if args.solver == "default":
         result = calibrate(prepared.near, prepared.far, geometry, aperture,
-                           iterations=args.iterations, planes=planes,
-                           masks=(prepared.near_mask, prepared.far_mask), **start)
+                           iterations=args.iterations, planes=planes, key=key,
+                           restarts=args.restarts, masks=(prepared.near_mask, prepared.far_mask))
     else:
         result = retrieve_projections(prepared.near, prepared.far, geometry,
                                       method=args.solver, iterations=args.iterations,
-                                      planes=planes, **start)
+                                      planes=planes, key=key,
+                                      restarts=args.restarts or (1 if planes else 4))
     phase = np.asarray(result.phase)
     info = {"solver": result.stats.get("method", args.solver), "iterations": args.iterations,
             "focal_length": args.focal_length, "near_distance": args.near_distance,
@@ -399,7 +398,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--saturation", type=float, help="raw count of a saturated pixel")
     cal.add_argument("--solver", choices=["default", "gs", "hio", "raar"], default="default")
     cal.add_argument("--iterations", type=int, default=300)
-    cal.add_argument("--restarts", type=int, default=4)
+    cal.add_argument("--restarts", type=int,
+                     help="random starts of the projections (default 4; 1 with --psf, "
+                          "which starts flat)")
     cal.add_argument("--seed", type=int, default=0)
     cal.add_argument("--psf", help="a captured on-axis PSF at the grid pitch, background "
                      "subtracted: a third intensity plane for the projections (it resolves "

@@ -143,8 +143,7 @@ def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = Fals
     say(f"[2/{_STEPS}] resolving the twin with a captured PSF at z1 = 22 mm ...")
     cam = paper.camera(s)
     reference = paper.captured_reference(fig3["truth"], cam, paper.DEPTHS[0])
-    resolved, used_twin = resolve_twin(fig3["calibrated"], reference, cam,
-                                             paper.DEPTHS[0])
+    resolved, used_twin = resolve_twin(fig3["calibrated"], reference, cam, paper.DEPTHS[0])
     fig3["resolved"] = resolved
     fig3["resolved_scores"] = paper._scores(resolved, fig3["truth"], s.grid)
     _plot_phases(out / "fig3_phase.png", fig3)
@@ -155,7 +154,7 @@ def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = Fals
         early = paper.calibrate(fig3["near"], fig3["far"], iterations=it, refine_iterations=0,
                                 restarts=1).phase
         stages[f"calibration {it} it"] = resolve_twin(early, reference, cam,
-                                                            paper.DEPTHS[0])[0]
+                                                      paper.DEPTHS[0])[0]
     stages[f"calibration {s.calibration_iterations} it"] = resolved
     fig5 = paper.fig5_psf_and_reconstruction(fig3["truth"], stages, paper.letter_f(), s)
     _plot_stages(out / "fig5_cameraman.png", fig5, "Fig. 5 — cameraman diffuser, object 'F'")

@@ -105,13 +105,13 @@ def calibrate(near, far, *, iterations: int, refine_iterations: int = 50, restar
               planes=()):
     """diffcam's default calibration path (:func:`diffcam.retrieval.calibrate`: RAAR with
     random restarts, then least squares) on the paper's aperture; a RetrievalResult.
-    With ``planes`` (a captured PSF, :func:`diffcam.retrieval.psf_plane`) one flat start
-    replaces the restarts."""
+    With ``planes`` (a captured PSF, :func:`diffcam.retrieval.psf_plane`) it starts flat,
+    once."""
     n = np.shape(near)[-1]
     aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
-    start = dict(init="flat", restarts=1) if planes else dict(restarts=restarts)
     return calibrate_default(near, far, geometry(), aperture, iterations=iterations,
-                             refine_iterations=refine_iterations, planes=planes, **start)
+                             refine_iterations=refine_iterations, planes=planes,
+                             restarts=None if planes else restarts)
 
 
 def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0,

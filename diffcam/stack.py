@@ -3,8 +3,9 @@
 :func:`psf_stack` evaluates PSFs for every depth in ``z1`` (and every lateral position)
 in chunks of ``batch_size`` depths per device: one jitted call per chunk, copied to a
 host array (or a memory-mapped file) while the next one computes, so at most two chunks
-are in flight and working memory is set by the chunk, not by the number of depths. With several devices the chunk's depth axis
-is sharded over a ``jax.sharding.Mesh`` of them (and, after
+are in flight and working memory is set by the chunk, not by the number of depths. With
+several devices the chunk's depth axis is sharded over a ``jax.sharding.Mesh`` of them
+(and, after
 ``jax.distributed.initialize()``, over hosts). Everything the depths share (the
 diffuser's field, or its FFT on the scaling-theorem path) is computed once.
 
@@ -159,6 +160,10 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
     wavelengths, weights = put(wavelengths.astype(dtype)), put(weights.astype(dtype))
     prepared = _prepare(phase, camera, wavelengths)
     pos_dev = put(jnp.asarray(pos, dtype))
+
+    def to_host(start, out, n):
+        return start, np.asarray(jax.device_get(out))[:n]
+
     pending = None  # the chunk in flight: the next is dispatched before it is copied out
     for start in range(0, depths.size, step):
         block = depths[start:start + step]
@@ -168,9 +173,9 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
         zb = jax.device_put(zb, sharding) if sharding is not None else put(zb)
         out = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise, sharding)
         if pending is not None:
-            yield pending[0], np.asarray(jax.device_get(pending[1]))[:pending[2]]
+            yield to_host(*pending)
         pending = (start, out, n)
-    yield pending[0], np.asarray(jax.device_get(pending[1]))[:pending[2]]
+    yield to_host(*pending)
 
 
 def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,

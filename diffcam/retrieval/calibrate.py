@@ -21,7 +21,8 @@ __all__ = ["calibrate"]
 
 
 def calibrate(near, far, geometry: CalibrationGeometry, aperture, *, key=None,
-              method: str = "raar", iterations: int = 300, restarts: int = 4, init="random",
+              method: str = "raar", iterations: int = 300, restarts: int | None = None,
+              init=None,
               refine_iterations: int = 100, loss: str = "intensity", solver: str = "lbfgs",
               masks=None, far_pitch=None, planes=()) -> RetrievalResult:
     """Diffuser phase from near/far intensities: ``method`` projections (``restarts``
@@ -34,9 +35,11 @@ def calibrate(near, far, geometry: CalibrationGeometry, aperture, *, key=None,
         geometry: the set-up, SI units.
         aperture: diffuser-plane amplitude C (ny, nx).
         key: ``jax.random`` key (default ``jax.random.key(0)``).
+        restarts: random starts of the projections (default 4; 1 with ``planes``, which
+            start flat).
         init: start of the projections, as in
-            :func:`~diffcam.retrieval.retrieve_projections` (``"flat"`` needs
-            ``restarts=1``; with ``planes`` it is the safer start).
+            :func:`~diffcam.retrieval.retrieve_projections` (default ``"flat"`` with
+            ``planes`` and one start, else ``"random"``).
         masks: ``(near_mask, far_mask)``, 0 at saturated pixels (least-squares stage).
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
         planes: extra intensities for the projection stage
@@ -50,6 +53,8 @@ def calibrate(near, far, geometry: CalibrationGeometry, aperture, *, key=None,
     """
     t0 = time.perf_counter()
     key = jax.random.key(0) if key is None else key
+    if restarts is None:
+        restarts = 1 if planes else 4
     first = retrieve_projections(near, far, geometry, method=method, iterations=iterations,
                                  key=key, restarts=restarts, init=init, far_pitch=far_pitch,
                                  planes=planes)

@@ -159,7 +159,7 @@ def _check_options(method, iterations, beta, restarts):
 
 def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
                          geometry: CalibrationGeometry, *, method: str = "raar",
-                         iterations: int = 300, beta: float = 0.9, init="random", key=None,
+                         iterations: int = 300, beta: float = 0.9, init=None, key=None,
                          restarts: int = 1, far_pitch=None, planes=()) -> RetrievalResult:
     """Retrieve the diffuser phase from near- and far-field intensities by projections.
 
@@ -174,7 +174,9 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
         beta: HIO / RAAR relaxation, in (0, 1].
         init: ``"random"``, ``"flat"`` or a diffuser-plane phase (ny, nx), radians (the
             starting field is the near amplitude times e^{j·init}, carried to the near
-            plane when ``near_distance > 0``).
+            plane when ``near_distance > 0``). Default: ``"flat"`` with ``planes`` and one
+            start (it converges; random starts can stall on a slightly inconsistent
+            plane), else ``"random"``.
         key: ``jax.random`` key for ``init="random"``.
         restarts: independent random starts, run batched with ``vmap`` (memory grows
             with it); the run with the smallest final error is returned.
@@ -198,6 +200,8 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
     far_amp = far_amp * jnp.linalg.norm(near_amp) / jnp.linalg.norm(far_amp)
     z = float(geometry.near_distance)
     H = None if z == 0 else transfer_function(shape, geometry.dx, geometry.wavelength, z)
+    if init is None:  # with a plane one flat start converges; random ones can stall
+        init = "flat" if planes and restarts == 1 else "random"
     phases = initial_phase(init, shape, key, restarts)
     fields = _to_fft_order(near_amp * jnp.exp(1j * phases))
     if H is not None:
