@@ -5,9 +5,18 @@
 For each grid size N (aperture radius 0.3·N·dx at 5 µm, z2 = 1 mm, random phase):
 
 - ``fresnel_tf``: one jitted step of :func:`diffcam.propagate.fresnel_tf` on N² (the
-  unit; an eager call adds validation, 1.2–1.3× at 1024²);
+  unit; an eager call adds validation, 1.2–1.3× at 1024²). Each candidate is timed
+  in alternation with the step alone, and its ratio is to that run's step
+  (``fresnel_tf_ms``): page faults on fresh buffers cost more here after another
+  candidate has made and freed gigabytes (one run timed the 2048² step at 77 ms
+  among the stacks and 30 ms beside the FFT pair);
+- ``jax fft2+ifft2``: the bare FFT pair (the limit of a step);
 - ``direct`` / ``scaling``: :func:`diffcam.stack.psf_stack` over ``depths`` z1 in
-  22–30 mm, per PSF (field, propagation, intensity, normalisation; no sensor step);
+  22–30 mm, per PSF (field, propagation, intensity, normalisation; no sensor step),
+  the stack returned in host memory;
+- ``direct, on device`` / ``scaling, on device``: the same chunks left on the device
+  (``iter_psf_stack(to_host=False)``): the computation the issue's ratio is about,
+  without the host stack's copy and first-touch page faults;
 - ``numpy (plain)``: the same direct Eq. 7 as a plain numpy loop, numpy's defaults
   (complex128), the propagation kernel built once (fewer depths, per PSF);
 - ``numpy``: the same, tuned: complex64, base field precomputed, separable chirp;
@@ -20,8 +29,8 @@ the peak RSS (VmHWM, reset through ``/proc/self/clear_refs`` after a warm-up cal
 fresh subprocess that builds the stack, minus its RSS just before the stack call, minus
 the returned stack's bytes: measured at two depth
 counts to show it is flat in the number of depths. XLA's own figure
-(``memory_analysis().temp_size_in_bytes`` of the compiled chunk, or of the gradient) is
-reported beside it.
+(``memory_analysis().temp_size_in_bytes`` of the chunk's two compiled calls plus the
+field buffer they pass on, or of the gradient) is reported beside it.
 """
 
 from __future__ import annotations
@@ -41,7 +50,7 @@ from benchmarks.harness import (markdown_table, optional_import, time_interleave
                                 write_json)
 from diffcam.camera import Camera, psf
 from diffcam.propagate import fresnel_tf
-from diffcam.stack import _chunk, prepare, psf_stack
+from diffcam.stack import _chunk_inputs, _chunk_outputs, iter_psf_stack, prepare, psf_stack
 
 LAM, DX, Z2 = 532e-9, 5e-6, 1e-3
 
@@ -72,6 +81,14 @@ def _plain_numpy_psf(phase, aperture_radius, h, n, z1):
     out = np.fft.ifft2(np.fft.fft2(u) * h)
     i = np.abs(out) ** 2
     return i / i.sum()
+
+
+def _on_device(phase, camera, depths):
+    """The stack's chunks, kept on the device (the last one waited for)."""
+    chunks = [c for _, c in iter_psf_stack(phase, camera, depths, to_host=False,
+                                           accept_undersampling=True)]
+    chunks[-1].block_until_ready()
+    return chunks
 
 
 def _lightpipes_psf(lp, phase, n, z1):
@@ -141,8 +158,11 @@ def run(sizes=(1024, 2048), n_depths=64, repeats=5, memory=True) -> list[dict]:
         w = jnp.asarray(rng.random((n, n)), jnp.float32)
         step = jax.jit(lambda u: fresnel_tf(u, DX, LAM, Z2))  # the unit: a jitted step
         grad = jax.jit(jax.grad(lambda ph: jnp.sum(w * psf(ph, cams["scaling"], 25e-3))))
+        pair = jax.jit(lambda u: jnp.fft.ifft2(jnp.fft.fft2(u)))
         cands = {
-            "fresnel_tf": lambda: step(field),
+            "jax fft2+ifft2": lambda: pair(field),
+            "direct, on device": lambda: _on_device(phase, cams["direct"], depths),
+            "scaling, on device": lambda: _on_device(phase, cams["scaling"], depths),
             "direct": lambda: psf_stack(phase, cams["direct"], depths,
                                         accept_undersampling=True, progress=False),
             "scaling": lambda: psf_stack(phase, cams["scaling"], depths, progress=False),
@@ -154,24 +174,30 @@ def run(sizes=(1024, 2048), n_depths=64, repeats=5, memory=True) -> list[dict]:
         if lp is not None and n <= 1024:
             cands["LightPipes"] = lambda: [_lightpipes_psf(lp, phase, n, z)
                                            for z in depths[:2]]
-        t = time_interleaved(cands, repeats=repeats, budget_s=120)
-        per = {"fresnel_tf": 1, "direct": nz, "scaling": nz, "numpy": n_np,
-               "numpy (plain)": n_np,
-               "grad (scaling)": 1, "LightPipes": 2}
-        unit = t["fresnel_tf"]["median_s"]
-        for name, s in t.items():
-            per_psf = s["median_s"] / per[name]
-            rows.append({"N": n, "candidate": name, "depths": per[name],
+        per = {"direct": nz, "scaling": nz, "direct, on device": nz,
+               "scaling, on device": nz, "numpy": n_np, "numpy (plain)": n_np,
+               "LightPipes": 2}
+        for name, fn in cands.items():  # each in alternation with the unit alone
+            t = time_interleaved({"fresnel_tf": lambda: step(field), name: fn},
+                                 repeats=repeats, budget_s=120)
+            unit, s = t["fresnel_tf"]["median_s"], t[name]
+            per_psf = s["median_s"] / per.get(name, 1)
+            rows.append({"N": n, "candidate": name, "depths": per.get(name, 1),
                          "ms_per_psf": 1e3 * per_psf, "psf_per_s": 1 / per_psf,
-                         "x_fresnel_tf": per_psf / unit, "repeats": s["repeats"],
-                         "first_s": s["first_s"], "loadavg": os.getloadavg()[0]})
+                         "x_fresnel_tf": per_psf / unit, "fresnel_tf_ms": 1e3 * unit,
+                         "repeats": s["repeats"], "first_s": s["first_s"],
+                         "loadavg": os.getloadavg()[0]})
         for m in ("direct", "scaling"):
             cam = cams[m]
-            pre = jax.jit(prepare)(jnp.asarray(phase), cam, cam.wavelength[None])
-            args = (pre, cam, cam.wavelength[None], jnp.ones(1), jnp.ones(1) * 25e-3,
-                    jnp.zeros((1, 2)), True, None)
+            wl, z, pos = cam.wavelength[None], jnp.ones(1) * 25e-3, jnp.zeros((1, 2))
+            pre = jax.jit(prepare)(jnp.asarray(phase), cam, wl)
+            fields = _chunk_inputs(None, pre, cam, wl, z, pos, None)
+            temps = (_xla_temp_mb(_chunk_inputs, None, pre, cam, wl, z, pos, None),
+                     _xla_temp_mb(_chunk_outputs, fields, cam, wl, jnp.ones(1), z, pos, True,
+                                  None))
             row = next(r for r in rows if r["N"] == n and r["candidate"] == m)
-            row["xla_temp_mb"] = _xla_temp_mb(_chunk, *args)
+            row["xla_temp_mb"] = (None if None in temps
+                                  else sum(temps) + fields.nbytes / 2 ** 20)
             if memory:
                 row["working_mb_8"] = _working_memory(n, min(8, nz), m)
                 row["working_mb_all"] = _working_memory(n, nz, m)
@@ -181,7 +207,7 @@ def run(sizes=(1024, 2048), n_depths=64, repeats=5, memory=True) -> list[dict]:
     return rows
 
 
-COLUMNS = ["N", "candidate", "depths", "ms_per_psf", "psf_per_s", "x_fresnel_tf",
+COLUMNS = ["N", "candidate", "depths", "ms_per_psf", "psf_per_s", "fresnel_tf_ms", "x_fresnel_tf",
            "xla_temp_mb", "working_mb_8", "working_mb_all", "loadavg"]
 
 

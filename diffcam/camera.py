@@ -52,7 +52,8 @@ from .errors import (DiffcamError, ShapeError, check_field, check_finite, check_
                      fmt_length, is_concrete, sampling_problem)
 from .grid import crop_to, pad_to
 from .optics import circular_aperture, point_source_max_frequency
-from .propagate import _materialised, critical_distance, transfer_function
+from .propagate import critical_distance, transfer_function
+from .xla_cpu import fusion_barrier, update_rows_for_fft, vector
 from .sensor import bspline_prefilter, cubic_sample
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "psf", "diffuser_phase", "random_diffuser",
@@ -266,10 +267,12 @@ def _as_spectrum(spectrum, camera):
 
 def _chirp(n, dx, centre, wavelength, z):
     """1-D factor exp(jπ(t − centre)²/(λz)) of a separable spherical wave on ``n`` samples
-    (materialised: its sin/cos are evaluated n times, not once per sample of the N²
-    product, see :func:`diffcam.propagate._materialised`)."""
-    t = (jnp.arange(n) - n // 2) * dx - centre
-    return _materialised(jnp.exp(1j * jnp.pi * (t * t) / (wavelength * z)))
+    (computed on its own, not once per sample of the N² product that consumes it:
+    :func:`diffcam.xla_cpu.vector`)."""
+    def chirp(i):
+        t = (i - n // 2) * dx - centre
+        return jnp.exp(1j * jnp.pi * (t * t) / (wavelength * z))
+    return vector(chirp, n)
 
 
 def _base_fields(phase, camera, wavelengths):
@@ -284,26 +287,33 @@ def _tf(camera, wavelength, z):
     return transfer_function(camera.padded_shape, camera.dx, wavelength, z, "fresnel_tf")
 
 
-def _direct_psf(base, camera, wavelength, z1, x1, y1):
-    """|P_z2{base · U1}|² on the crop (physical irradiance, unit point source)."""
+def _source_field(base, camera, wavelength, z1, x1, y1):
+    """base · U1: the field behind the diffuser for a point source at (x1, y1, z1)
+    (the spherical wave's 1/(λz1) is applied to the intensity)."""
     ny, nx = base.shape[-2:]
     cy = _chirp(ny, camera.dx, y1, wavelength, z1)[:, None]
     cx = _chirp(nx, camera.dx, x1, wavelength, z1)[None, :]
-    u = base * (cy * cx)
-    out = jnp.fft.ifft2(jnp.fft.fft2(u) * _tf(camera, wavelength, camera.z2))
+    return base * (cy * cx)
+
+
+def _direct_intensity(fields, camera, wavelength, z1):
+    """|P_z2{fields}|² on the crop (physical irradiance, unit point source), batched."""
+    h = _tf(camera, wavelength, camera.z2)
+    out = jnp.fft.ifft2(update_rows_for_fft(jnp.fft.fft2(fields), lambda b, s: b * h[s]))
     out = crop_to(out, camera.out_shape)
     return (out.real ** 2 + out.imag ** 2) / (wavelength * z1) ** 2
 
 
-def _magnified_field(base_hat, camera, wavelength, z1):
-    """Cubic B-spline coefficients of P_zeff{base}, z_eff = z1·z2/(z1 + z2).
+def _magnified_spectrum(base_hat, camera, wavelength, z1):
+    """Spectrum of the cubic B-spline coefficients of P_zeff{base}, z_eff = z1·z2/(z1 + z2):
+    its inverse FFT is the field the scaling theorem magnifies.
 
     The spline prefilter is separable and rides on the transfer function for free.
     """
     z_eff = z1 * camera.z2 / (z1 + camera.z2)
     ny, nx = base_hat.shape[-2:]
-    pre = bspline_prefilter(ny)[:, None] * bspline_prefilter(nx)[None, :]
-    return jnp.fft.ifft2(base_hat * (_tf(camera, wavelength, z_eff) * pre))
+    return base_hat * (_tf(camera, wavelength, z_eff) * (bspline_prefilter(ny)[:, None]
+                                                         * bspline_prefilter(nx)[None, :]))
 
 
 def _sample_magnified(field, camera, wavelength, z1, x1, y1):
@@ -316,16 +326,7 @@ def _sample_magnified(field, camera, wavelength, z1, x1, y1):
     ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
     tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
     s = cubic_sample(cubic_sample(field, ty, -2), tx, -1) / (mag * wavelength * z1)
-    return _fusion_barrier(s.real ** 2 + s.imag ** 2, camera.dx)
-
-
-def _fusion_barrier(x, token):
-    """``x`` unchanged, but materialised. XLA's CPU fusion otherwise copies the gathers
-    that produce a sampled PSF into each of its consumers (the normalising sum, the
-    divide, the spectrum's running sum) and evaluates them once per consumer: 23× an FFT
-    pair per PSF at 1024² instead of 1.4×. A conditional on a runtime-true ``token > 0``
-    (unbatched: ``camera.dx``) is a boundary fusion cannot cross."""
-    return jax.lax.cond(token > 0, lambda a: a, lambda a: -a, x)
+    return fusion_barrier(s.real ** 2 + s.imag ** 2, camera.dx)
 
 
 def _normalised(intensity, normalise):
@@ -340,32 +341,55 @@ def prepare(phase, camera, wavelengths):
     return jnp.fft.fft2(base) if camera.method == "scaling" else base
 
 
-def depth_psfs(prepared, camera, wavelengths, weights, z1, positions, normalise):
-    """PSFs at one depth for many lateral positions: (npos, ny, nx) on the crop.
+def depth_inputs(prepared, camera, wavelengths, z1, positions):
+    """What the FFTs of one depth start from, (nλ, n, ny, nx) complex: the source fields
+    base·U1 (direct, n = npos) or the spectra of the z_eff fields (scaling, n = 1: the
+    positions only move the sampling).
 
     ``positions`` is (npos, 2) of (x1, y1) in metres; ``prepared`` from :func:`prepare`.
+    Computed apart from :func:`depth_outputs`: on CPU, an FFT that XLA schedules after
+    an elementwise product of its own size runs about single-threaded (the FFT rule of
+    :mod:`diffcam.xla_cpu`), so :mod:`diffcam.stack` and :func:`psf` run the two as
+    separate jitted calls.
     """
-    def one_wavelength(carry, item):
-        pre, lam, w = item
+    def per_wavelength(pre, lam):
         if camera.method == "scaling":
-            field = _magnified_field(pre, camera, lam, z1)
+            return _magnified_spectrum(pre, camera, lam, z1)[None]
+        return jax.vmap(lambda p: _source_field(pre, camera, lam, z1, p[0], p[1]))(positions)
+    return jax.vmap(per_wavelength)(prepared, wavelengths)
+
+
+def depth_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise):
+    """PSFs at one depth, (npos, ny, nx) on the crop, from :func:`depth_inputs`: the
+    FFTs, the intensities, normalisation and the weighted mean over wavelengths."""
+    def per_wavelength(u, lam):
+        if camera.method == "scaling":
+            field = jnp.fft.ifft2(u[0])
             psfs = jax.vmap(lambda p: _sample_magnified(field, camera, lam, z1, p[0], p[1])
                             )(positions)
         else:
-            psfs = jax.lax.map(lambda p: _direct_psf(pre, camera, lam, z1, p[0], p[1]),
-                               positions)
-        return carry + w * _normalised(psfs, normalise), None
+            psfs = _direct_intensity(u, camera, lam, z1)
+        return _normalised(psfs, normalise)
+    psfs = jax.vmap(per_wavelength)(inputs, wavelengths)
+    return jnp.tensordot(weights, psfs, axes=1) / jnp.sum(weights)
 
-    init = jnp.zeros((positions.shape[0],) + camera.out_shape, jnp.real(prepared).dtype)
-    total, _ = jax.lax.scan(one_wavelength, init, (prepared, wavelengths, weights))
-    return total / jnp.sum(weights)
+
+def depth_psfs(prepared, camera, wavelengths, weights, z1, positions, normalise):
+    """PSFs at one depth for many lateral positions: (npos, ny, nx) on the crop, in one
+    traced function (:func:`depth_inputs` then :func:`depth_outputs`)."""
+    inputs = depth_inputs(prepared, camera, wavelengths, z1, positions)
+    return depth_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise)
+
+
+@jax.jit
+def _psf_inputs(phase, camera, wavelengths, z1, positions):
+    return depth_inputs(prepare(phase, camera, wavelengths), camera, wavelengths, z1,
+                        positions)
 
 
 @partial(jax.jit, static_argnames=("normalise",))
-def _psf_core(phase, camera, wavelengths, weights, z1, x1, y1, normalise):
-    prepared = prepare(phase, camera, wavelengths)
-    positions = jnp.stack([jnp.asarray(x1, z1.dtype), jnp.asarray(y1, z1.dtype)])[None]
-    return depth_psfs(prepared, camera, wavelengths, weights, z1, positions, normalise)[0]
+def _psf_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise):
+    return depth_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise)[0]
 
 
 # ------------------------------------------------------------------------- validation
@@ -448,8 +472,11 @@ def psf(phase, camera: Camera, z1, x1=0.0, y1=0.0, *, spectrum=None, normalise: 
     check_inputs(phase, camera, z1, jnp.hypot(jnp.asarray(x1), jnp.asarray(y1)), wavelengths,
                  accept_undersampling)
     dtype = real_dtype(camera)
-    return _psf_core(phase, camera, wavelengths.astype(dtype), weights.astype(dtype),
-                     jnp.asarray(z1, dtype), x1, y1, normalise)
+    wavelengths, weights, z1 = wavelengths.astype(dtype), weights.astype(dtype), \
+        jnp.asarray(z1, dtype)
+    positions = jnp.stack([jnp.asarray(x1, dtype), jnp.asarray(y1, dtype)])[None]
+    inputs = _psf_inputs(phase, camera, wavelengths, z1, positions)
+    return _psf_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise)
 
 
 def with_method(camera: Camera, method: str) -> Camera:

@@ -45,6 +45,7 @@ from jaxtyping import Complex, Num
 from .errors import (DiffcamError, check_field, check_positive, is_concrete, fmt_length,
                      sampling_problem)
 from .grid import crop_to, fft_freqs, fft2c, ifft2c, pad_by, pitch_yx
+from .xla_cpu import update_rows_for_fft, vector
 
 __all__ = [
     "fresnel_tf",
@@ -136,22 +137,25 @@ def _check_kernel_sampling(method, shape, dx, wavelength, z, pad, accept_undersa
 # ---------------------------------------------------------------- transfer functions
 
 def _fresnel_tf_kernel(shape, dy, dx, wavelength, z):
-    fy, fx = fft_freqs(shape, (dy, dx))
-    hy = jnp.exp(-1j * jnp.pi * wavelength * z * fy ** 2)
-    hx = jnp.exp(-1j * jnp.pi * wavelength * z * fx ** 2)
-    return hy, hx
+    """exp(−jπλz(fy² + fx²)) as its two 1-D factors, FFT order, ``(ny, 1)`` and
+    ``(1, nx)`` (each computed on its own: :func:`diffcam.xla_cpu.vector`)."""
+    def factor(n, d):
+        def chirp(i):
+            f = jnp.where(i < (n + 1) // 2, i, i - n) / (n * d)  # jnp.fft.fftfreq(n, d)
+            return jnp.exp(-1j * jnp.pi * wavelength * z * f ** 2)
+        return vector(chirp, n)
+    return factor(shape[-2], dy)[:, None], factor(shape[-1], dx)[None, :]
 
 
 def _fresnel_ir_kernel(shape, dy, dx, wavelength, z):
     """FFT of the sampled, centred impulse response: separable, two 1-D FFTs."""
-    ny, nx = shape[-2], shape[-1]
-    y = (jnp.arange(ny) - ny // 2) * dy
-    x = (jnp.arange(nx) - nx // 2) * dx
-    hy = jnp.exp(1j * jnp.pi * y ** 2 / (wavelength * z))
-    hx = jnp.exp(1j * jnp.pi * x ** 2 / (wavelength * z))
-    Hy = jnp.fft.fft(jnp.fft.ifftshift(hy)) * dy
-    Hx = jnp.fft.fft(jnp.fft.ifftshift(hx)) * dx
-    return (Hy / (1j * wavelength * z))[:, None], Hx[None, :]
+    def factor(n, d):
+        def chirp(i):
+            t = (i - n // 2) * d
+            return jnp.exp(1j * jnp.pi * t * t / (wavelength * z))
+        return jnp.fft.fft(jnp.fft.ifftshift(vector(chirp, n))) * d
+    Hy = factor(shape[-2], dy) / (1j * wavelength * z)
+    return Hy[:, None], factor(shape[-1], dx)[None, :]
 
 
 def _angular_spectrum_kernel(shape, dy, dx, wavelength, z, band_limit):
@@ -177,21 +181,6 @@ def _angular_spectrum_kernel(shape, dy, dx, wavelength, z, band_limit):
     return H
 
 
-def _materialised(h: Complex[Array, "n 1"] | Complex[Array, "1 n"]):
-    """``h`` unchanged, but computed on its own before it is broadcast.
-
-    Left alone, XLA's CPU fusion pulls the sin/cos of a 1-D chirp into the N² multiply
-    that consumes it and evaluates them once per *sample* (a step then costs 1.3× an FFT
-    pair instead of 1.03×). A sort keyed by iota is the identity permutation that XLA
-    cannot fuse through (optimization barriers are removed before fusion on CPU); it
-    costs O(N log N) on N values and is differentiable.
-    """
-    flat = h.reshape(-1)
-    key = jax.lax.iota(jnp.int32, flat.shape[0])
-    _, re, im = jax.lax.sort((key, jnp.real(flat), jnp.imag(flat)), num_keys=1)
-    return jax.lax.complex(re, im).reshape(h.shape)
-
-
 def transfer_function(shape, dx, wavelength, z, method: str = "angular_spectrum",
                       *, band_limit: bool = True) -> Complex[Array, "ny nx"]:
     """The kernel that multiplies ``fft2(field)`` (FFT order, piston included).
@@ -214,19 +203,33 @@ def transfer_function(shape, dx, wavelength, z, method: str = "angular_spectrum"
 
 def _kernel(shape, dy, dx, wavelength, z, p, method, band_limit):
     """The transfer function with piston ``p``: for the Fresnel methods the product of
-    two materialised 1-D factors, which fuses into the multiply that consumes it."""
+    two 1-D factors, which fuses into the multiply that consumes it."""
     if method == "angular_spectrum":
         return p * _angular_spectrum_kernel(shape, dy, dx, wavelength, z, band_limit)
     kernel = _fresnel_tf_kernel if method == "fresnel_tf" else _fresnel_ir_kernel
     hy, hx = kernel(shape, dy, dx, wavelength, z)
-    return _materialised(p * hy) * _materialised(hx)
+    return (p * hy) * hx
 
 
 @jax.jit
 def apply_transfer(field: Complex[Array, "... ny nx"],
                    H: Complex[Array, "ny nx"]) -> Complex[Array, "... ny nx"]:
     """``ifft2(fft2(field) · H)``: one propagation step with a prebuilt kernel."""
-    return jnp.fft.ifft2(jnp.fft.fft2(field) * H)
+    return _step(field, H)
+
+
+def _step(u, H, in_place=True):
+    """``ifft2(fft2(u) · H)``. With ``in_place`` the product is written in row blocks over
+    the spectrum (:func:`diffcam.xla_cpu.update_rows_for_fft`), which keeps the inverse
+    FFT multi-threaded: for a prebuilt or separable H. A kernel computed per sample (the
+    angular spectrum's square root and exponential) costs more serially than the
+    inverse FFT loses, so it is multiplied as one (thread-split) fusion."""
+    u_hat = jnp.fft.fft2(u)
+    shape = jnp.broadcast_shapes(u_hat.shape, H.shape)
+    if not in_place:
+        return jnp.fft.ifft2(u_hat * H)
+    return jnp.fft.ifft2(update_rows_for_fft(jnp.broadcast_to(u_hat, shape),
+                                             lambda b, s: b * H[..., s, :]))
 
 
 @partial(jax.jit, static_argnames=("method", "pad", "band_limit"))
@@ -236,7 +239,7 @@ def _propagate_core(field, dy, dx, wavelength, z, p, *, method, pad, band_limit)
     if pad != (0, 0):
         u = pad_by(u, pad)
     H = _kernel(u.shape, dy, dx, wavelength, z, p, method, band_limit)
-    out = jnp.fft.ifft2(jnp.fft.fft2(u) * H).astype(u.dtype)
+    out = _step(u, H, in_place=method != "angular_spectrum").astype(u.dtype)
     if pad != (0, 0):
         out = crop_to(out, shape)
     return out

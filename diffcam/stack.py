@@ -1,9 +1,13 @@
 """PSF stacks over depths and lateral positions: chunked, sharded, streamed to disk.
 
 :func:`psf_stack` evaluates PSFs for every depth in ``z1`` (and every lateral position)
-in chunks of ``batch_size`` depths per device: one jitted call per chunk, copied to a
-host array (or a memory-mapped file) while the next one computes, so at most two chunks
-are in flight and working memory is set by the chunk, not by the number of depths. With
+in chunks of ``batch_size`` depths per device, each copied to a host array (or a
+memory-mapped file) while the next one computes, so at most two chunks are in flight
+and working memory is set by the chunk, not by the number of depths. A chunk is two
+jitted calls: the fields (or spectra) its FFTs start from, written over the last
+chunk's, then the FFTs and intensities (see :func:`diffcam.camera.depth_inputs`). A
+chunk holds one field per depth, wavelength and, on the direct path, lateral position.
+With
 several devices the chunk's depth axis is sharded over a ``jax.sharding.Mesh`` of them
 (and, after
 ``jax.distributed.initialize()``, over hosts). Everything the depths share (the
@@ -30,7 +34,8 @@ import tifffile
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from .camera import Camera, _as_spectrum, check_inputs, depth_psfs, prepare, real_dtype
+from .camera import (Camera, _as_spectrum, check_inputs, depth_inputs, depth_outputs, prepare,
+                     real_dtype)
 from .errors import DiffcamError, ShapeError
 
 __all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
@@ -97,13 +102,35 @@ def camera_record(camera: Camera) -> dict:
 
 # ----------------------------------------------------------------------------- compute
 
+@partial(jax.jit, static_argnames=("sharding",), donate_argnums=0, keep_unused=True)
+def _chunk_inputs(scratch, prepared, camera, wavelengths, z1, positions, sharding):
+    """The FFT inputs of a chunk, written over ``scratch`` (donated: the last chunk's
+    inputs, so that no fresh buffer is page-faulted in per chunk)."""
+    del scratch
+    out = jax.vmap(lambda z: depth_inputs(prepared, camera, wavelengths, z, positions))(z1)
+    return out if sharding is None else jax.lax.with_sharding_constraint(out, sharding)
+
+
 @partial(jax.jit, static_argnames=("normalise", "sharding"))
-def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sharding):
-    out = jax.vmap(lambda z: depth_psfs(prepared, camera, wavelengths, weights, z,
-                                        positions, normalise))(z1)
-    if sharding is not None:
-        out = jax.lax.with_sharding_constraint(out, sharding)
-    return out
+def _chunk_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise, sharding):
+    out = jax.vmap(lambda u, z: depth_outputs(u, camera, wavelengths, weights, z, positions,
+                                              normalise))(inputs, z1)
+    return out if sharding is None else jax.lax.with_sharding_constraint(out, sharding)
+
+
+def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sharding,
+           scratch=None):
+    """PSFs (nz, npos, ny, nx) for the depths ``z1``, and the buffer to pass as
+    ``scratch`` to the next call. Two jitted calls, so that the second one starts with
+    its FFTs (see :func:`diffcam.camera.depth_inputs`)."""
+    if scratch is None:
+        shape = jax.eval_shape(lambda *a: _chunk_inputs(None, *a, sharding), prepared,
+                               camera, wavelengths, z1, positions)
+        place = sharding if sharding is not None else prepared.sharding
+        scratch = jax.device_put(jnp.zeros(shape.shape, shape.dtype), place)
+    inputs = _chunk_inputs(scratch, prepared, camera, wavelengths, z1, positions, sharding)
+    return _chunk_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise,
+                          sharding), inputs
 
 
 _prepare = jax.jit(prepare)
@@ -123,29 +150,33 @@ def _positions_array(positions):
 
 def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
                    normalise: bool = True, batch_size: int | None = None,
-                   devices: Sequence | None = None, accept_undersampling: bool = False
-                   ) -> Iterator[tuple[int, np.ndarray]]:
+                   devices: Sequence | None = None, accept_undersampling: bool = False,
+                   to_host: bool = True) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
     """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
-    shape ``(n, npos, ny, nx)`` (host numpy). Arguments as in :func:`psf_stack`; the
-    inputs are checked when this is called, before the first chunk."""
+    shape ``(n, npos, ny, nx)``: host numpy, or with ``to_host=False`` the device array
+    (for work that stays on the device, a GPU reconstruction say). Other arguments as in
+    :func:`psf_stack`; the inputs are checked when this is called, before the first
+    chunk."""
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
     if depths.size == 0:
         raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
-    if batch_size is None:  # about 2**20 samples per device per call
-        batch_size = max(1, 2 ** 20 // (camera.padded_shape[0] * camera.padded_shape[1]))
-    if not isinstance(batch_size, int) or batch_size < 1:
-        raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
     pos = _positions_array(positions)
     wavelengths, weights = _as_spectrum(spectrum, camera)
+    if batch_size is None:  # about 2**20 field samples per device per call
+        fields = len(wavelengths) * (len(pos) if camera.method == "direct" else 1)
+        batch_size = max(1, 2 ** 20 // (camera.padded_shape[0] * camera.padded_shape[1]
+                                        * fields))
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
     check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
                  accept_undersampling)
     devices = list(jax.devices()) if devices is None else list(devices)
     return _chunks(phase, camera, depths, pos, wavelengths, weights, normalise,
-                   batch_size, devices)
+                   batch_size, devices, to_host)
 
 
 def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_size,
-            devices):
+            devices, host):
     sharding = None
     step = batch_size * len(devices)
     if len(devices) > 1:
@@ -162,16 +193,17 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
     pos_dev = put(jnp.asarray(pos, dtype))
 
     def to_host(start, out, n):
-        return start, np.asarray(jax.device_get(out))[:n]
+        return start, np.asarray(jax.device_get(out))[:n] if host else out[:n]
 
-    pending = None  # the chunk in flight: the next is dispatched before it is copied out
+    pending = scratch = None  # the chunk in flight is copied out after the next one starts
     for start in range(0, depths.size, step):
         block = depths[start:start + step]
         n = block.size
         block = np.pad(block, (0, step - n), mode="edge")  # fixed shape: one compilation
         zb = jnp.asarray(block, dtype)
         zb = jax.device_put(zb, sharding) if sharding is not None else put(zb)
-        out = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise, sharding)
+        out, scratch = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise,
+                              sharding, scratch)
         if pending is not None:
             yield to_host(*pending)
         pending = (start, out, n)
@@ -193,8 +225,9 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
             for an on-axis source (the position axis is then dropped).
         spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.camera.psf`.
         normalise: each PSF sums to one (default) or is the physical irradiance.
-        batch_size: depths per device per jitted call; working memory grows with it.
-            Default: about 2**20 grid samples per call (1 from 1024²).
+        batch_size: depths per device per chunk; working memory grows with it.
+            Default: about 2**20 field samples per chunk (one depth from 1024², or
+            from fewer samples with several wavelengths or direct-path positions).
         out: stream the stack to this file instead of memory: ``.npy`` (a memory-mapped
             array; metadata in ``<out>.json``) or ``.tif``/``.tiff`` (ImageJ hyperstack
             written page by page, metadata inside). ``None`` keeps it in memory.
