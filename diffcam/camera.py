@@ -374,13 +374,6 @@ def depth_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise
     return jnp.tensordot(weights, psfs, axes=1) / jnp.sum(weights)
 
 
-def depth_psfs(prepared, camera, wavelengths, weights, z1, positions, normalise):
-    """PSFs at one depth for many lateral positions: (npos, ny, nx) on the crop, in one
-    traced function (:func:`depth_inputs` then :func:`depth_outputs`)."""
-    inputs = depth_inputs(prepared, camera, wavelengths, z1, positions)
-    return depth_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise)
-
-
 @jax.jit
 def _psf_inputs(phase, camera, wavelengths, z1, positions):
     return depth_inputs(prepare(phase, camera, wavelengths), camera, wavelengths, z1,

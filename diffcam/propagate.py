@@ -225,11 +225,10 @@ def _step(u, H, in_place=True):
     angular spectrum's square root and exponential) costs more serially than the
     inverse FFT loses, so it is multiplied as one (thread-split) fusion."""
     u_hat = jnp.fft.fft2(u)
-    shape = jnp.broadcast_shapes(u_hat.shape, H.shape)
     if not in_place:
         return jnp.fft.ifft2(u_hat * H)
-    return jnp.fft.ifft2(update_rows_for_fft(jnp.broadcast_to(u_hat, shape),
-                                             lambda b, s: b * H[..., s, :]))
+    u_hat = jnp.broadcast_to(u_hat, jnp.broadcast_shapes(u_hat.shape, H.shape))
+    return jnp.fft.ifft2(update_rows_for_fft(u_hat, lambda b, s: b * H[..., s, :]))
 
 
 @partial(jax.jit, static_argnames=("method", "pad", "band_limit"))

@@ -34,8 +34,8 @@ import tifffile
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from .camera import (Camera, _as_spectrum, check_inputs, depth_inputs, depth_outputs, prepare,
-                     real_dtype)
+from .camera import (Camera, _as_spectrum, check_inputs, depth_inputs, depth_outputs,
+                     prepare, real_dtype)
 from .errors import DiffcamError, ShapeError
 
 __all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
