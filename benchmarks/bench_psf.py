@@ -30,7 +30,7 @@ fresh subprocess that builds the stack, minus its RSS just before the stack call
 the returned stack's bytes: measured at two depth
 counts to show it is flat in the number of depths. XLA's own figure
 (``memory_analysis().temp_size_in_bytes`` of the chunk's two compiled calls plus the
-field buffer they pass on, or of the gradient) is reported beside it.
+two field-sized buffers they pass on, or of the gradient) is reported beside it.
 """
 
 from __future__ import annotations
@@ -193,11 +193,11 @@ def run(sizes=(1024, 2048), n_depths=64, repeats=5, memory=True) -> list[dict]:
             pre = jax.jit(prepare)(jnp.asarray(phase), cam, wl)
             fields = _chunk_inputs(None, pre, cam, wl, z, pos, None)
             temps = (_xla_temp_mb(_chunk_inputs, None, pre, cam, wl, z, pos, None),
-                     _xla_temp_mb(_chunk_outputs, fields, cam, wl, jnp.ones(1), z, pos, True,
-                                  None))
+                     _xla_temp_mb(_chunk_outputs, fields, fields, cam, wl, jnp.ones(1), z,
+                                  pos, True, None))
             row = next(r for r in rows if r["N"] == n and r["candidate"] == m)
-            row["xla_temp_mb"] = (None if None in temps
-                                  else sum(temps) + fields.nbytes / 2 ** 20)
+            row["xla_temp_mb"] = (None if None in temps  # + the two recycled buffers
+                                  else sum(temps) + 2 * fields.nbytes / 2 ** 20)
             if memory:
                 row["working_mb_8"] = _working_memory(n, min(8, nz), m)
                 row["working_mb_all"] = _working_memory(n, nz, m)

@@ -297,11 +297,13 @@ def _source_field(base, camera, wavelength, z1, x1, y1):
 
 
 def _direct_intensity(fields, camera, wavelength, z1):
-    """|P_z2{fields}|² on the crop (physical irradiance, unit point source), batched."""
+    """|P_z2{fields}|² on the crop (physical irradiance, unit point source), batched; and
+    the arrays the two FFTs wrote, (field at the sensor, its spectrum), full grid."""
     h = _tf(camera, wavelength, camera.z2)
-    out = jnp.fft.ifft2(update_rows_for_fft(jnp.fft.fft2(fields), lambda b, s: b * h[s]))
-    out = crop_to(out, camera.out_shape)
-    return (out.real ** 2 + out.imag ** 2) / (wavelength * z1) ** 2
+    spectrum = update_rows_for_fft(jnp.fft.fft2(fields), lambda b, s: b * h[s])
+    field = jnp.fft.ifft2(spectrum)
+    out = crop_to(field, camera.out_shape)
+    return (out.real ** 2 + out.imag ** 2) / (wavelength * z1) ** 2, (field, spectrum)
 
 
 def _magnified_spectrum(base_hat, camera, wavelength, z1):
@@ -359,19 +361,29 @@ def depth_inputs(prepared, camera, wavelengths, z1, positions):
     return jax.vmap(per_wavelength)(prepared, wavelengths)
 
 
-def depth_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise):
+def depth_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise,
+                  buffers=False):
     """PSFs at one depth, (npos, ny, nx) on the crop, from :func:`depth_inputs`: the
-    FFTs, the intensities, normalisation and the weighted mean over wavelengths."""
+    FFTs, the intensities, normalisation and the weighted mean over wavelengths.
+
+    With ``buffers=True`` also returns two arrays shaped like ``inputs`` that hold what
+    the FFTs wrote (direct: the sensor field and its spectrum; scaling: ``inputs``
+    itself and the z_eff field), for a caller that donates them back as the next
+    depth's buffers instead of page-faulting fresh ones (:mod:`diffcam.stack`); the
+    first can hold the next :func:`depth_inputs`.
+    """
     def per_wavelength(u, lam):
         if camera.method == "scaling":
             field = jnp.fft.ifft2(u[0])
             psfs = jax.vmap(lambda p: _sample_magnified(field, camera, lam, z1, p[0], p[1])
                             )(positions)
+            written = (u, field[None])
         else:
-            psfs = _direct_intensity(u, camera, lam, z1)
-        return _normalised(psfs, normalise)
-    psfs = jax.vmap(per_wavelength)(inputs, wavelengths)
-    return jnp.tensordot(weights, psfs, axes=1) / jnp.sum(weights)
+            psfs, written = _direct_intensity(u, camera, lam, z1)
+        return _normalised(psfs, normalise), written
+    psfs, written = jax.vmap(per_wavelength)(inputs, wavelengths)
+    psfs = jnp.tensordot(weights, psfs, axes=1) / jnp.sum(weights)
+    return (psfs, written) if buffers else psfs
 
 
 @jax.jit

@@ -104,33 +104,42 @@ def camera_record(camera: Camera) -> dict:
 
 @partial(jax.jit, static_argnames=("sharding",), donate_argnums=0, keep_unused=True)
 def _chunk_inputs(scratch, prepared, camera, wavelengths, z1, positions, sharding):
-    """The FFT inputs of a chunk, written over ``scratch`` (donated: the last chunk's
-    inputs, so that no fresh buffer is page-faulted in per chunk)."""
+    """The FFT inputs of a chunk, written over ``scratch`` (donated)."""
     del scratch
     out = jax.vmap(lambda z: depth_inputs(prepared, camera, wavelengths, z, positions))(z1)
     return out if sharding is None else jax.lax.with_sharding_constraint(out, sharding)
 
 
-@partial(jax.jit, static_argnames=("normalise", "sharding"))
-def _chunk_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise, sharding):
-    out = jax.vmap(lambda u, z: depth_outputs(u, camera, wavelengths, weights, z, positions,
-                                              normalise))(inputs, z1)
-    return out if sharding is None else jax.lax.with_sharding_constraint(out, sharding)
+@partial(jax.jit, static_argnames=("normalise", "sharding"), donate_argnums=(0, 1),
+         keep_unused=True)
+def _chunk_outputs(inputs, scratch, camera, wavelengths, weights, z1, positions, normalise,
+                   sharding):
+    """PSFs of a chunk, and the two buffers its FFTs wrote: ``inputs`` and ``scratch``
+    (both donated) are written over, so no fresh N² buffer is page-faulted in per chunk."""
+    del scratch
+    out, written = jax.vmap(lambda u, z: depth_outputs(u, camera, wavelengths, weights, z,
+                                                       positions, normalise, buffers=True)
+                            )(inputs, z1)
+    if sharding is not None:
+        out, written = jax.lax.with_sharding_constraint((out, written), sharding)
+    return out, written
 
 
 def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sharding,
-           scratch=None):
-    """PSFs (nz, npos, ny, nx) for the depths ``z1``, and the buffer to pass as
-    ``scratch`` to the next call. Two jitted calls, so that the second one starts with
-    its FFTs (see :func:`diffcam.camera.depth_inputs`)."""
-    if scratch is None:
+           buffers=None):
+    """PSFs (nz, npos, ny, nx) for the depths ``z1``, and the ``buffers`` to pass to the
+    next call. Two jitted calls, so that the second one starts with its FFTs (see
+    :func:`diffcam.camera.depth_inputs`); both write over the last chunk's buffers."""
+    if buffers is None:
         shape = jax.eval_shape(lambda *a: _chunk_inputs(None, *a, sharding), prepared,
                                camera, wavelengths, z1, positions)
         place = sharding if sharding is not None else prepared.sharding
-        scratch = jax.device_put(jnp.zeros(shape.shape, shape.dtype), place)
-    inputs = _chunk_inputs(scratch, prepared, camera, wavelengths, z1, positions, sharding)
-    return _chunk_outputs(inputs, camera, wavelengths, weights, z1, positions, normalise,
-                          sharding), inputs
+        buffers = [jax.device_put(jnp.zeros(shape.shape, shape.dtype), place)
+                   for _ in range(2)]
+    inputs = _chunk_inputs(buffers[0], prepared, camera, wavelengths, z1, positions,
+                           sharding)
+    return _chunk_outputs(inputs, buffers[1], camera, wavelengths, weights, z1, positions,
+                          normalise, sharding)
 
 
 _prepare = jax.jit(prepare)
@@ -195,15 +204,15 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
     def to_host(start, out, n):
         return start, np.asarray(jax.device_get(out))[:n] if host else out[:n]
 
-    pending = scratch = None  # the chunk in flight is copied out after the next one starts
+    pending = buffers = None  # the chunk in flight is copied out after the next one starts
     for start in range(0, depths.size, step):
         block = depths[start:start + step]
         n = block.size
         block = np.pad(block, (0, step - n), mode="edge")  # fixed shape: one compilation
         zb = jnp.asarray(block, dtype)
         zb = jax.device_put(zb, sharding) if sharding is not None else put(zb)
-        out, scratch = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise,
-                              sharding, scratch)
+        out, buffers = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise,
+                              sharding, buffers)
         if pending is not None:
             yield to_host(*pending)
         pending = (start, out, n)
