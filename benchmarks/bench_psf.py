@@ -143,7 +143,7 @@ def run(sizes=(1024, 2048), n_depths=64, repeats=5, memory=True) -> list[dict]:
     lp = optional_import("LightPipes", notes)
     rows = []
     for n in sizes:
-        nz = n_depths if n <= 2048 else min(n_depths, 3)
+        nz = n_depths if n <= 2048 else min(n_depths, 8)
         depths = np.linspace(22e-3, 30e-3, nz)
         rng = np.random.default_rng(0)
         phase = rng.uniform(-np.pi, np.pi, (n, n)).astype(np.float32)
