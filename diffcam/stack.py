@@ -4,9 +4,10 @@
 in chunks of ``batch_size`` depths per device, each copied to a host array (or a
 memory-mapped file) while the next one computes, so at most two chunks are in flight
 and working memory is set by the chunk, not by the number of depths. A chunk is two
-jitted calls: the fields (or spectra) its FFTs start from, written over the last
-chunk's, then the FFTs and intensities (see :func:`diffcam.camera.depth_inputs`). A
-chunk holds one field per depth, wavelength and, on the direct path, lateral position.
+jitted calls: the fields (or spectra) its FFTs start from, then the FFTs and
+intensities (see :func:`diffcam.camera.depth_inputs`); both write over the last chunk's
+two field-sized buffers (donated), which spares a fresh, page-faulted buffer per call.
+A chunk holds one field per depth, wavelength and, on the direct path, lateral position.
 With
 several devices the chunk's depth axis is sharded over a ``jax.sharding.Mesh`` of them
 (and, after
