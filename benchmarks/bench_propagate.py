@@ -19,8 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.harness import (markdown_table, optional_import, time_interleaved,
-                                write_json)
+from benchmarks.harness import markdown_table, optional_import, time_against, write_json
 from diffcam.propagate import (angular_spectrum, apply_transfer, fresnel_tf,
                                transfer_function)
 
@@ -100,33 +99,22 @@ LIMIT = "jax fft2+ifft2 (limit)"
 
 
 def run(sizes=(1024, 2048, 4096), repeats=5) -> list[dict]:
-    """Each candidate is timed in alternation with the bare FFT pair alone, and its
-    ratio is to that run's pair (``limit_ms``): fresh buffers page-fault at a cost
-    that depends on what ran before (numpy and LightPipes allocate and free hundreds
-    of MB), so a ratio from one shared round-robin mixes in its neighbours."""
+    """Each candidate timed in alternation with the bare FFT pair alone, its ratio to
+    that run's pair (``limit_ms``; ``harness.time_against``)."""
     rows, notes = [], []
     for n in sizes:
         cands = candidates_for(n, notes)
         budget = 20.0 if n >= 4096 else None
-        limit_fn = cands.pop(LIMIT)
-        stats, limits = {}, []
-        for name, fn in cands.items():
-            t = time_interleaved({LIMIT: limit_fn, name: fn}, repeats=repeats,
-                                 budget_s=budget)
-            stats[name] = dict(t[name], limit_s=t[LIMIT]["median_s"])
-            limits.append(t[LIMIT])
-        stats = {LIMIT: {"median_s": float(np.median([t["median_s"] for t in limits])),
-                         "first_s": limits[0]["first_s"],
-                         "repeats": sum(t["repeats"] for t in limits),
-                         "limit_s": float(np.median([t["median_s"] for t in limits]))},
-                 **stats}
+        limit = cands.pop(LIMIT)
+        stats = time_against(limit, cands, repeats=repeats, budget_s=budget)
+        stats = {LIMIT: stats.pop(None), **stats}
         best_fft = min(v["median_s"] for k, v in stats.items()
                        if k.startswith(("scipy", "pyfftw", "torch")))
         for name, s in stats.items():
             rows.append({"N": n, "candidate": name, "median_ms": 1e3 * s["median_s"],
-                         "limit_ms": 1e3 * s["limit_s"],
+                         "limit_ms": 1e3 * s["unit_s"],
                          "first_call_ms": 1e3 * s["first_s"], "repeats": s["repeats"],
-                         "x_jax_fft_pair": s["median_s"] / s["limit_s"],
+                         "x_jax_fft_pair": s["median_s"] / s["unit_s"],
                          "x_best_fft_lib": s["median_s"] / best_fft})
     for note in sorted(set(notes)):
         print("note:", note)

@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.harness import (markdown_table, optional_import, time_interleaved,
+from benchmarks.harness import (markdown_table, optional_import, time_against,
                                 write_json)
 from diffcam.camera import Camera, psf
 from diffcam.propagate import fresnel_tf
@@ -177,10 +177,9 @@ def run(sizes=(1024, 2048), n_depths=64, repeats=5, memory=True) -> list[dict]:
         per = {"direct": nz, "scaling": nz, "direct, on device": nz,
                "scaling, on device": nz, "numpy": n_np, "numpy (plain)": n_np,
                "LightPipes": 2}
-        for name, fn in cands.items():  # each in alternation with the unit alone
-            t = time_interleaved({"fresnel_tf": lambda: step(field), name: fn},
-                                 repeats=repeats, budget_s=120)
-            unit, s = t["fresnel_tf"]["median_s"], t[name]
+        t = time_against(lambda: step(field), cands, repeats=repeats, budget_s=120)
+        for name in cands:
+            s, unit = t[name], t[name]["unit_s"]
             per_psf = s["median_s"] / per.get(name, 1)
             rows.append({"N": n, "candidate": name, "depths": per.get(name, 1),
                          "ms_per_psf": 1e3 * per_psf, "psf_per_s": 1 / per_psf,

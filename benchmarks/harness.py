@@ -63,6 +63,28 @@ def time_interleaved(candidates: dict[str, Callable[[], object]], repeats: int =
     return out
 
 
+def time_against(unit: Callable[[], object], candidates: dict[str, Callable[[], object]],
+                 repeats: int = 5, budget_s: float | None = None) -> dict[str, dict]:
+    """:func:`time_interleaved` of each candidate in alternation with ``unit`` alone.
+
+    Each candidate's statistics gain ``unit_s``, the unit's median in its own run, so
+    ``median_s / unit_s`` is a paired ratio. Here fresh buffers page-fault at a cost
+    that depends on what ran just before (a candidate that allocates and frees
+    gigabytes slows the next one's allocations), so a ratio taken from one shared
+    round-robin mixes in the neighbours. The key ``None`` holds the unit's statistics
+    over all the runs (median of medians, repeats summed).
+    """
+    out, units = {}, []
+    for name, fn in candidates.items():
+        t = time_interleaved({None: unit, name: fn}, repeats=repeats, budget_s=budget_s)
+        out[name] = dict(t[name], unit_s=t[None]["median_s"])
+        units.append(t[None])
+    unit_s = statistics.median(u["median_s"] for u in units)
+    out[None] = {"median_s": unit_s, "unit_s": unit_s, "first_s": units[0]["first_s"],
+                 "repeats": sum(u["repeats"] for u in units)}
+    return out
+
+
 def machine() -> dict:
     """Facts about the machine and library versions, for the JSON record."""
     info = {"python": sys.version.split()[0], "platform": platform.platform(),

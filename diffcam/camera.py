@@ -52,8 +52,8 @@ from .errors import (DiffcamError, ShapeError, check_field, check_finite, check_
                      fmt_length, is_concrete, sampling_problem)
 from .grid import crop_to, pad_to
 from .optics import circular_aperture, point_source_max_frequency
-from .propagate import critical_distance, transfer_function
-from .xla_cpu import fusion_barrier, update_rows_for_fft, vector
+from .propagate import critical_distance, spherical_chirp, transfer_function
+from .xla_cpu import fusion_barrier, update_rows_for_fft
 from .sensor import bspline_prefilter, cubic_sample
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "psf", "diffuser_phase", "random_diffuser",
@@ -265,16 +265,6 @@ def _as_spectrum(spectrum, camera):
 
 # ------------------------------------------------------------------------------ cores
 
-def _chirp(n, dx, centre, wavelength, z):
-    """1-D factor exp(jπ(t − centre)²/(λz)) of a separable spherical wave on ``n`` samples
-    (computed on its own, not once per sample of the N² product that consumes it:
-    :func:`diffcam.xla_cpu.vector`)."""
-    def chirp(i):
-        t = (i - n // 2) * dx - centre
-        return jnp.exp(1j * jnp.pi * (t * t) / (wavelength * z))
-    return vector(chirp, n)
-
-
 def _base_fields(phase, camera, wavelengths):
     """C·e^{jθd(λ)} on the padded grid, one per wavelength: (nλ, ny, nx) complex."""
     aperture = camera.aperture()
@@ -291,8 +281,8 @@ def _source_field(base, camera, wavelength, z1, x1, y1):
     """base · U1: the field behind the diffuser for a point source at (x1, y1, z1)
     (the spherical wave's 1/(λz1) is applied to the intensity)."""
     ny, nx = base.shape[-2:]
-    cy = _chirp(ny, camera.dx, y1, wavelength, z1)[:, None]
-    cx = _chirp(nx, camera.dx, x1, wavelength, z1)[None, :]
+    cy = spherical_chirp(ny, camera.dx, wavelength, z1, y1)[:, None]
+    cx = spherical_chirp(nx, camera.dx, wavelength, z1, x1)[None, :]
     return base * (cy * cx)
 
 

@@ -24,6 +24,8 @@ __all__ = [
     "yx",
     "radius2",
     "fft_freqs",
+    "coord_at",
+    "fft_freq_at",
     "centred_freqs",
     "fft2c",
     "ifft2c",
@@ -46,7 +48,18 @@ def pitch_yx(dx) -> tuple:
 
 def coords(n: int, dx) -> Array:
     """Centred sample coordinates ``(i - n//2) * dx`` of an axis of ``n`` samples (m)."""
-    return (jnp.arange(n) - n // 2) * dx
+    return coord_at(jnp.arange(n), n, dx)
+
+
+def coord_at(i, n: int, dx):
+    """The centred coordinate of sample index ``i`` (any int array) on an axis of ``n``
+    samples: ``coords(n, dx)[i]`` without building the axis (m)."""
+    return (i - n // 2) * dx
+
+
+def fft_freq_at(i, n: int, dx):
+    """The FFT-order frequency of index ``i``: ``jnp.fft.fftfreq(n, dx)[i]`` (cycles/m)."""
+    return jnp.where(i < (n + 1) // 2, i, i - n) / (n * dx)
 
 
 def yx(shape: Sequence[int], dx) -> tuple[Array, Array]:
@@ -70,9 +83,8 @@ def fft_freqs(shape: Sequence[int], dx) -> tuple[Array, Array]:
     """Spatial frequencies ``(fy[:, None], fx[None, :])`` in FFT order (cycles/m)."""
     ny, nx = shape[-2], shape[-1]
     dy, dxx = pitch_yx(dx)
-    fy = jnp.fft.fftfreq(ny) / dy
-    fx = jnp.fft.fftfreq(nx) / dxx
-    return fy[:, None], fx[None, :]
+    return (fft_freq_at(jnp.arange(ny), ny, dy)[:, None],
+            fft_freq_at(jnp.arange(nx), nx, dxx)[None, :])
 
 
 def centred_freqs(shape: Sequence[int], dx) -> tuple[Array, Array]:

@@ -44,7 +44,8 @@ from jaxtyping import Complex, Num
 
 from .errors import (DiffcamError, check_field, check_positive, is_concrete, fmt_length,
                      sampling_problem)
-from .grid import crop_to, fft_freqs, fft2c, ifft2c, pad_by, pitch_yx
+from .grid import (coord_at, crop_to, fft_freq_at, fft_freqs, fft2c, ifft2c, pad_by,
+                   pitch_yx)
 from .xla_cpu import update_rows_for_fft, vector
 
 __all__ = [
@@ -59,6 +60,7 @@ __all__ = [
     "critical_distance",
     "transfer_function",
     "apply_transfer",
+    "spherical_chirp",
 ]
 
 METHODS = ("fresnel_tf", "fresnel_ir", "angular_spectrum")
@@ -136,24 +138,29 @@ def _check_kernel_sampling(method, shape, dx, wavelength, z, pad, accept_undersa
 
 # ---------------------------------------------------------------- transfer functions
 
+def spherical_chirp(n: int, dx, wavelength, z, centre=0.0):
+    """exp(jπ(t − centre)²/(λz)) on the centred axis t of ``n`` samples at pitch ``dx``:
+    the 1-D factor of a paraxial spherical wave (metres). Computed on its own, not once
+    per sample of the N² product that consumes it (:func:`diffcam.xla_cpu.vector`)."""
+    def chirp(i):
+        t = coord_at(i, n, dx) - centre
+        return jnp.exp(1j * jnp.pi * (t * t) / (wavelength * z))
+    return vector(chirp, n)
+
+
 def _fresnel_tf_kernel(shape, dy, dx, wavelength, z):
     """exp(−jπλz(fy² + fx²)) as its two 1-D factors, FFT order, ``(ny, 1)`` and
     ``(1, nx)`` (each computed on its own: :func:`diffcam.xla_cpu.vector`)."""
     def factor(n, d):
-        def chirp(i):
-            f = jnp.where(i < (n + 1) // 2, i, i - n) / (n * d)  # jnp.fft.fftfreq(n, d)
-            return jnp.exp(-1j * jnp.pi * wavelength * z * f ** 2)
-        return vector(chirp, n)
+        return vector(lambda i: jnp.exp(-1j * jnp.pi * wavelength * z
+                                        * fft_freq_at(i, n, d) ** 2), n)
     return factor(shape[-2], dy)[:, None], factor(shape[-1], dx)[None, :]
 
 
 def _fresnel_ir_kernel(shape, dy, dx, wavelength, z):
     """FFT of the sampled, centred impulse response: separable, two 1-D FFTs."""
     def factor(n, d):
-        def chirp(i):
-            t = (i - n // 2) * d
-            return jnp.exp(1j * jnp.pi * t * t / (wavelength * z))
-        return jnp.fft.fft(jnp.fft.ifftshift(vector(chirp, n))) * d
+        return jnp.fft.fft(jnp.fft.ifftshift(spherical_chirp(n, d, wavelength, z))) * d
     Hy = factor(shape[-2], dy) / (1j * wavelength * z)
     return Hy[:, None], factor(shape[-1], dx)[None, :]
 
