@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.harness import markdown_table, optional_import, time_against, write_json
-from diffcam.propagate import (angular_spectrum, apply_transfer, fresnel_tf,
+from diffcam.optics.propagation import (angular_spectrum, apply_transfer, fresnel_tf,
                                transfer_function)
 
 WAVELENGTH, DX = 532e-9, 5e-6

@@ -4,14 +4,14 @@
 
 For each grid size N (aperture radius 0.3·N·dx at 5 µm, z2 = 1 mm, random phase):
 
-- ``fresnel_tf``: one jitted step of :func:`diffcam.propagate.fresnel_tf` on N² (the
+- ``fresnel_tf``: one jitted step of :func:`diffcam.optics.propagation.fresnel_tf` on N² (the
   unit; an eager call adds validation, 1.2–1.3× at 1024²). Each candidate is timed
   in alternation with the step alone, and its ratio is to that run's step
   (``fresnel_tf_ms``): page faults on fresh buffers cost more here after another
   candidate has made and freed gigabytes (one run timed the 2048² step at 77 ms
   among the stacks and 30 ms beside the FFT pair);
 - ``jax fft2+ifft2``: the bare FFT pair (the limit of a step);
-- ``direct`` / ``scaling``: :func:`diffcam.stack.psf_stack` over ``depths`` z1 in
+- ``direct`` / ``scaling``: :func:`diffcam.model.stack.psf_stack` over ``depths`` z1 in
   22–30 mm, per PSF (field, propagation, intensity, normalisation; no sensor step),
   the stack returned in host memory;
 - ``direct, on device`` / ``scaling, on device``: the same chunks left on the device
@@ -48,9 +48,10 @@ import numpy as np
 
 from benchmarks.harness import (markdown_table, optional_import, time_against,
                                 write_json)
-from diffcam.camera import Camera, psf
-from diffcam.propagate import fresnel_tf
-from diffcam.stack import _chunk_inputs, _chunk_outputs, iter_psf_stack, prepare, psf_stack
+from diffcam.model import Camera, psf
+from diffcam.optics.propagation import fresnel_tf
+from diffcam.model.psf import diffuser_fields
+from diffcam.model.stack import _chunk_inputs, _chunk_outputs, iter_psf_stack, psf_stack
 
 LAM, DX, Z2 = 532e-9, 5e-6, 1e-3
 
@@ -103,7 +104,7 @@ def _lightpipes_psf(lp, phase, n, z1):
 _PROBE = textwrap.dedent("""
     import json, sys, numpy as np, jax
     from benchmarks.bench_psf import _camera
-    from diffcam.stack import psf_stack
+    from diffcam.model.stack import psf_stack
     n, nz, method = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
     cam = _camera(n, method)
     phase = np.random.default_rng(0).uniform(-np.pi, np.pi, (n, n)).astype(np.float32)
@@ -189,7 +190,7 @@ def run(sizes=(1024, 2048), n_depths=64, repeats=5, memory=True) -> list[dict]:
         for m in ("direct", "scaling"):
             cam = cams[m]
             wl, z, pos = cam.wavelength[None], jnp.ones(1) * 25e-3, jnp.zeros((1, 2))
-            pre = jax.jit(prepare)(jnp.asarray(phase), cam, wl)
+            pre = jax.jit(diffuser_fields)(jnp.asarray(phase), cam, wl)
             fields = _chunk_inputs(None, pre, cam, wl, z, pos, None)
             temps = (_xla_temp_mb(_chunk_inputs, None, pre, cam, wl, z, pos, None),
                      _xla_temp_mb(_chunk_outputs, fields, fields, cam, wl, jnp.ones(1), z,

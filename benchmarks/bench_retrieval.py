@@ -9,7 +9,7 @@ Side by side, interleaved, in one run:
 - a scipy.fft GS (``workers=2``, no shifts, normalising projection u·(A/|u|)).
 
 Time to target: for GS, HIO and RAAR from one random start at N = 1024, the smallest
-iteration count in a doubling ladder whose twin-resolved phase Pearson (DESIGN.md, on
+iteration count in a doubling ladder whose twin-resolved phase Pearson (docs/design.md, on
 the central 300×300) reaches 0.789 (the paper's figure) and 0.99, times the measured
 seconds per iteration. A flat estimate's Pearson is recorded as the metric's floor.
 
@@ -26,9 +26,9 @@ import numpy as np
 import scipy.fft
 
 from benchmarks.harness import markdown_table, time_interleaved, write_json
-from diffcam.grid import crop_to
-from diffcam.metrics import phase_scores
-from diffcam.retrieval import paper_simulation, retrieve_projections
+from diffcam.core.grid import crop_to
+from diffcam.evaluate.metrics import phase_scores
+from diffcam.calibrate import paper_simulation, retrieve_projections
 
 LADDER = (25, 50, 100, 200, 400, 800, 1600, 3200)
 TARGETS = (0.789, 0.99)

@@ -1,37 +1,44 @@
 """diffcam: differentiable JAX optics for lensless diffuser cameras.
 
-The four stages of the method (Optics Express 2019), each a subpackage or module:
+The four stages of the method (Optics Express 2019), one subpackage each, on two
+shared layers:
 
-1. calibrate — :mod:`diffcam.retrieval` (``calibrate``, GS/HIO/RAAR, least squares,
-   fitting to captured PSFs);
-2. model — :mod:`diffcam.camera` (``Camera``, ``psf``), :mod:`diffcam.stack`
-   (``psf_stack``), built on :mod:`diffcam.propagate` and :mod:`diffcam.optics`;
-3. reconstruct — :mod:`diffcam.reconstruct` (Richardson–Lucy, ADMM-TV, Wiener);
-4. evaluate — :mod:`diffcam.metrics`, :mod:`diffcam.scaling` (the scaling baseline).
+1. calibrate — :mod:`diffcam.calibrate`: the diffuser phase from near/far captures
+   (GS/HIO/RAAR, least squares through the forward model) and fits to captured PSFs;
+2. model — :mod:`diffcam.model`: the :class:`Camera`, the PSF at any depth (Eq. 7),
+   stacks over depth grids, the sensor;
+3. reconstruct — :mod:`diffcam.reconstruct`: Richardson–Lucy (Eq. 15), ADMM-TV, Wiener;
+4. evaluate — :mod:`diffcam.evaluate`: Pearson (Eq. 14), SSIM, the phase metric, the
+   magnification baseline;
+
+- :mod:`diffcam.optics` — propagators, optical elements, sampling rules;
+- :mod:`diffcam.core` — the grid convention, errors, units, the FFT backend seam;
+- :mod:`diffcam.io`, :mod:`diffcam.data` — captures in and out, built-in measured data;
+- :mod:`diffcam.apps` — the command line, the demo, the paper's experiments.
 
 Units are SI everywhere (metres, radians); grids are centred (index N//2 is the axis).
+``docs/design.md`` maps the paper's equations to functions.
 """
 
-from . import grid, metrics, optics, propagate, reconstruct, retrieval, sampling
-from .camera import Camera, HeightMap, Spectrum, psf, random_diffuser
-from .errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
-from .metrics import pearson, psf_fidelity, psnr, ssim
-from .optics import apply_phase, circular_aperture, point_source_field, thin_lens
-from .propagate import angular_spectrum, fourier_lens, fresnel_ir, fresnel_tf
-from .reconstruct import admm_tv, richardson_lucy, wiener
-from .retrieval import calibrate
-from .sampling import plan_sampling
-from .scaling import scale_psf
-from .stack import load_stack, psf_stack, save_stack
+from diffcam import calibrate, core, evaluate, model, optics, reconstruct
+from diffcam.calibrate import retrieve_phase
+from diffcam.core.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
+from diffcam.evaluate import magnify_psf, pearson, psf_fidelity, psnr, ssim
+from diffcam.model import (Camera, HeightMap, Spectrum, load_stack, psf, psf_stack,
+                           random_diffuser, save_stack)
+from diffcam.optics import (angular_spectrum, apply_phase, circular_aperture, fourier_lens,
+                            fresnel_ir, fresnel_tf, plan_sampling, point_source_field,
+                            thin_lens)
+from diffcam.reconstruct import admm_tv, richardson_lucy, wiener
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "Camera", "HeightMap", "Spectrum", "psf", "random_diffuser", "psf_stack", "save_stack",
-    "load_stack", "scale_psf", "calibrate", "richardson_lucy", "admm_tv", "wiener",
+    "load_stack", "magnify_psf", "retrieve_phase", "richardson_lucy", "admm_tv", "wiener",
     "fresnel_tf", "fresnel_ir", "angular_spectrum", "fourier_lens",
     "circular_aperture", "point_source_field", "thin_lens", "apply_phase", "plan_sampling",
     "pearson", "ssim", "psnr", "psf_fidelity", "DiffcamError", "SamplingError", "ShapeError",
-    "UndersamplingWarning", "grid", "metrics", "optics", "propagate", "reconstruct",
-    "retrieval", "sampling",
+    "UndersamplingWarning", "calibrate", "core", "evaluate", "model", "optics",
+    "reconstruct",
 ]

@@ -1,6 +1,6 @@
 """``python -m diffcam`` is the ``diffcam`` command."""
 import sys
 
-from .cli import main
+from diffcam.apps.cli import main
 
 sys.exit(main())

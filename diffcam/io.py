@@ -26,7 +26,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from diffcam.errors import DiffcamError, ShapeError, check_field
+from diffcam.core.errors import DiffcamError, ShapeError, check_field
 
 __all__ = [
     "Capture",

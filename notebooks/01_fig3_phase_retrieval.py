@@ -19,7 +19,7 @@
 # intensity is the aperture, the far field is taken through a Fourier lens f = 5 cm at
 # 532 nm. Textbook Gerchberg–Saxton stagnates (the paper reports a phase Pearson of
 # 0.7890 after 2000 iterations); diffcam's calibration reaches ≥ 0.99. The figures are
-# scored as DESIGN.md defines them: piston-aligned Pearson on the central 300², and its
+# scored as docs/design.md defines them: piston-aligned Pearson on the central 300², and its
 # twin-resolved version (near/far data cannot tell θd(x) from −θd(−x)).
 #
 # Set `DIFFCAM_NOTEBOOK_SMALL=1` for a quick run (the test suite does).
@@ -30,9 +30,9 @@ import os
 import matplotlib.pyplot as plt
 import numpy as np
 
-from diffcam import paper
-from diffcam.retrieval import cameraman_phase
-from diffcam.metrics import phase_offset, wrap_phase
+from diffcam.apps import paper
+from diffcam.calibrate import cameraman_phase
+from diffcam.evaluate.metrics import phase_offset, wrap_phase
 
 SMALL = os.environ.get("DIFFCAM_NOTEBOOK_SMALL") == "1"
 settings = paper.Settings(grid=640 if SMALL else 1024, gs_iterations=50 if SMALL else 2000,

@@ -18,7 +18,7 @@
 # Fresnel scaling theorem), from the true diffuser phase and from phases retrieved with
 # more and more iterations. A test object convolved with the *true* PSF is deconvolved
 # (150 Richardson–Lucy iterations) with each PSF. The retrieved phase carries the twin
-# ambiguity; one captured PSF at 22 mm resolves it (`diffcam.retrieval.resolve_twin`).
+# ambiguity; one captured PSF at 22 mm resolves it (`diffcam.calibrate.resolve_twin`).
 
 # %%
 import os
@@ -26,8 +26,8 @@ import os
 import matplotlib.pyplot as plt
 import numpy as np
 
-from diffcam import paper
-from diffcam.retrieval import cameraman_phase, resolve_twin
+from diffcam.apps import paper
+from diffcam.calibrate import cameraman_phase, resolve_twin
 
 SMALL = os.environ.get("DIFFCAM_NOTEBOOK_SMALL") == "1"
 settings = paper.Settings(grid=640 if SMALL else 1024, gs_iterations=30 if SMALL else 2000,
@@ -40,7 +40,7 @@ cam = paper.camera(settings)
 reference = paper.captured_reference(fig3["truth"], cam, paper.DEPTHS[0])
 stages = {"true phase": None, "textbook GS": fig3["gs"]}
 for it in (10, settings.calibration_iterations):
-    phase = paper.calibrate(fig3["near"], fig3["far"], iterations=it, refine_iterations=0,
+    phase = paper.paper_phase(fig3["near"], fig3["far"], iterations=it, refine_iterations=0,
                             restarts=1).phase
     stages[f"calibration {it} it"] = resolve_twin(phase, reference, cam,
                                                         paper.DEPTHS[0])[0]
@@ -63,7 +63,7 @@ plt.tight_layout()
 # ## Fig. 6 — a random diffuser (30 µm features, about 1°) and a textured object
 #
 # This phase spans many 2π, and the near/far projections stall on it. One captured PSF
-# (here at 22 mm) used as a third intensity plane (`diffcam.retrieval.psf_plane`, passed
+# (here at 22 mm) used as a third intensity plane (`diffcam.calibrate.psf_plane`, passed
 # to the projections as `planes=`) retrieves it, twin included.
 
 # %%

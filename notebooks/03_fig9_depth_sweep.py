@@ -26,8 +26,8 @@ import os
 
 import matplotlib.pyplot as plt
 
-from diffcam import paper
-from diffcam.retrieval import cameraman_phase, resolve_twin
+from diffcam.apps import paper
+from diffcam.calibrate import cameraman_phase, resolve_twin
 
 SMALL = os.environ.get("DIFFCAM_NOTEBOOK_SMALL") == "1"
 settings = paper.Settings(grid=640 if SMALL else 1024, gs_iterations=10,

@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from diffcam.data import load_psf_stack_3d, load_raw_3d, load_tutorial_pair  # noqa: E402
-from diffcam.grid import crop_to  # noqa: E402
+from diffcam.core.grid import crop_to  # noqa: E402
 from diffcam.io import normalise_l2  # noqa: E402
 from diffcam.reconstruct import (admm_tv, admm_tv_3d, richardson_lucy,  # noqa: E402
                                  richardson_lucy_3d, wiener)

@@ -3,7 +3,7 @@
 Section 3.1 of the paper: diffuser 512×512 at 5 µm, phase = cameraman scaled to [−π, π],
 circular aperture of radius 1.2 mm, near-field intensity 1 inside the aperture, far
 field through a Fourier lens f = 5 cm at 532 nm, embedded in an N×N grid (paper:
-N = 4000). Scored on the central 300×300 pixels by the DESIGN.md phase metrics
+N = 4000). Scored on the central 300×300 pixels by the docs/design.md phase metrics
 (piston-aligned, twin-resolved, raw Pearson; phase MSE) beside reference estimates
 that carry no information (flat, random) to show the metric's floor.
 
@@ -22,10 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcam.grid import crop_to, pad_to
-from diffcam.metrics import phase_scores
-from diffcam.optics import circular_aperture
-from diffcam.retrieval import (CalibrationGeometry, calibrate, calibration_intensities,
+from diffcam.core.grid import crop_to, pad_to
+from diffcam.evaluate.metrics import phase_scores
+from diffcam.optics.elements import circular_aperture
+from diffcam.calibrate import (CalibrationGeometry, retrieve_phase, calibration_intensities,
                                cameraman_phase, prepare_captures, retrieve_projections,
                                synthetic_captures)
 
@@ -105,7 +105,7 @@ def main():
                          **scores(r.phase, truth, mask), "error": float(r.history[-1]),
                          "wall_s": round(r.stats["wall_time"], 1)})
             print(rows[-1], flush=True)
-    r = calibrate(near, far, geometry, aperture, key=jax.random.key(0), restarts=args.restarts,
+    r = retrieve_phase(near, far, geometry, aperture, key=jax.random.key(0), restarts=args.restarts,
                   iterations=args.iterations, refine_iterations=args.refine, masks=masks)
     rows.append({"solver": f"calibrate: raar {args.iterations} it × {args.restarts} restarts"
                            f" + lsq {args.refine}", **scores(r.phase, truth, mask),

@@ -1,7 +1,7 @@
 """Real data: fit a thin-phase diffuser to 2–3 planes of the measured 44-plane DiffuserCam
 PSF stack (Waller Lab, via ``diffcam.data``) and predict the other planes.
 
-Nothing about this camera's geometry was published with the stack (DESIGN.md, "Real
+Nothing about this camera's geometry was published with the stack (docs/design.md, "Real
 data"). The script takes the 3-D DiffuserCam's sensor pixel (6.5 µm) binned 8× (the
 stack is 1/8 of 2560×2160: 52 µm), λ = 532 nm as a nominal wavelength, z2 = 8.9 mm and
 the nearest plane at z1 = 20 mm as start values, and a rectangular aperture whose
@@ -25,13 +25,13 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.ndimage
 
-from diffcam.camera import Camera
+from diffcam.model.camera import Camera
 from diffcam.data import load_psf_stack_3d
-from diffcam.metrics import pearson
-from diffcam.optics import rectangular_aperture
-from diffcam.retrieval import fit_to_psfs, predict_psfs
-from diffcam.retrieval.psf_fit import depths
-from diffcam.scaling import scale_psf
+from diffcam.evaluate.metrics import pearson
+from diffcam.optics.elements import rectangular_aperture
+from diffcam.calibrate import fit_to_psfs, predict_psfs
+from diffcam.calibrate.psf_fit import depths
+from diffcam.evaluate.baseline import magnify_psf
 
 PIXEL, WAVELENGTH, Z2, Z1_NEAR = 8 * 6.5e-6, 532e-9, 8.9e-3, 20e-3
 
@@ -39,9 +39,9 @@ PIXEL, WAVELENGTH, Z2, Z1_NEAR = 8 * 6.5e-6, 532e-9, 8.9e-3, 20e-3
 def magnification_ratio(ref, target, dx):
     """Best magnification of ``ref`` onto ``target`` about the grid centre (1-D search)."""
     ms = np.linspace(0.8, 1.05, 51)
-    z2 = 1.0  # scale_psf takes depths; choose z1 so that m = M(z1)/M(z1_ref) is ms
+    z2 = 1.0  # magnify_psf takes depths; choose z1 so that m = M(z1)/M(z1_ref) is ms
     z1 = z2 / ((1 + z2) * ms - 1)
-    scaled = scale_psf(ref, dx, 1.0, z1[ms * (1 + z2) > 1], z2)
+    scaled = magnify_psf(ref, dx, 1.0, z1[ms * (1 + z2) > 1], z2)
     p = np.asarray(pearson(scaled, jnp.asarray(target)))
     return float(ms[ms * (1 + z2) > 1][int(np.argmax(p))])
 
@@ -109,9 +109,9 @@ def main():
     pred = predict_psfs(r.phase, camera, z1_all, z2=z2, **sensor)
     meas = jnp.asarray(stack)
     p_model = np.asarray(pearson(jnp.asarray(pred), meas))
-    p_scale0 = np.asarray(pearson(scale_psf(stack[0], PIXEL, z1_all[0], z1_all, z2), meas))
+    p_scale0 = np.asarray(pearson(magnify_psf(stack[0], PIXEL, z1_all[0], z1_all, z2), meas))
     nearest = [min(fit_planes, key=lambda f: abs(f - k)) for k in range(nz)]
-    p_scale_near = np.array([float(pearson(scale_psf(stack[a], PIXEL, z1_all[a], z1_all[k],
+    p_scale_near = np.array([float(pearson(magnify_psf(stack[a], PIXEL, z1_all[a], z1_all[k],
                                                      z2), meas[k]))
                              for k, a in enumerate(nearest)])
     print("\n| plane | z1 (mm) | model | scaling from plane 0 | scaling from nearest fitted |")

@@ -2,7 +2,7 @@
 twin-free fit with a third measurement (one PSF at z1 = 25 mm, z2 = 1 mm).
 
 Every run starts cold: its wall time includes compilation (1–3 s at 1024²). Scores are
-the DESIGN.md figures on the central 300×300 pixels.
+the docs/design.md figures on the central 300×300 pixels.
 
     python scripts/retrieval_solvers.py --n 1024
 """
@@ -15,10 +15,10 @@ import time
 
 import jax
 
-from diffcam.camera import Camera, psf
-from diffcam.grid import crop_to
-from diffcam.metrics import phase_scores
-from diffcam.retrieval import fit_to_psfs, paper_simulation, retrieve_lsq, retrieve_projections
+from diffcam.model import Camera, psf
+from diffcam.core.grid import crop_to
+from diffcam.evaluate.metrics import phase_scores
+from diffcam.calibrate import fit_to_psfs, paper_simulation, retrieve_lsq, retrieve_projections
 
 
 def main():

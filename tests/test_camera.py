@@ -1,4 +1,4 @@
-"""The diffuser-camera PSF (diffcam.camera): physics, bad input, jit/grad/vmap."""
+"""The diffuser-camera PSF (diffcam.model.camera): physics, bad input, jit/grad/vmap."""
 
 import dataclasses
 import time
@@ -10,11 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffcam.camera import Camera, HeightMap, psf, random_diffuser, with_method
-from diffcam.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
-from diffcam.grid import pad_to
-from diffcam.metrics import pearson
-from diffcam.stack import psf_stack
+from diffcam.model import Camera, HeightMap, psf, random_diffuser, with_method
+from diffcam.core.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
+from diffcam.core.grid import pad_to
+from diffcam.evaluate.metrics import pearson
+from diffcam.model.stack import psf_stack
 
 LAM = 532e-9
 
@@ -161,7 +161,7 @@ def test_paper_simulation_grid_runs():
     PSF is finite, sums to one, and its light stays within the aperture's image plus
     the diffuser's spread (99 % inside radius 1.2 mm·M + 0.2 mm). About 5 s here with
     compilation, so it runs by default."""
-    from diffcam.retrieval.forward import cameraman_phase
+    from diffcam.calibrate.simulation import cameraman_phase
 
     n, dx = 4000, 5e-6
     phase = pad_to(jnp.asarray(cameraman_phase(512), jnp.float32), (n, n))
@@ -228,7 +228,7 @@ def test_direct_path_at_paper_real_camera_is_undersampled():
     with pytest.raises(SamplingError, match="scaling"):
         psf(phase, cam, 29e-3)
     with pytest.warns(UndersamplingWarning):
-        from diffcam.camera import check_inputs
+        from diffcam.model.psf import check_inputs
         check_inputs(phase, cam, 22e-3, 0.0, [LAM], accept_undersampling=True)
     with warnings.catch_warnings():
         warnings.simplefilter("error")

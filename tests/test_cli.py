@@ -6,8 +6,8 @@ import sys
 
 import pytest
 
-from diffcam.errors import DiffcamError
-from diffcam.units import parse_length, parse_length_range
+from diffcam.core.errors import DiffcamError
+from diffcam.core.units import parse_length, parse_length_range
 
 
 def _diffcam(*args, cwd=None):
@@ -15,6 +15,7 @@ def _diffcam(*args, cwd=None):
                           text=True, cwd=cwd, timeout=600)
 
 
+@pytest.mark.slow
 def test_demo_writes_report(tmp_path):
     """`diffcam demo` (reduced grid and iterations) writes the figures, metrics.json and
     report.md; the calibrated phase beats textbook GS and its PSF matches the truth."""
@@ -106,10 +107,10 @@ def calibration_files(tmp_path_factory):
     import numpy as np
     import tifffile
 
-    from diffcam.camera import Camera, random_diffuser
-    from diffcam.optics import circular_aperture
-    from diffcam.retrieval import CalibrationGeometry, synthetic_captures
-    from diffcam.stack import StackMeta, camera_record, psf_stack, save_stack
+    from diffcam.model.camera import Camera, random_diffuser
+    from diffcam.optics.elements import circular_aperture
+    from diffcam.calibrate import CalibrationGeometry, synthetic_captures
+    from diffcam.model.stack import StackMeta, camera_record, psf_stack, save_stack
 
     d = tmp_path_factory.mktemp("calibration")
     n, dx, lam = 256, 5e-6, 532e-9
@@ -139,7 +140,7 @@ def test_calibrate_psf_compare_pipeline(calibration_files):
     (registered Pearson > 0.95 at every depth)."""
     import numpy as np
 
-    from diffcam.stack import load_stack
+    from diffcam.model.stack import load_stack
 
     d, focal = calibration_files
     common = ["--focal-length", focal, "--wavelength", "532nm", "--pixel", "5um",
@@ -166,7 +167,7 @@ def test_calibrate_psf_compare_pipeline(calibration_files):
 
 def test_calibrate_with_a_projection_solver(calibration_files, tmp_path):
     """`--solver raar` runs the projections alone and writes a phase file that loads."""
-    from diffcam.retrieval import load_phase
+    from diffcam.calibrate import load_phase
 
     d, focal = calibration_files
     r = _diffcam("calibrate", str(d / "near.tif"), str(d / "far.tif"), "--focal-length", focal,

@@ -14,9 +14,10 @@ import scipy.signal
 from jax.test_util import check_grads
 from skimage.restoration import richardson_lucy as skimage_rl
 
-from diffcam.errors import DiffcamError, ShapeError
+from diffcam.core.backend import fft_size
+from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.reconstruct import (Reconstruction, admm_tv, admm_tv_3d, convolution_model,
-                                 fft_size, focus_sweep, richardson_lucy, richardson_lucy_3d,
+                                 focus_sweep, richardson_lucy, richardson_lucy_3d,
                                  wiener)
 from diffcam.reconstruct.operators import divergence, gradient
 
@@ -87,12 +88,6 @@ def test_same_and_crop_equal_direct_convolution(x64, psf_shape):
     # sensor index i sees object index i + oy//2 - 10//2 through psf[m//2]
     y0, x0 = oy // 2 - 5 + my // 2, ox // 2 - 11 // 2 + mx // 2
     assert _rel(model(obj), full[y0:y0 + 10, x0:x0 + 11]) < 1e-12
-
-
-def test_fft_size():
-    assert fft_size(1536) == 1536 and fft_size(1537) == 1620 and fft_size(2047) == 2048
-    assert fft_size(599) == 640 and all(fft_size(n) >= n and fft_size(n) % 2 == 0
-                                        for n in range(1, 300))
 
 
 def test_gradient_divergence_adjoint(x64):

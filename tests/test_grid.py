@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffcam import grid
+from diffcam.core import grid
 
 
 @pytest.mark.parametrize("n", [7, 8])

@@ -9,7 +9,7 @@ import scipy.io
 import tifffile
 from PIL import Image
 
-from diffcam.errors import DiffcamError, ShapeError
+from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.io import (BackgroundWarning, dark_level, downsample, normalise_l2,
                         read_image, read_mat_stack, read_psf_stack, saturation_mask,
                         subtract_background)

@@ -7,8 +7,8 @@ import pytest
 from jax.test_util import check_grads
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from diffcam.errors import ShapeError, DiffcamError
-from diffcam.metrics import align_to, mse, pearson, psnr, ssim
+from diffcam.core.errors import ShapeError, DiffcamError
+from diffcam.evaluate.metrics import align_to, mse, pearson, psnr, ssim
 
 RNG = np.random.default_rng(0)
 A = RNG.random((48, 70))

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffcam.errors import DiffcamError, SamplingError
-from diffcam.optics import (apply_phase, circular_aperture, point_source_field,
+from diffcam.core.errors import DiffcamError, SamplingError
+from diffcam.optics.elements import (apply_phase, circular_aperture, point_source_field,
                             rectangular_aperture, thin_lens)
 from conftest import assert_grad_matches_fd
 
@@ -58,7 +58,7 @@ def test_point_source_field_is_paraxial_spherical_wave(x64):
 
 def test_point_source_chirp_sampling_check():
     """The paper's simulation (R = 1.2 mm, λ = 532 nm, dx = 5 µm): the on-axis chirp reaches
-    Nyquist at z1 = 22.56 mm (DESIGN.md), so 22 mm is an error and 23 mm is fine; the
+    Nyquist at z1 = 22.56 mm (docs/design.md), so 22 mm is an error and 23 mm is fine; the
     message gives the pitch that would work."""
     kw = dict(aperture_radius=1.2e-3)
     with pytest.raises(SamplingError, match=r"dx ≤ 4\.8"):

@@ -7,10 +7,10 @@ import pytest
 from jax.test_util import check_grads
 from scipy.special import j1
 
-from diffcam import grid
-from diffcam.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
-from diffcam.optics import circular_aperture, thin_lens
-from diffcam.propagate import (angular_spectrum, apply_transfer, choose_propagation,
+from diffcam.core import grid
+from diffcam.core.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
+from diffcam.optics.elements import circular_aperture, thin_lens
+from diffcam.optics.propagation import (angular_spectrum, apply_transfer, choose_propagation,
                                fourier_lens, fresnel_ir, fresnel_tf, inverse_fourier_lens,
                                propagate, transfer_function)
 from conftest import assert_grad_matches_fd

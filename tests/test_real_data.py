@@ -13,7 +13,7 @@ import pytest
 from scipy.stats import spearmanr
 
 from diffcam.data import load_psf_stack_3d, load_raw_3d, load_tutorial_pair
-from diffcam.grid import crop_to
+from diffcam.core.grid import crop_to
 from diffcam.io import normalise_l2, read_psf_stack
 from diffcam.reconstruct import (admm_tv, admm_tv_3d, richardson_lucy, richardson_lucy_3d,
                                  wiener)

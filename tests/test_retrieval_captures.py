@@ -4,10 +4,10 @@ import jax
 import numpy as np
 import pytest
 
-from diffcam.errors import DiffcamError
-from diffcam.grid import crop_to, yx
-from diffcam.metrics import phase_scores
-from diffcam.retrieval import (CalibrationGeometry, centre_on_axis, centroid, merge_exposures,
+from diffcam.core.errors import DiffcamError
+from diffcam.core.grid import crop_to, yx
+from diffcam.evaluate.metrics import phase_scores
+from diffcam.calibrate import (CalibrationGeometry, centre_on_axis, centroid, merge_exposures,
                                normalise_min_max, paper_simulation, prepare_captures, raar,
                                resample_far_field, synthetic_captures)
 

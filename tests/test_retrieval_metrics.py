@@ -1,11 +1,11 @@
-"""Phase metrics (DESIGN.md, "Phase ambiguities and the phase metric")."""
+"""Phase metrics (docs/design.md, "Phase ambiguities and the phase metric")."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffcam.metrics import (pearson, phase_mse, phase_offset, phase_pearson, phase_scores,
+from diffcam.evaluate.metrics import (pearson, phase_mse, phase_offset, phase_pearson, phase_scores,
                              twin_phase, wrap_phase)
 
 

@@ -5,12 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffcam.camera import Camera, psf, random_diffuser
-from diffcam.errors import DiffcamError, ShapeError
-from diffcam.grid import crop_to
-from diffcam.metrics import pearson, phase_scores
-from diffcam.propagate import fresnel_tf
-from diffcam.retrieval import DefocusedPlane, paper_simulation, psf_plane, raar
+from diffcam.model import Camera, psf, random_diffuser
+from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.grid import crop_to
+from diffcam.evaluate.metrics import pearson, phase_scores
+from diffcam.optics.propagation import fresnel_tf
+from diffcam.calibrate import DefocusedPlane, paper_simulation, psf_plane, raar
 
 N, SIZE, Z1 = 256, 128, 22e-3
 

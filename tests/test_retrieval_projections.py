@@ -4,10 +4,10 @@ import jax
 import numpy as np
 import pytest
 
-from diffcam.errors import DiffcamError, ShapeError
-from diffcam.grid import crop_to
-from diffcam.metrics import phase_pearson, phase_scores
-from diffcam.retrieval import (CalibrationGeometry, calibration_intensities, gerchberg_saxton,
+from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.grid import crop_to
+from diffcam.evaluate.metrics import phase_pearson, phase_scores
+from diffcam.calibrate import (CalibrationGeometry, calibration_intensities, gerchberg_saxton,
                                glass_equivalent_distance, paper_simulation, raar,
                                retrieve_projections)
 

@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffcam.camera import Camera, psf
-from diffcam.errors import DiffcamError, ShapeError
-from diffcam.grid import crop_to
-from diffcam.metrics import pearson, phase_scores
-from diffcam.retrieval import fit_to_psfs, paper_simulation, predict_psfs
+from diffcam.model import Camera, psf
+from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.grid import crop_to
+from diffcam.evaluate.metrics import pearson, phase_scores
+from diffcam.calibrate import fit_to_psfs, paper_simulation, predict_psfs
 
 
 @pytest.fixture(scope="module")

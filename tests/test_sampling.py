@@ -1,10 +1,10 @@
-"""The sampling planner (diffcam/sampling.py) against DESIGN.md's numbers."""
+"""The sampling planner (diffcam/sampling.py) against docs/design.md's numbers."""
 
 import numpy as np
 import pytest
 
-from diffcam.errors import DiffcamError
-from diffcam.sampling import phase_bandwidth, plan_sampling
+from diffcam.core.errors import DiffcamError
+from diffcam.optics.sampling import phase_bandwidth, plan_sampling
 
 
 def test_paper_simulation_limits():
@@ -23,7 +23,7 @@ def test_paper_simulation_limits():
 
 def test_real_camera_limit_and_offsets():
     """Real camera (R = 2.3 mm, 3.45 µm): every z1 < 29.8 mm is undersampled
-    (DESIGN.md); a lateral offset raises the limit by (R + ρ)/R."""
+    (docs/design.md); a lateral offset raises the limit by (R + ρ)/R."""
     plan = plan_sampling(532e-9, 3.45e-6, 4096, 30e-3, 1e-3, 2.3e-3)
     assert np.isclose(plan.min_direct_z1, 29.83e-3, rtol=1e-3) and plan.direct_sampled
     off = plan_sampling(532e-9, 3.45e-6, 4096, 30e-3, 1e-3, 2.3e-3, max_offset=0.23e-3)

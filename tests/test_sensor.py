@@ -1,12 +1,12 @@
-"""Sensor steps (diffcam.sensor): pixel integration, resampling, noise, saturation, bits."""
+"""Sensor steps (diffcam.model.sensor): pixel integration, resampling, noise, saturation, bits."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffcam.errors import DiffcamError
-from diffcam.sensor import (bin_pixels, quantise, read_noise, resample, saturate,
+from diffcam.core.errors import DiffcamError
+from diffcam.model.sensor import (bin_pixels, quantise, read_noise, resample, saturate,
                             shot_noise)
 
 

@@ -1,4 +1,4 @@
-"""PSF stacks (diffcam.stack): chunking, positions, sharding, streaming, save/load."""
+"""PSF stacks (diffcam.model.stack): chunking, positions, sharding, streaming, save/load."""
 
 import json
 import os
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import tifffile
 
-from diffcam.camera import Camera, psf, random_diffuser
-from diffcam.errors import DiffcamError, ShapeError
-from diffcam.stack import FORMAT_VERSION, StackMeta, load_stack, psf_stack, save_stack
+from diffcam.model import Camera, psf, random_diffuser
+from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.model.stack import FORMAT_VERSION, StackMeta, load_stack, psf_stack, save_stack
 
 LAM = 532e-9
 N = 96
@@ -114,7 +114,7 @@ def test_save_load_round_trip(setup, tmp_path):
 def test_new_depths_reuse_the_compiled_chunk(setup):
     """A new set of depths of the same chunk size reuses the compiled chunk (both of its
     jitted halves)."""
-    from diffcam.stack import _chunk_inputs, _chunk_outputs
+    from diffcam.model.stack import _chunk_inputs, _chunk_outputs
 
     cam, phase = setup
     psf_stack(phase, cam, [20e-3, 21e-3], batch_size=2)
@@ -128,8 +128,8 @@ def test_sharded_matches_unsharded():
     the single-device stack to float32 round-off (1e-6 of the peak)."""
     code = textwrap.dedent("""
         import jax, numpy as np
-        from diffcam.camera import Camera, random_diffuser
-        from diffcam.stack import psf_stack
+        from diffcam.model.camera import Camera, random_diffuser
+        from diffcam.model.stack import psf_stack
         assert len(jax.devices()) == 4
         cam = Camera(wavelength=532e-9, z2=1e-3, dx=4e-6, aperture_radius=0.15e-3,
                      shape=(96, 96))

@@ -13,7 +13,7 @@ Every solver returns a :class:`Reconstruction`.
 
 from diffcam.reconstruct.admm import admm_tv, admm_tv_3d
 from diffcam.reconstruct.loop import Reconstruction
-from diffcam.reconstruct.operators import ConvolutionModel, convolution_model, fft_size
+from diffcam.reconstruct.operators import ConvolutionModel, convolution_model
 from diffcam.reconstruct.richardson_lucy import (FocusSweep, focus_sweep, richardson_lucy,
                                                  richardson_lucy_3d, sharpness)
 from diffcam.reconstruct.wiener import wiener
@@ -22,7 +22,6 @@ __all__ = [
     "Reconstruction",
     "ConvolutionModel",
     "convolution_model",
-    "fft_size",
     "richardson_lucy",
     "richardson_lucy_3d",
     "focus_sweep",

@@ -36,8 +36,10 @@ import jax.numpy as jnp
 from jax.scipy.fft import dct, idct
 from jaxtyping import ArrayLike
 
-from diffcam.errors import DiffcamError, is_concrete
-from diffcam.grid import crop_to, pad_to
+from diffcam.core.backend import irfft2, rfft2
+
+from diffcam.core.errors import DiffcamError, is_concrete
+from diffcam.core.grid import crop_to, pad_to
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
                                         check_iterations, check_psf, check_tol,
                                         float_dtype)
@@ -197,8 +199,8 @@ def _admm_solve(b, psf, penalties, tol, *, num_iter, boundary, tv_axial):
     else:
         crop_mask = jnp.ones_like(b)
         data = b
-    rfft = lambda a: jnp.fft.rfft2(a, axes=_AXES)                 # noqa: E731
-    irfft = lambda a: jnp.fft.irfft2(a, s=grid, axes=_AXES)       # noqa: E731
+    rfft = rfft2
+    irfft = lambda a: irfft2(a, s=grid)       # noqa: E731
 
     def step(state):
         v, hv, tv_v, w, xi, eta, rho = state

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcam.errors import DiffcamError, ShapeError, check_field, is_concrete
+from diffcam.core.errors import DiffcamError, ShapeError, check_field, is_concrete
 
 _ROUNDING = 1e-5  # negatives this small (relative to max|image|) are rounding, not data
 
@@ -26,7 +26,7 @@ def as_psf_stack(psfs: Any) -> Any:
         if len(shapes) != 1:
             raise ShapeError(
                 f"the PSFs of a stack must all have one shape, got {sorted(shapes)}; "
-                f"crop or pad them to a common (my, mx) first (diffcam.grid.crop_to).")
+                f"crop or pad them to a common (my, mx) first (diffcam.core.grid.crop_to).")
         return jnp.stack([jnp.asarray(p) for p in psfs])
     return psfs
 
@@ -44,7 +44,7 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Non
         raise ShapeError(
             f"psf {shape[-2:]} is larger than the image {tuple(image_shape[-2:])}; crop the "
             f"PSF to at most the image size around its centre "
-            f"(diffcam.grid.crop_to(psf, image.shape)) or capture a larger image.")
+            f"(diffcam.core.grid.crop_to(psf, image.shape)) or capture a larger image.")
     if not is_concrete(psf):
         return
     p = np.asarray(psf, dtype=np.float64)

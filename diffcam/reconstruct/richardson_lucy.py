@@ -43,7 +43,7 @@ from jax import Array
 from jax.scipy.special import xlogy
 from jaxtyping import ArrayLike, Float
 
-from diffcam.errors import DiffcamError, ShapeError, check_finite, is_concrete
+from diffcam.core.errors import DiffcamError, ShapeError, check_finite, is_concrete
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
                                         check_iterations, check_psf, check_tol,
                                         float_dtype)

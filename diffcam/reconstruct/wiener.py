@@ -8,8 +8,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike
 
-from diffcam.errors import DiffcamError, is_concrete
-from diffcam.grid import crop_to, pad_to
+from diffcam.core.backend import irfft2, rfft2
+
+from diffcam.core.errors import DiffcamError, is_concrete
+from diffcam.core.grid import crop_to, pad_to
 from diffcam.reconstruct.checks import batch_shape, check_image, check_psf, float_dtype
 from diffcam.reconstruct.loop import Reconstruction, relative_residual
 from diffcam.reconstruct.operators import BOUNDARIES, convolution_model
@@ -58,9 +60,8 @@ def _wiener(b, psf, regularization, *, boundary):
     model = convolution_model(psf, b.shape, boundary)
     power = jnp.real(model.otf * jnp.conj(model.otf))
     lam = regularization * jnp.max(power, axis=_AXES, keepdims=True)
-    spectrum = jnp.fft.rfft2(pad_to(b, model.fft_shape), axes=_AXES)
-    estimate = jnp.fft.irfft2(jnp.conj(model.otf) * spectrum / (power + lam),
-                              s=model.fft_shape, axes=_AXES)
+    spectrum = rfft2(pad_to(b, model.fft_shape))
+    estimate = irfft2(jnp.conj(model.otf) * spectrum / (power + lam), s=model.fft_shape)
     estimate = crop_to(estimate, model.object_shape)
     predicted = model(estimate)
     objective = (jnp.sum((predicted - b) ** 2, axis=_AXES)

@@ -1,0 +1,455 @@
+"""The ``diffcam`` command line. Lengths take units (``25mm``, ``3.45um``, ``532nm``)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from diffcam.core.errors import DiffcamError
+from diffcam.core.units import parse_length, parse_length_range
+
+
+def _units(parse, name):
+    """An argparse type that reads lengths with units; errors become usage errors."""
+    def convert(text):
+        try:
+            return parse(text, name=name)
+        except DiffcamError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+    convert.__name__ = name
+    return convert
+
+
+def _length(name):
+    return _units(parse_length, name)
+
+
+def _lengths(name):
+    return _units(parse_length_range, name)
+
+
+@contextlib.contextmanager
+def atomic_output(path):
+    """Yield a temporary path beside ``path``; move it into place only on success.
+
+    Nothing half-written is left behind on an error or Ctrl-C.
+    """
+    path = Path(path)
+    if path.parent and not path.parent.exists():
+        raise DiffcamError(f"output folder {path.parent} does not exist; create it first.")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def save_image(path, image) -> None:
+    """Write an image atomically: ``.png`` (16-bit, min–max scaled), ``.tif``/``.tiff``
+    (float32, multi-page for a stack), or ``.npy`` (as is)."""
+    image = np.asarray(image, dtype=np.float32)
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".png", ".tif", ".tiff", ".npy"):
+        raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
+    with atomic_output(path) as tmp:
+        if suffix == ".png":
+            from skimage.io import imsave
+
+            if image.ndim != 2:
+                raise DiffcamError(f"{path}: PNG holds one 2-D image, got shape "
+                                   f"{image.shape}; write .tif for a stack.")
+            lo, hi = float(image.min()), float(image.max())
+            scaled = (image - lo) / (hi - lo) if hi > lo else np.zeros_like(image)
+            imsave(tmp, np.round(scaled * 65535).astype(np.uint16), check_contrast=False)
+        elif suffix == ".npy":
+            np.save(tmp, image)
+        else:
+            import tifffile
+
+            tifffile.imwrite(tmp, image, imagej=image.ndim == 3)
+
+
+def _read_psfs(path):
+    """A PSF or PSF stack from an image file or a stack written by diffcam; returns
+    ``(psfs, depths or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
+    from diffcam.io import read_image
+
+    if Path(path).suffix.lower() == ".npz":
+        from diffcam.model.stack import load_stack
+
+        stack, meta = load_stack(path)
+        return np.asarray(stack), np.asarray(meta.depths)
+    if Path(path).suffix.lower() in (".tif", ".tiff"):
+        import tifffile
+
+        try:
+            with tifffile.TiffFile(path) as tif:
+                has_meta = "Info" in (tif.imagej_metadata or {})
+        except Exception:
+            has_meta = False
+        if has_meta:
+            from diffcam.model.stack import load_stack
+
+            stack, meta = load_stack(path)
+            return np.asarray(stack), np.asarray(meta.depths)
+    return read_image(path).image, None
+
+
+def _camera_for(phase_file, z2, crop):
+    from diffcam.model.camera import Camera
+
+    shape = tuple(np.shape(phase_file.phase))
+    if crop is not None and (crop > shape[0] or crop > shape[1]):
+        raise DiffcamError(f"--crop {crop} is larger than the phase grid {shape}.")
+    return Camera(wavelength=phase_file.wavelength, z2=z2, dx=phase_file.dx,
+                  aperture_radius=phase_file.aperture_radius, shape=shape,
+                  crop=None if crop is None else (crop, crop))
+
+
+def _cmd_psf(args) -> int:
+    from diffcam.calibrate.phase_io import load_phase
+    from diffcam.model.stack import StackMeta, camera_record, psf_stack, save_stack
+
+    phase_file = load_phase(args.phase)
+    camera = _camera_for(phase_file, args.z2, args.crop)
+    depths = args.z1
+    suffix = Path(args.out).suffix.lower()
+    if suffix not in (".npz", ".tif", ".tiff"):
+        raise DiffcamError(f"{args.out}: write the stack as .npz or .tif, not {suffix!r}.")
+    stack = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 1)
+    meta = StackMeta(depths=np.asarray(depths), positions=None, pitch=float(camera.dx),
+                     wavelengths=np.array([float(camera.wavelength)]), weights=np.array([1.0]),
+                     camera=camera_record(camera))
+    with atomic_output(args.out) as tmp:
+        save_stack(tmp, stack, meta)
+    print(f"diffcam psf: {len(depths)} PSFs of {stack.shape[-2]}×{stack.shape[-1]} "
+          f"(z1 {depths[0] * 1e3:g}–{depths[-1] * 1e3:g} mm, z2 {args.z2 * 1e3:g} mm) → {args.out}")
+    return 0
+
+
+def _grid_for(aperture_radius, dx):
+    """Calibration grid: twice the aperture diameter (a Nyquist-sampled far field)."""
+    from diffcam.core.backend import fft_size
+
+    return fft_size(int(np.ceil(4 * aperture_radius / dx)))
+
+
+def _cmd_calibrate(args) -> int:
+    import jax
+
+    from diffcam.io import read_image
+    from diffcam.optics.elements import circular_aperture
+    from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane, resolve_twin,
+                            retrieve_projections)
+    from diffcam.calibrate.pipeline import retrieve_phase
+    from diffcam.calibrate.phase_io import PhaseFile, save_phase
+
+    dx = args.dx or args.pixel
+    n = args.grid or _grid_for(args.aperture_radius, dx)
+    geometry = CalibrationGeometry(dx=dx, wavelength=args.wavelength,
+                                   focal_length=args.focal_length,
+                                   near_distance=args.near_distance)
+    near, far = read_image(args.near).image, read_image(args.far).image
+    prepared = prepare_captures(near, far, geometry, (n, n), sensor_pitch=args.pixel,
+                                background=(args.background, args.background),
+                                saturation=args.saturation)
+    aperture = circular_aperture((n, n), dx, args.aperture_radius)
+    key = jax.random.key(args.seed)
+    reference = None if args.psf is None else _reference_psf(dx, (n, n), args)
+    planes = () if reference is None else [psf_plane(reference[0], reference[1], args.psf_z1)]
+    print(f"diffcam calibrate: {n}×{n} grid at {dx * 1e6:g} µm, solver {args.solver}, "
+          f"{args.iterations} iterations{', PSF as a third plane' if planes else ''} ...",
+          flush=True)
+    if args.solver == "default":
+        result = retrieve_phase(prepared.near, prepared.far, geometry, aperture,
+                           iterations=args.iterations, planes=planes, key=key,
+                           restarts=args.restarts, masks=(prepared.near_mask, prepared.far_mask))
+    else:
+        result = retrieve_projections(prepared.near, prepared.far, geometry,
+                                      method=args.solver, iterations=args.iterations,
+                                      planes=planes, key=key,
+                                      restarts=args.restarts or (1 if planes else 4))
+    phase = np.asarray(result.phase)
+    info = {"solver": result.stats.get("method", args.solver), "iterations": args.iterations,
+            "focal_length": args.focal_length, "near_distance": args.near_distance,
+            "final_error": float(np.asarray(result.history)[-1]),
+            "twin_resolved": False, "near": str(args.near), "far": str(args.far)}
+    if reference is not None:
+        psf_ref, camera = reference
+        phase, info["twin_chosen"] = resolve_twin(phase, psf_ref, camera, args.psf_z1)
+        info.update(twin_resolved=True, psf=str(args.psf))
+    with atomic_output(args.out) as tmp:
+        save_phase(tmp, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
+    twin = "twin resolved by the PSF" if info["twin_resolved"] else \
+        "phase known up to piston and the conjugate twin: pass --psf to resolve it"
+    print(f"diffcam calibrate: final error {info['final_error']:.3g} → {args.out} ({twin})")
+    return 0
+
+
+def _reference_psf(dx, shape, args):
+    """The captured PSF of ``--psf`` (same pitch as the grid) and its camera:
+    ``(psf on the camera's crop, Camera)``."""
+    from diffcam.model.camera import Camera
+    from diffcam.core.grid import crop_to
+    from diffcam.io import read_image
+
+    if args.psf_z1 is None or args.psf_z2 is None:
+        raise DiffcamError("--psf needs --psf-z1 and --psf-z2 (the PSF's source depth and "
+                           "the diffuser-to-sensor distance).")
+    captured = read_image(args.psf).image
+    if captured.ndim != 2:
+        raise DiffcamError(f"{args.psf}: expected one PSF image, got shape {captured.shape}.")
+    crop = tuple(min(a, b) for a, b in zip(captured.shape, shape))
+    camera = Camera(wavelength=args.wavelength, z2=args.psf_z2, dx=dx,
+                    aperture_radius=args.aperture_radius, shape=shape, crop=crop)
+    return crop_to(captured, crop), camera
+
+
+def _cmd_compare(args) -> int:
+    from diffcam.evaluate.metrics import psf_fidelity
+    from diffcam.calibrate.phase_io import load_phase
+    from diffcam.evaluate.baseline import magnify_psf
+    from diffcam.model.sensor import bin_pixels
+    from diffcam.model.stack import psf_stack
+
+    captured, depths = _read_psfs(args.captured)
+    if captured.ndim != 3:
+        raise DiffcamError(f"{args.captured}: expected a stack of PSFs (nz, ny, nx), got "
+                           f"shape {captured.shape}.")
+    if args.z1 is not None:
+        depths = args.z1
+    if depths is None or len(depths) != len(captured):
+        raise DiffcamError(f"give --z1 with one depth per captured PSF ({len(captured)}).")
+    phase_file = load_phase(args.phase)
+    pitch = args.pixel or phase_file.dx
+    camera = _camera_for(phase_file, args.z2, None)
+    model = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 8)
+    model = np.asarray(bin_pixels(model, phase_file.dx, pitch, captured.shape[-2:]))
+    anchor = int(np.argmin(np.abs(np.asarray(depths) - (args.anchor or depths[0]))))
+    scaled = np.asarray(magnify_psf(captured[anchor], pitch, depths[anchor], depths, args.z2,
+                                  kind="area"))
+    f_model = np.asarray(psf_fidelity(model, captured)["pearson"])
+    f_scaled = np.asarray(psf_fidelity(scaled, captured)["pearson"])
+    rows = ["| z1 (mm) | model Pearson | scaling Pearson |", "|---|---|---|"]
+    rows += [f"| {z * 1e3:.3f} | {a:.4f} | {b:.4f} |" for z, a, b in
+             zip(depths, f_model, f_scaled)]
+    print("\n".join(rows))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(np.asarray(depths) * 1e3, f_model, "o-", label="wave model (phase file)")
+    ax.plot(np.asarray(depths) * 1e3, f_scaled, "s--",
+            label=f"scaling from {depths[anchor] * 1e3:g} mm")
+    ax.set_xlabel("z1 (mm)")
+    ax.set_ylabel("Pearson with the captured PSF")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_output(args.out) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    print(f"diffcam compare: → {args.out}")
+    return 0
+
+
+def _cmd_reconstruct(args) -> int:
+    from diffcam.io import downsample, read_image, subtract_background
+    from diffcam.reconstruct import admm_tv, focus_sweep, richardson_lucy, wiener
+
+    raw = read_image(args.raw).image
+    psfs, depths = _read_psfs(args.psf)
+    if raw.ndim != 2:
+        raise DiffcamError(f"{args.raw}: expected a grayscale image, got shape {raw.shape}.")
+    if args.bias is not None:
+        raw = subtract_background(raw, args.bias)
+        psfs = subtract_background(psfs, args.bias)
+    if args.downsample > 1:
+        raw, psfs = downsample(raw, args.downsample), downsample(psfs, args.downsample)
+    if psfs.ndim == 3:
+        if args.depth is not None:
+            if depths is None:
+                raise DiffcamError("--depth needs a PSF stack with depths (.npz from "
+                                   "`diffcam psf`); use --plane for an image stack.")
+            plane = int(np.argmin(np.abs(depths - args.depth)))
+        elif args.plane is not None:
+            plane = args.plane
+        else:
+            sweep = focus_sweep(raw, psfs, num_iter=min(args.iterations, 30))
+            plane = int(sweep.best)
+            print(f"diffcam reconstruct: sharpest plane {plane} of {len(psfs)}")
+        if not 0 <= plane < len(psfs):
+            raise DiffcamError(f"--plane {plane} is outside the stack of {len(psfs)} PSFs.")
+        psfs = psfs[plane]
+    if psfs.shape[0] > raw.shape[0] or psfs.shape[1] > raw.shape[1]:
+        raise DiffcamError(f"PSF {psfs.shape} is larger than the image {raw.shape}; crop "
+                           f"the PSF or use the same downsampling for both.")
+    if args.method == "rl":
+        rec = richardson_lucy(raw, psfs, args.iterations)
+    elif args.method == "admm":
+        rec = admm_tv(raw / np.linalg.norm(raw), psfs / np.linalg.norm(psfs), args.iterations)
+    else:
+        rec = wiener(raw, psfs)
+    save_image(args.out, rec.image)
+    print(f"diffcam reconstruct: {args.method}, {int(np.max(rec.iterations))} iterations, "
+          f"residual {float(np.nanmin(rec.residual)):.3g} → {args.out}")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from diffcam.apps.demo import run_demo
+    from diffcam.apps.paper import Settings
+
+    base = Settings(grid=4000) if args.full else Settings()
+    changes = {k: v for k, v in (("grid", args.grid), ("gs_iterations", args.gs_iterations),
+                                 ("calibration_iterations", args.calibration_iterations))
+               if v is not None}
+    if changes.get("grid", 1024) < 600:
+        raise DiffcamError("--grid must be at least 600 samples: the 512² diffuser needs "
+                           "room around it for the far field.")
+    run_demo(args.out, settings=Settings(**{**base.__dict__, **changes}))
+    return 0
+
+
+def _cmd_plan(args) -> int:
+    from diffcam.optics.sampling import plan_sampling
+
+    print(plan_sampling(args.wavelength, args.pixel, args.n, args.z1, args.z2,
+                        args.aperture_radius, max_offset=args.max_offset))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="diffcam",
+        description="Differentiable wave optics for lensless diffuser cameras.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="run the built-in demonstration and write a report",
+                          description="Run the built-in demonstration on built-in data and "
+                                      "write PNG figures and metrics.json to a folder.")
+    demo.add_argument("-o", "--out", default="diffcam-report", help="report folder")
+    demo.add_argument("--full", action="store_true",
+                      help="the paper's 4000×4000 grid (about 30 min and 6 GB of memory "
+                           "on 2 cores)")
+    demo.add_argument("--grid", type=int, help="simulation grid, samples per side "
+                                               "(default 1024; 4000 with --full)")
+    demo.add_argument("--gs-iterations", type=int, help="textbook GS iterations (2000)")
+    demo.add_argument("--calibration-iterations", type=int,
+                      help="iterations of diffcam's calibration (300)")
+    demo.set_defaults(func=_cmd_demo)
+
+    plan = sub.add_parser("plan", help="check the sampling of a diffuser-camera geometry",
+                          description="Report Fresnel numbers, point-source chirp sampling, "
+                                      "propagator validity and padding before simulating.")
+    plan.add_argument("--wavelength", type=_length("wavelength"), default=532e-9)
+    plan.add_argument("--pixel", type=_length("pixel"), required=True, help="grid pitch")
+    plan.add_argument("--n", type=int, required=True, help="samples per side")
+    plan.add_argument("--z1", type=_length("z1"), required=True, help="smallest source depth")
+    plan.add_argument("--z2", type=_length("z2"), required=True, help="diffuser to sensor")
+    plan.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True)
+    plan.add_argument("--max-offset", type=_length("max-offset"), default=0.0,
+                      help="largest lateral source offset")
+    plan.set_defaults(func=_cmd_plan)
+
+    rec = sub.add_parser("reconstruct", help="deconvolve a sensor image with a PSF",
+                         description="Reconstruct a scene from a raw capture and the PSF of "
+                                     "its depth. With a PSF stack, pick the plane by --depth, "
+                                     "--plane, or else the sharpest reconstruction.")
+    rec.add_argument("raw", help="raw capture (.png, .tif, .npy)")
+    rec.add_argument("--psf", required=True,
+                     help="PSF image, multi-page TIFF stack, or .npz from `diffcam psf`")
+    rec.add_argument("--depth", type=_length("depth"), help="source depth z1 to use")
+    rec.add_argument("--plane", type=int, help="index of the PSF plane to use")
+    rec.add_argument("--method", choices=["rl", "admm", "wiener"], default="rl")
+    rec.add_argument("--iterations", type=int, default=150)
+    rec.add_argument("--bias", type=float, help="sensor bias (counts) subtracted from both")
+    rec.add_argument("--downsample", type=int, default=1, help="box-average factor")
+    rec.add_argument("-o", "--out", required=True, help="output .png, .tif or .npy")
+    rec.set_defaults(func=_cmd_reconstruct)
+
+    cal = sub.add_parser("calibrate", help="diffuser phase from near/far captures",
+                         description="Estimate the diffuser phase from a near-field capture "
+                                     "(diffuser on the sensor) and a far-field capture (back "
+                                     "focal plane of a Fourier lens); writes a phase .npz.")
+    cal.add_argument("near", help="near-field capture (.png, .tif, .npy)")
+    cal.add_argument("far", help="far-field capture at the lens's back focal plane")
+    cal.add_argument("--focal-length", type=_length("focal-length"), required=True)
+    cal.add_argument("--wavelength", type=_length("wavelength"), required=True)
+    cal.add_argument("--pixel", type=_length("pixel"), required=True,
+                     help="sensor pixel pitch of both captures")
+    cal.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True)
+    cal.add_argument("--near-distance", type=_length("near-distance"), default=0.0,
+                     help="diffuser to near-capture plane, free-space equivalent (0.5 mm "
+                          "of n = 1.5 cover glass ≈ 0.33mm)")
+    cal.add_argument("--dx", type=_length("dx"), help="diffuser grid pitch (default: --pixel)")
+    cal.add_argument("--grid", type=int, help="calibration grid (default: 2× the aperture)")
+    cal.add_argument("--background", type=float, default=0.0, help="dark level, counts")
+    cal.add_argument("--saturation", type=float, help="raw count of a saturated pixel")
+    cal.add_argument("--solver", choices=["default", "gs", "hio", "raar"], default="default")
+    cal.add_argument("--iterations", type=int, default=300)
+    cal.add_argument("--restarts", type=int,
+                     help="random starts of the projections (default 4; 1 with --psf, "
+                          "which starts flat)")
+    cal.add_argument("--seed", type=int, default=0)
+    cal.add_argument("--psf", help="a captured on-axis PSF at the grid pitch, background "
+                     "subtracted: a third intensity plane for the projections (it resolves "
+                     "the twin and un-stalls strongly scattering diffusers)")
+    cal.add_argument("--psf-z1", type=_length("psf-z1"), help="source depth of --psf")
+    cal.add_argument("--psf-z2", type=_length("psf-z2"), help="diffuser to sensor for --psf")
+    cal.add_argument("-o", "--out", required=True, help="phase file (.npz)")
+    cal.set_defaults(func=_cmd_calibrate)
+
+    ps = sub.add_parser("psf", help="PSFs at depths from a phase file",
+                        description="Compute the camera's PSF (paper Eq. 7) for point "
+                                    "sources on axis at each depth; writes .npz or a "
+                                    "multi-page ImageJ TIFF with metadata.")
+    ps.add_argument("phase", help="phase file from `diffcam calibrate`")
+    ps.add_argument("--z1", type=_lengths("z1"), required=True,
+                    help="depth(s): 25mm, 22mm,25mm or 22mm:30mm:1mm (end included)")
+    ps.add_argument("--z2", type=_length("z2"), required=True, help="diffuser to sensor")
+    ps.add_argument("--crop", type=int, help="square crop of each PSF (samples)")
+    ps.add_argument("-o", "--out", required=True, help="output .npz or .tif")
+    ps.set_defaults(func=_cmd_psf)
+
+    cmp_ = sub.add_parser("compare", help="captured vs model vs scaled PSFs per depth",
+                          description="Pearson (registered) of the wave model and of the "
+                                      "scaling baseline against captured PSFs, per depth; "
+                                      "prints a table and writes a figure.")
+    cmp_.add_argument("captured", help="captured PSF stack (multi-page TIFF or diffcam .npz)")
+    cmp_.add_argument("--phase", required=True, help="phase file from `diffcam calibrate`")
+    cmp_.add_argument("--z1", type=_lengths("z1"), help="depth of each captured PSF")
+    cmp_.add_argument("--z2", type=_length("z2"), required=True)
+    cmp_.add_argument("--pixel", type=_length("pixel"), help="captured PSFs' pixel pitch")
+    cmp_.add_argument("--anchor", type=_length("anchor"),
+                      help="depth of the PSF the scaling baseline magnifies (default: first)")
+    cmp_.add_argument("-o", "--out", required=True, help="figure (.png)")
+    cmp_.set_defaults(func=_cmd_compare)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except DiffcamError as e:
+        print(f"diffcam {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"diffcam {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

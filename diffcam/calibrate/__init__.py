@@ -1,0 +1,49 @@
+"""Stage 1 — calibrate: the diffuser phase θd from near/far captures and captured PSFs.
+
+- :mod:`.near_far`    — the near/far set-up (:class:`CalibrationGeometry`), its forward
+  model (:class:`NearFarModel`, :func:`calibration_intensities`) and input checks
+- :mod:`.projections` — Gerchberg–Saxton (paper Fig. 4), HIO, RAAR between the amplitudes
+- :mod:`.planes`      — extra defocused intensity planes (a captured PSF) for them
+- :mod:`.lsq`         — least squares through the differentiable forward model (optimistix)
+- :mod:`.psf_fit`     — fitting θd (and geometry) to captured PSFs through paper Eq. 7
+- :mod:`.pipeline`    — :func:`retrieve_phase`, the default path: RAAR with restarts, then
+  least squares
+- :mod:`.captures`    — preprocessing of captures, HDR merge, synthetic captures
+- :mod:`.simulation`  — the paper's Fig. 3 simulation (the cameraman diffuser)
+- :mod:`.phase_io`    — phase files
+- :mod:`.result`      — :class:`RetrievalResult`, returned by every solver
+"""
+
+from diffcam.calibrate.captures import (PreparedCaptures, centre_on_axis, centroid,
+                                        merge_exposures, normalise_min_max, prepare_captures,
+                                        resample_capture, resample_far_field,
+                                        synthetic_captures)
+from diffcam.calibrate.lsq import (ConvergenceWarning, PhaseGrid, fit_phase, near_far_model,
+                                   retrieve_lsq)
+from diffcam.calibrate.near_far import (CalibrationGeometry, NearFarModel,
+                                        calibration_intensities, check_far_pitch,
+                                        glass_equivalent_distance)
+from diffcam.calibrate.phase_io import PhaseFile, load_phase, save_phase
+from diffcam.calibrate.pipeline import retrieve_phase
+from diffcam.calibrate.planes import DefocusedPlane, psf_plane
+from diffcam.calibrate.projections import (gerchberg_saxton, hio, initial_phase, raar,
+                                           retrieve_projections)
+from diffcam.calibrate.psf_fit import fit_to_psfs, predict_psfs, resolve_twin
+from diffcam.calibrate.result import RetrievalResult
+from diffcam.calibrate.simulation import PaperSimulation, cameraman_phase, paper_simulation
+
+__all__ = [
+    # geometry, forward model, result
+    "CalibrationGeometry", "NearFarModel", "glass_equivalent_distance", "check_far_pitch",
+    "calibration_intensities", "cameraman_phase", "paper_simulation", "PaperSimulation",
+    "RetrievalResult", "ConvergenceWarning",
+    # solvers
+    "retrieve_phase", "retrieve_projections", "gerchberg_saxton", "hio", "raar",
+    "initial_phase", "DefocusedPlane", "psf_plane",
+    "retrieve_lsq", "fit_phase", "near_far_model", "PhaseGrid",
+    "fit_to_psfs", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
+    # captures
+    "prepare_captures", "PreparedCaptures", "synthetic_captures", "merge_exposures",
+    "normalise_min_max", "centroid", "centre_on_axis", "resample_capture",
+    "resample_far_field",
+]

@@ -1,0 +1,14 @@
+"""Stage 4 — judging PSFs, phases and reconstructions.
+
+- :mod:`.metrics` — Pearson (paper Eq. 14), SSIM, MSE/PSNR, the phase metric, PSF
+  fidelity after registration;
+- :mod:`.baseline` — the magnification baseline (Xie et al.): one measured PSF magnified
+  to other depths, what the model must beat.
+"""
+
+from diffcam.evaluate.baseline import magnify_psf, relative_magnification
+from diffcam.evaluate.metrics import (mse, pearson, phase_scores, psf_fidelity, psnr,
+                                      ssim)
+
+__all__ = ["magnify_psf", "relative_magnification", "mse", "pearson", "phase_scores",
+           "psf_fidelity", "psnr", "ssim"]

@@ -1,0 +1,343 @@
+"""Image and PSF quality metrics: Pearson correlation (paper Eq. 14), SSIM, MSE, PSNR.
+
+All are pure JAX, jit-able and differentiable; they reduce over the last two (space)
+axes and broadcast over leading batch axes, so a stack of PSFs is scored in one call.
+``align="scale"`` or ``"affine"`` first fits ``a·estimate (+ b)`` to the reference by
+least squares: use it when the two images carry arbitrary exposure or normalisation.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import Float
+
+from diffcam.core.backend import fft2, ifft2
+
+from diffcam.core.errors import DiffcamError, ShapeError, check_finite, is_concrete
+
+__all__ = ["pearson", "ssim", "mse", "psnr", "align_to", "wrap_phase", "twin_phase",
+           "phase_offset", "phase_pearson", "phase_mse", "phase_scores"]
+
+_SPACE = (-2, -1)
+
+
+def _check_pair(a, b, name_a="estimate", name_b="reference"):
+    sa, sb = np.shape(a), np.shape(b)
+    if len(sa) < 2 or len(sb) < 2:
+        raise ShapeError(f"metrics take images (..., ny, nx); got shapes {sa} and {sb}.")
+    if sa[-2:] != sb[-2:]:
+        raise ShapeError(f"{name_a} {sa} and {name_b} {sb} differ in their spatial shape; "
+                         f"crop or resample one onto the other's grid first.")
+    check_finite(name_a, a)
+    check_finite(name_b, b)
+
+
+def _mean(x, mask):
+    if mask is None:
+        return jnp.mean(x, axis=_SPACE, keepdims=True)
+    return jnp.sum(x * mask, axis=_SPACE, keepdims=True) / jnp.sum(mask)
+
+
+def align_to(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx"],
+             mode: str = "affine", mask=None) -> Float[Array, "... ny nx"]:
+    """``a·estimate + b`` (``mode="affine"``) or ``a·estimate`` (``"scale"``) fitted to
+    ``reference`` by least squares over the image (or ``mask``), per batch element."""
+    if mode not in ("affine", "scale"):
+        raise DiffcamError(f"align must be None, 'scale' or 'affine', got {mode!r}.")
+    w = 1.0 if mask is None else mask
+    if mode == "scale":
+        a = (jnp.sum(w * estimate * reference, axis=_SPACE, keepdims=True)
+             / jnp.sum(w * estimate * estimate, axis=_SPACE, keepdims=True))
+        return a * estimate
+    em, rm = _mean(estimate, mask), _mean(reference, mask)
+    de, dr = estimate - em, reference - rm
+    a = jnp.sum(w * de * dr, axis=_SPACE, keepdims=True) / jnp.sum(w * de * de, axis=_SPACE,
+                                                                  keepdims=True)
+    return a * de + rm
+
+
+def _aligned(estimate, reference, align, mask=None):
+    estimate = jnp.asarray(estimate)
+    reference = jnp.asarray(reference)
+    return estimate if align is None else align_to(estimate, reference, align, mask)
+
+
+def pearson(a: Float[Array, "... ny nx"], b: Float[Array, "... ny nx"], *, mask=None
+            ) -> Float[Array, "..."]:
+    """Pearson correlation coefficient over the last two axes (paper Eq. 14):
+
+        P(A, B) = Σ(A − Ā)(B − B̄) / √(Σ(A − Ā)² · Σ(B − B̄)²),
+
+    optionally over the samples where ``mask`` is nonzero (``mask`` broadcasts).
+    Equals ``numpy.corrcoef(a.ravel(), b.ravel())[0, 1]`` for 2-D inputs.
+    """
+    _check_pair(a, b, "a", "b")
+    a, b = jnp.asarray(a), jnp.asarray(b)
+    if mask is not None:
+        mask = jnp.asarray(mask, dtype=a.dtype)
+    w = 1.0 if mask is None else mask
+    da, db = a - _mean(a, mask), b - _mean(b, mask)
+    num = jnp.sum(w * da * db, axis=_SPACE)
+    den = jnp.sqrt(jnp.sum(w * da * da, axis=_SPACE) * jnp.sum(w * db * db, axis=_SPACE))
+    return num / den
+
+
+def mse(estimate, reference, *, align: str | None = None) -> Float[Array, "..."]:
+    """Mean squared error over the last two axes (after optional alignment)."""
+    _check_pair(estimate, reference)
+    e = _aligned(estimate, reference, align)
+    return jnp.mean((e - jnp.asarray(reference)) ** 2, axis=_SPACE)
+
+
+def _data_range(reference, data_range):
+    if data_range is not None:
+        return data_range
+    if not is_concrete(reference):
+        raise DiffcamError("data_range is needed under jit/grad (the reference is traced); "
+                           "pass data_range=<max − min of the reference's scale>.")
+    r = np.asarray(reference)
+    return float(r.max() - r.min())
+
+
+def psnr(estimate, reference, *, data_range=None, align: str | None = None
+         ) -> Float[Array, "..."]:
+    """Peak signal-to-noise ratio, dB: 10·log10(data_range² / MSE).
+
+    ``data_range`` defaults to the reference's max − min (as
+    ``skimage.metrics.peak_signal_noise_ratio`` does for float images only when told).
+    """
+    dr = _data_range(reference, data_range)
+    return 10 * jnp.log10(dr ** 2 / mse(estimate, reference, align=align))
+
+
+def _separable_filter(x, weights):
+    """Correlate the last two axes with a 1-D kernel, scipy ``mode='reflect'`` edges."""
+    r = (len(weights) - 1) // 2
+    widths = [(0, 0)] * (x.ndim - 2)
+    xp = jnp.pad(x, widths + [(r, r), (0, 0)], mode="symmetric")
+    ny = x.shape[-2]
+    x = sum(w * xp[..., i:i + ny, :] for i, w in enumerate(weights))
+    xp = jnp.pad(x, widths + [(0, 0), (r, r)], mode="symmetric")
+    nx = x.shape[-1]
+    return sum(w * xp[..., :, i:i + nx] for i, w in enumerate(weights))
+
+
+def _ssim_window(win_size, gaussian_weights, sigma):
+    if gaussian_weights:
+        r = int(3.5 * sigma + 0.5)  # the truncation scikit-image uses
+        t = np.arange(-r, r + 1, dtype=np.float64)
+        w = np.exp(-0.5 * (t / sigma) ** 2)
+        return w / w.sum(), 2 * r + 1
+    if win_size % 2 != 1 or win_size < 3:
+        raise DiffcamError(f"win_size must be odd and ≥ 3, got {win_size}.")
+    return np.full(win_size, 1.0 / win_size), win_size
+
+
+def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx"], *,
+         data_range=None, win_size: int = 7, gaussian_weights: bool = False,
+         sigma: float = 1.5, K1: float = 0.01, K2: float = 0.03,
+         use_sample_covariance: bool = True, align: str | None = None
+         ) -> Float[Array, "..."]:
+    """Mean structural similarity (Wang et al. 2004) over the last two axes.
+
+    Matches ``skimage.metrics.structural_similarity`` for the same ``data_range`` and
+    options (uniform 7×7 window, sample covariance, reflected edges, the border of
+    half a window excluded from the mean). ``data_range`` defaults to the reference's
+    max − min. ``gaussian_weights=True, use_sample_covariance=False`` gives Wang et
+    al.'s original definition.
+    """
+    _check_pair(estimate, reference)
+    weights, win = _ssim_window(win_size, gaussian_weights, sigma)
+    ny, nx = np.shape(reference)[-2:]
+    if ny < win or nx < win:
+        raise ShapeError(f"images of {ny}×{nx} are smaller than the {win}×{win} SSIM window.")
+    dr = _data_range(reference, data_range)
+    x = _aligned(estimate, reference, align)
+    y = jnp.asarray(reference)
+    dtype = jnp.result_type(x.dtype, y.dtype, jnp.float32)
+    x, y = x.astype(dtype), y.astype(dtype)
+    weights = [float(w) for w in weights]
+    filt = lambda im: _separable_filter(im, weights)  # noqa: E731
+    n_window = win ** 2
+    cov_norm = n_window / (n_window - 1) if use_sample_covariance else 1.0
+    ux, uy = filt(x), filt(y)
+    vx = cov_norm * (filt(x * x) - ux * ux)
+    vy = cov_norm * (filt(y * y) - uy * uy)
+    vxy = cov_norm * (filt(x * y) - ux * uy)
+    c1, c2 = (K1 * dr) ** 2, (K2 * dr) ** 2
+    s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux ** 2 + uy ** 2 + c1) * (vx + vy + c2))
+    r = (win - 1) // 2
+    return jnp.mean(s[..., r:ny - r, r:nx - r], axis=_SPACE)
+
+
+# ------------------------------------------------------------------- phase metrics
+# docs/design.md, "Phase ambiguities and the phase metric": near/far intensities fix the
+# diffuser phase only up to a piston and the conjugate twin θ'(x) = −θ(−x).
+
+def wrap_phase(phase: Float[Array, "..."]) -> Float[Array, "..."]:
+    """Phase wrapped into [−π, π) (radians)."""
+    return jnp.mod(jnp.asarray(phase) + jnp.pi, 2 * jnp.pi) - jnp.pi
+
+
+def twin_phase(phase: Float[Array, "... ny nx"]) -> Float[Array, "... ny nx"]:
+    """The conjugate twin θ'(x) = −θ(−x), reflected about index N//2 (i → (N − i) mod N).
+
+    A field C·e^{jθ} with a centro-symmetric aperture C and its twin C·e^{jθ'} have the
+    same Fourier-lens intensity (the twin's far field is the complex conjugate).
+    """
+    flipped = jnp.flip(jnp.asarray(phase), axis=_SPACE)
+    return -jnp.roll(flipped, 1, axis=_SPACE)
+
+
+def phase_offset(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
+                 mask=None) -> Float[Array, "..."]:
+    """The piston d = arg Σ_mask e^{j(θest − θtrue)} that best aligns two phases (rad)."""
+    _check_pair(estimate, truth, "estimate", "truth")
+    w = 1.0 if mask is None else jnp.asarray(mask)
+    z = jnp.sum(w * jnp.exp(1j * (jnp.asarray(estimate) - jnp.asarray(truth))), axis=_SPACE)
+    return jnp.angle(z)
+
+
+def _phase_residual(estimate, truth, mask):
+    d = phase_offset(estimate, truth, mask=mask)[..., None, None]
+    return wrap_phase(jnp.asarray(estimate) - jnp.asarray(truth) - d)
+
+
+def phase_pearson(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
+                  mask=None, twin: bool = False) -> Float[Array, "..."]:
+    """Piston-aligned phase Pearson: P(θtrue + wrap(θest − θtrue − d), θtrue) over ``mask``.
+
+    With ``twin=True`` the twin-resolved figure max(P(θest), P(twin(θest))): the twin is
+    taken on the full grid given (index N//2 is the axis), then masked.
+    """
+    truth = jnp.asarray(truth)
+    aligned = truth + _phase_residual(estimate, truth, mask)
+    p = pearson(aligned, truth, mask=mask)
+    if not twin:
+        return p
+    return jnp.maximum(p, phase_pearson(twin_phase(estimate), truth, mask=mask))
+
+
+def phase_mse(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
+              mask=None) -> Float[Array, "..."]:
+    """Mean of wrap(θest − θtrue − d)² over ``mask`` (rad²), d from :func:`phase_offset`."""
+    r2 = _phase_residual(estimate, truth, mask) ** 2
+    if mask is None:
+        return jnp.mean(r2, axis=_SPACE)
+    m = jnp.asarray(mask, dtype=r2.dtype)
+    return jnp.sum(m * r2, axis=_SPACE) / jnp.sum(m)
+
+
+def phase_scores(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
+                 mask=None) -> dict:
+    """All phase figures of docs/design.md, "Phase ambiguities and the phase metric":
+    ``pearson`` (piston-aligned), ``twin_resolved`` (the better of the estimate and its
+    twin), ``raw`` (plain Pearson of θest and θtrue),
+    ``mse`` (rad², piston-aligned) and ``mse_twin_resolved`` (the smaller of the MSEs of
+    the estimate and its twin)."""
+    mse_twin = phase_mse(twin_phase(estimate), truth, mask=mask)
+    mse_est = phase_mse(estimate, truth, mask=mask)
+    return {
+        "pearson": phase_pearson(estimate, truth, mask=mask),
+        "twin_resolved": phase_pearson(estimate, truth, mask=mask, twin=True),
+        "raw": pearson(estimate, truth, mask=mask),
+        "mse": mse_est,
+        "mse_twin_resolved": jnp.minimum(mse_est, mse_twin),
+    }
+
+
+# --------------------------------------------------------------------- PSF fidelity
+# Paper Fig. 9: a modelled PSF against a measured one, per depth, after sub-pixel
+# registration and intensity normalisation.
+
+def _peak_shift(image_product, upsample):
+    """Sub-pixel location of the inverse-DFT peak of one cross-power spectrum (pixels).
+
+    The integer peak of ``ifft2`` is refined on a window of ±0.75 pixel sampled every
+    1/``upsample`` pixel, where the inverse DFT is evaluated directly as two small
+    matrix products (the matrix-multiply DFT of Guizar-Sicairos et al., Opt. Lett. 2008).
+    """
+    ny, nx = image_product.shape
+    cc = jnp.abs(ifft2(image_product))
+    flat = jnp.argmax(cc)
+    coarse = jnp.stack([flat // nx, flat % nx]).astype(jnp.float32)
+    n = jnp.array([ny, nx], jnp.float32)
+    coarse = jnp.where(coarse > n // 2, coarse - n, coarse)
+    if upsample <= 1:
+        return coarse
+    k = int(np.ceil(1.5 * upsample))
+    offsets = (jnp.arange(k) - k // 2) / upsample
+    sy, sx = coarse[0] + offsets, coarse[1] + offsets
+    ey = jnp.exp(2j * jnp.pi * sy[:, None] * jnp.fft.fftfreq(ny)[None, :])
+    ex = jnp.exp(2j * jnp.pi * sx[:, None] * jnp.fft.fftfreq(nx)[None, :])
+    fine = jnp.abs(ey @ image_product.astype(ey.dtype) @ ex.T)
+    best = jnp.argmax(fine)
+    return jnp.stack([sy[best // k], sx[best % k]])
+
+
+def registration_shift(moving: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx"],
+                       *, upsample: int = 20) -> Float[Array, "... 2"]:
+    """Shift ``(dy, dx)`` in pixels that moves ``moving`` onto ``reference``.
+
+    Phase correlation (the normalised cross-power spectrum) with its peak refined to
+    1/``upsample`` pixel; the same convention as
+    ``skimage.registration.phase_cross_correlation(reference, moving)``. Shifts are
+    piecewise constant in the images, so their gradient is zero.
+    """
+    _check_pair(moving, reference, "moving", "reference")
+    if not isinstance(upsample, int) or upsample < 1:
+        raise DiffcamError(f"upsample must be a positive int, got {upsample!r}.")
+    a = fft2(jnp.asarray(reference))
+    b = fft2(jnp.asarray(moving))
+    a, b = jnp.broadcast_arrays(a, b)
+    product = a * jnp.conj(b)
+    product = product / jnp.maximum(jnp.abs(product), jnp.finfo(product.real.dtype).tiny)
+    lead = product.shape[:-2]
+    flat = product.reshape((-1,) + product.shape[-2:])
+    shifts = jax.vmap(lambda p: _peak_shift(p, upsample))(flat)
+    return jax.lax.stop_gradient(shifts.reshape(lead + (2,)))
+
+
+def fourier_shift(image: Float[Array, "... ny nx"], shift: Float[Array, "... 2"]
+                  ) -> Float[Array, "... ny nx"]:
+    """``image`` moved by ``shift = (dy, dx)`` pixels (sub-pixel, circular, via the FFT)."""
+    image = jnp.asarray(image)
+    shift = jnp.asarray(shift, image.dtype)
+    ny, nx = image.shape[-2:]
+    fy = jnp.fft.fftfreq(ny)[:, None]
+    fx = jnp.fft.fftfreq(nx)[None, :]
+    ramp = jnp.exp(-2j * jnp.pi * (fy * shift[..., 0, None, None] + fx * shift[..., 1, None, None]))
+    return ifft2(fft2(image) * ramp).real.astype(image.dtype)
+
+
+def _min_max(x):
+    lo = jnp.min(x, axis=_SPACE, keepdims=True)
+    hi = jnp.max(x, axis=_SPACE, keepdims=True)
+    return (x - lo) / (hi - lo)
+
+
+def psf_fidelity(model: Float[Array, "... ny nx"], measured: Float[Array, "... ny nx"], *,
+                 register: bool = True, upsample: int = 20) -> dict:
+    """Pearson and SSIM of a modelled PSF against a measured one, per leading index.
+
+    The model is moved onto the measurement by :func:`registration_shift` (if
+    ``register``), both are min–max normalised to [0, 1] (as the paper normalises its
+    captures), then scored with :func:`pearson` and :func:`ssim` (``data_range=1``).
+
+    Returns:
+        ``{"pearson": (...), "ssim": (...), "shift": (..., 2)}``; ``shift`` in pixels
+        (zero when ``register=False``).
+    """
+    _check_pair(model, measured, "model", "measured")
+    model, measured = jnp.asarray(model), jnp.asarray(measured)
+    model, measured = jnp.broadcast_arrays(model, measured)
+    if register:
+        shift = registration_shift(model, measured, upsample=upsample)
+        model = fourier_shift(model, shift)
+    else:
+        shift = jnp.zeros(model.shape[:-2] + (2,), model.dtype)
+    a, b = _min_max(model), _min_max(measured)
+    return {"pearson": pearson(a, b), "ssim": ssim(a, b, data_range=1.0), "shift": shift}

@@ -1,0 +1,245 @@
+"""The diffuser-camera PSF at any depth (paper Eqs. 7–8).
+
+A point source at ``(x1, y1, z1)`` lights a circular aperture C (or any mask) carrying
+a thin diffuser of phase θd; the field travels ``z2`` to the sensor, which records the
+intensity:
+
+    PSF(u) = |P_z2{C · e^{jθd} · U1}(u)|²,   U1 = e^{jkz1}/(jλz1) e^{jk|x − ρ1|²/(2z1)}
+
+with ρ1 = (x1, y1) and P_z the Fresnel transfer-function propagator.
+
+Two ways to evaluate it (``Camera.method``):
+
+``"scaling"`` (default) — the Fresnel scaling theorem (docs/design.md). Expanding the two
+quadratic phases,
+
+    P_z2{g·U1}(u) = (1/M) e^{jφ(u)} e^{jkz1}/(jλz1) · P_zeff{g}(u/M + ρ1·z2/(z1 + z2)),
+
+    z_eff = z1·z2/(z1 + z2),   M = (z1 + z2)/z1,
+
+where φ is a known quadratic phase that drops out of the intensity. The source's chirp
+is never sampled, so any ``z1`` works at the diffuser's pitch, and ``FFT(g)`` is shared
+by every depth and every lateral position: a depth costs one inverse FFT, a position one
+interpolation. The magnified field is sampled at the sensor-grid points by separable
+cubic B-spline interpolation (its prefilter folded into the transfer function) of the
+*complex field* — band-limited at the grid's Nyquist — and squared afterwards: the
+intensity has twice the field's bandwidth, so interpolating it would blur speckle. The
+result is the irradiance at the sensor-grid points, like the direct path; integrating
+over pixels of another pitch is :func:`diffcam.model.sensor.bin_pixels`.
+
+``"direct"`` — the literal Eq. 7 on the grid, for checking: the point-source chirp is
+sampled at the aperture, which aliases for close sources (a :class:`SamplingError`
+unless ``accept_undersampling=True``).
+
+Both propagate with the Fresnel transfer function on a grid zero-padded by
+``Camera.pad`` per side (wrap-around otherwise) and return the centred ``Camera.crop``.
+
+Each path is two steps, which :mod:`diffcam.model.stack` runs over many depths: the
+fields the FFTs start from (:func:`fields_for_fft`) and what the FFTs make of them
+(:func:`irradiance`); a PSF is ``irradiance(fields_for_fft(...))``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Float
+from jax import Array
+
+from diffcam.core.backend import (fft2, ifft2, materialise, staged, transfer_step,
+                                  transfer_step_with_spectrum)
+from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, check_positive,
+                                 fmt_length, is_concrete, sampling_problem)
+from diffcam.core.grid import crop_to, pad_to
+from diffcam.model.camera import (Camera, HeightMap, as_spectrum, diffuser_phase,
+                                  real_dtype)
+from diffcam.model.sensor import bspline_prefilter, cubic_sample
+from diffcam.optics.elements import apply_phase, spherical_wave
+from diffcam.optics.propagation import (critical_distance, effective_distance,
+                                        magnification, transfer_function)
+from diffcam.optics.sampling import check_point_source_sampling
+
+__all__ = ["psf", "diffuser_fields", "fields_for_fft", "irradiance", "check_inputs"]
+
+
+# --------------------------------------------------------------- Eq. 7, step by step
+
+def diffuser_fields(phase, camera: Camera, wavelengths) -> Array:
+    """C · e^{jθd(λ)} (paper Eqs. 4–5) on the padded grid, one per wavelength:
+    (nλ, ny, nx) complex; on the scaling path its FFT, which every depth shares."""
+    thetas = jax.vmap(lambda lam: diffuser_phase(phase, lam, camera.wavelength))(wavelengths)
+    fields = pad_to(apply_phase(camera.aperture(), thetas), camera.padded_shape)
+    return fft2(fields) if camera.method == "scaling" else fields
+
+
+def _fresnel_kernel(camera, wavelength, z):
+    return transfer_function(camera.padded_shape, camera.dx, wavelength, z, "fresnel_tf")
+
+
+def _source_fields(diffuser, camera, wavelength, z1, positions):
+    """C·e^{jθd}·U1 for each source position (x1, y1) (Eq. 2 times Eqs. 4–5): (npos, ny,
+    nx); U1's constant 1/(jλz1) is applied to the intensity."""
+    def one(position):
+        cy, cx = spherical_wave(diffuser.shape, camera.dx, wavelength, z1, *position)
+        return diffuser * (cy * cx)
+    return jax.vmap(one)(positions)
+
+
+def _zeff_spectrum(diffuser_hat, camera, wavelength, z1):
+    """Spectrum of the cubic B-spline coefficients of P_zeff{C·e^{jθd}}: its inverse FFT is
+    the field the scaling theorem magnifies (the separable spline prefilter rides on the
+    transfer function). (1, ny, nx): the positions only move the sampling."""
+    ny, nx = diffuser_hat.shape[-2:]
+    prefilter = bspline_prefilter(ny)[:, None] * bspline_prefilter(nx)[None, :]
+    kernel = _fresnel_kernel(camera, wavelength, effective_distance(z1, camera.z2))
+    return (diffuser_hat * (kernel * prefilter))[None]
+
+
+def _magnified(field, camera, wavelength, z1, x1, y1):
+    """Irradiance at the sensor-grid points: the z_eff field magnified by M about the
+    image of the source, amplitude 1/M and the source's 1/(λz1) (scaling theorem)."""
+    z2 = camera.z2
+    mag = magnification(z1, z2)
+    ny, nx = field.shape[-2:]
+    cy, cx = camera.out_shape
+    shift = z2 / (z1 + z2) / camera.dx  # source offset → sample offset, per metre
+    ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
+    tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
+    s = cubic_sample(cubic_sample(field, ty, -2), tx, -1) / (mag * wavelength * z1)
+    return materialise(s.real ** 2 + s.imag ** 2)
+
+
+def fields_for_fft(prepared, camera: Camera, wavelengths, z1, positions) -> Array:
+    """What the FFTs of one depth start from, (nλ, n, ny, nx) complex: the source fields
+    C·e^{jθd}·U1 (direct, n = npos) or the spectra of the z_eff fields (scaling, n = 1).
+
+    ``prepared`` is :func:`diffuser_fields`; ``positions`` (npos, 2) of (x1, y1), metres.
+    """
+    def per_wavelength(prep, lam):
+        if camera.method == "scaling":
+            return _zeff_spectrum(prep, camera, lam, z1)
+        return _source_fields(prep, camera, lam, z1, positions)
+    return jax.vmap(per_wavelength)(prepared, wavelengths)
+
+
+def _irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions, normalise):
+    """:func:`irradiance`, and the two field-sized arrays its FFTs wrote (the executor in
+    :mod:`diffcam.model.stack` hands them back as the next call's buffers)."""
+    def per_wavelength(u, lam):
+        if camera.method == "scaling":
+            field = ifft2(u[0])
+            psfs = jax.vmap(lambda p: _magnified(field, camera, lam, z1, p[0], p[1]))(positions)
+            return _normalised(psfs, normalise), (u, field[None])
+        kernel = _fresnel_kernel(camera, lam, camera.z2)
+        field, spectrum = transfer_step_with_spectrum(u, kernel)
+        out = crop_to(field, camera.out_shape)
+        psfs = (out.real ** 2 + out.imag ** 2) / (lam * z1) ** 2
+        return _normalised(psfs, normalise), (field, spectrum)
+    psfs, written = jax.vmap(per_wavelength)(fields, wavelengths)
+    return jnp.tensordot(weights, psfs, axes=1) / jnp.sum(weights), written
+
+
+def irradiance(fields, camera: Camera, wavelengths, weights, z1, positions,
+               normalise: bool = True) -> Array:
+    """PSFs of one depth, (npos, ny, nx) on the crop, from :func:`fields_for_fft`:
+    |P_z2{·}|² (direct) or the magnified z_eff field (scaling), normalised per wavelength
+    if asked, then averaged with the spectrum's ``weights``."""
+    return _irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions,
+                                  normalise)[0]
+
+
+def _normalised(intensity, normalise):
+    if not normalise:
+        return intensity
+    return intensity / jnp.sum(intensity, axis=(-2, -1), keepdims=True)
+
+
+def _fields_of_phase(phase, camera, wavelengths, weights, z1, positions):
+    return fields_for_fft(diffuser_fields(phase, camera, wavelengths), camera, wavelengths,
+                          z1, positions)
+
+
+def _irradiance_of_fields(fields, phase, camera, wavelengths, weights, z1, positions, *,
+                          normalise):
+    return irradiance(fields, camera, wavelengths, weights, z1, positions, normalise)
+
+
+_psf = staged(_fields_of_phase, _irradiance_of_fields, static_argnames=("normalise",))
+
+
+# ------------------------------------------------------------------------- validation
+
+def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling):
+    """Concrete checks before tracing: shapes, NaN, signs, and sampling at the extremes.
+
+    ``z1`` and ``offsets`` (lateral distances |ρ1|, metres) may be arrays; the smallest
+    z1 and largest offset are checked.
+    """
+    if not isinstance(camera, Camera):
+        raise DiffcamError(f"camera must be a diffcam.model.camera.Camera, got {type(camera)}.")
+    arr = phase.height if isinstance(phase, HeightMap) else phase
+    what = "height map" if isinstance(phase, HeightMap) else "phase"
+    if np.shape(arr) != tuple(camera.shape):
+        raise ShapeError(f"diffuser {what} has shape {np.shape(arr)} but the camera grid is "
+                         f"{tuple(camera.shape)}; embed it with diffcam.core.grid.pad_to or "
+                         f"build the Camera with shape={np.shape(arr)[-2:]}.")
+    check_finite(f"diffuser {what}", arr)
+    check_positive("z1 (source distance)", z1, "m")
+    if not is_concrete(z1, offsets, camera, wavelengths):
+        return
+    z_min = float(np.min(np.asarray(z1)))
+    z_max = float(np.max(np.asarray(z1)))
+    rho = float(np.max(np.abs(np.asarray(offsets)))) if np.size(offsets) else 0.0
+    dx, z2 = float(camera.dx), float(camera.z2)
+    for lam in np.atleast_1d(np.asarray(wavelengths, dtype=np.float64)):
+        lam = float(lam)
+        # transfer-function sampling of the longest propagation on the padded grid
+        z_prop = z2 if camera.method == "direct" else effective_distance(z_max, z2)
+        zc = min(critical_distance(camera.padded_shape, dx, lam))
+        if z_prop > zc:
+            sampling_problem(
+                f"the Fresnel transfer function for {fmt_length(z_prop)} aliases on this "
+                f"grid (critical distance N·dx²/λ = {fmt_length(zc)}); increase Camera.pad "
+                f"or the grid", accept_undersampling)
+        if camera.method == "direct":
+            check_point_source_sampling(lam, z_min, camera.support_radius(), rho, dx,
+                                        "at the aperture edge", accept_undersampling)
+
+
+def psf(phase, camera: Camera, z1, x1=0.0, y1=0.0, *, spectrum=None, normalise: bool = True,
+        accept_undersampling: bool = False) -> Float[Array, "ny nx"]:
+    """The camera's PSF for a point source at ``(x1, y1, z1)`` (paper Eq. 7).
+
+    Args:
+        phase: the diffuser: its phase θd on the camera grid (radians, at
+            ``camera.wavelength``), or a :class:`HeightMap`.
+        camera: the :class:`Camera` (its ``method`` picks scaling theorem or direct).
+        z1: source-to-aperture distance, metres (> 0).
+        x1, y1: lateral source position, metres; the PSF moves by −(x1, y1)·z2/z1.
+        spectrum: ``(wavelengths, weights)`` (metres, relative power) for broadband
+            light: the weight-averaged PSF; ``None`` is monochromatic at
+            ``camera.wavelength``.
+        normalise: unit sum over the returned crop (default); ``False`` returns the
+            physical irradiance of a unit point source (1/M² of the scaling theorem
+            and 1/(λz1)² of the source included), per m² of sensor.
+        accept_undersampling: turn sampling errors into warnings.
+
+    Returns:
+        ``camera.out_shape`` float array. Pure and jitted; differentiable in ``phase``,
+        ``z1``, ``x1``, ``y1`` and the camera's traced fields.
+
+    Raises:
+        ShapeError: the phase does not match the camera grid.
+        DiffcamError: z1 ≤ 0, NaN in the phase, bad spectrum.
+        SamplingError: ``method="direct"`` with an undersampled source chirp, or a
+            transfer function that aliases.
+    """
+    wavelengths, weights = as_spectrum(spectrum, camera)
+    check_inputs(phase, camera, z1, jnp.hypot(jnp.asarray(x1), jnp.asarray(y1)), wavelengths,
+                 accept_undersampling)
+    dtype = real_dtype(camera)
+    wavelengths, weights, z1 = wavelengths.astype(dtype), weights.astype(dtype), \
+        jnp.asarray(z1, dtype)
+    positions = jnp.stack([jnp.asarray(x1, dtype), jnp.asarray(y1, dtype)])[None]
+    return _psf(phase, camera, wavelengths, weights, z1, positions, normalise=normalise)[0]

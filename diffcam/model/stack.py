@@ -1,0 +1,362 @@
+"""PSF stacks over depths and lateral positions: chunked, sharded, streamed to disk.
+
+:func:`psf_stack` evaluates PSFs for every depth in ``z1`` (and every lateral position)
+in chunks of ``batch_size`` depths per device, each copied to a host array (or a
+memory-mapped file) while the next one computes, so at most two chunks are in flight
+and working memory is set by the chunk, not by the number of depths. A chunk is two
+jitted calls: the fields (or spectra) its FFTs start from, then the FFTs and
+intensities (see :func:`diffcam.model.psf.fields_for_fft`); both write over the last chunk's
+two field-sized buffers (donated), which spares a fresh, page-faulted buffer per call.
+A chunk holds one field per depth, wavelength and, on the direct path, lateral position.
+With
+several devices the chunk's depth axis is sharded over a ``jax.sharding.Mesh`` of them
+(and, after
+``jax.distributed.initialize()``, over hosts). Everything the depths share (the
+diffuser's field, or its FFT on the scaling-theorem path) is computed once.
+
+Saving and loading (:func:`save_stack`, :func:`load_stack`) keep the metadata
+(:class:`StackMeta`) beside the pixels: ``.npz`` round-trips exactly; ``.tif`` is an
+ImageJ hyperstack (axes ``ZYX``, or ``ZCYX`` with lateral positions as channels) with
+the metadata as JSON in the ImageJ ``Info`` property and the pitch as resolution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from functools import partial
+from typing import Iterator, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import tifffile
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm.auto import tqdm
+
+from diffcam.model.camera import Camera, as_spectrum, real_dtype
+from diffcam.model.psf import (_irradiance_and_fields, check_inputs, diffuser_fields,
+                              fields_for_fft)
+from diffcam.core.errors import DiffcamError, ShapeError
+
+__all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
+           "FORMAT_VERSION"]
+
+FORMAT_VERSION = 1
+_PROGRESS_FROM = 32  # show a progress bar by default from this many depths
+
+
+@dataclasses.dataclass(frozen=True)
+class StackMeta:
+    """What a PSF stack is: axes, units and the camera that made it (SI units).
+
+    Attributes:
+        depths: z1 of each slice, metres, shape (nz,).
+        positions: (x1, y1) of each lateral position, metres, shape (npos, 2), or
+            ``None`` when the stack has no position axis (on-axis source).
+        pitch: sample pitch of the stored images, metres.
+        wavelengths: metres; ``weights``: their relative power.
+        camera: the camera's fields as plain numbers (``Camera`` attribute names).
+        normalised: each PSF sums to one (else physical irradiance).
+        format_version: :data:`FORMAT_VERSION` of the writer.
+    """
+
+    depths: np.ndarray
+    positions: np.ndarray | None
+    pitch: float
+    wavelengths: np.ndarray
+    weights: np.ndarray
+    camera: dict
+    normalised: bool = True
+    format_version: int = FORMAT_VERSION
+
+    def to_json(self) -> str:
+        d = dataclasses.asdict(self)
+        for k in ("depths", "positions", "wavelengths", "weights"):
+            d[k] = None if d[k] is None else np.asarray(d[k], dtype=np.float64).tolist()
+        return json.dumps(d)
+
+    @classmethod
+    def from_json(cls, text: str) -> "StackMeta":
+        d = json.loads(text)
+        if d.get("format_version", 0) > FORMAT_VERSION:
+            raise DiffcamError(f"stack written by format version {d['format_version']}, this "
+                               f"diffcam reads ≤ {FORMAT_VERSION}; upgrade diffcam.")
+        for k in ("depths", "wavelengths", "weights"):
+            d[k] = np.asarray(d[k], dtype=np.float64)
+        if d["positions"] is not None:
+            d["positions"] = np.asarray(d["positions"], dtype=np.float64).reshape(-1, 2)
+        return cls(**d)
+
+
+def camera_record(camera: Camera) -> dict:
+    """The camera as JSON-able numbers (a mask is recorded by its shape only)."""
+    rec = {"wavelength": float(camera.wavelength), "z2": float(camera.z2),
+           "dx": float(camera.dx), "shape": list(camera.shape), "pad": list(camera.pad),
+           "crop": list(camera.out_shape), "method": camera.method, "edge": camera.edge}
+    if camera.aperture_radius is not None:
+        rec["aperture_radius"] = float(camera.aperture_radius)
+    else:
+        rec["aperture_mask_shape"] = list(np.shape(camera.aperture_mask))
+    return rec
+
+
+# ----------------------------------------------------------------------------- compute
+
+@partial(jax.jit, static_argnames=("sharding",), donate_argnums=0, keep_unused=True)
+def _chunk_inputs(scratch, prepared, camera, wavelengths, z1, positions, sharding):
+    """The FFT inputs of a chunk, written over ``scratch`` (donated)."""
+    del scratch
+    out = jax.vmap(lambda z: fields_for_fft(prepared, camera, wavelengths, z, positions))(z1)
+    return out if sharding is None else jax.lax.with_sharding_constraint(out, sharding)
+
+
+@partial(jax.jit, static_argnames=("normalise", "sharding"), donate_argnums=(0, 1),
+         keep_unused=True)
+def _chunk_outputs(inputs, scratch, camera, wavelengths, weights, z1, positions, normalise,
+                   sharding):
+    """PSFs of a chunk, and the two buffers its FFTs wrote: ``inputs`` and ``scratch``
+    (both donated) are written over, so no fresh N² buffer is page-faulted in per chunk."""
+    del scratch
+    out, written = jax.vmap(lambda u, z: _irradiance_and_fields(u, camera, wavelengths, weights,
+                                                                z, positions, normalise)
+                            )(inputs, z1)
+    if sharding is not None:
+        out, written = jax.lax.with_sharding_constraint((out, written), sharding)
+    return out, written
+
+
+def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sharding,
+           buffers=None):
+    """PSFs (nz, npos, ny, nx) for the depths ``z1``, and the ``buffers`` to pass to the
+    next call. Two jitted calls, so that the second one starts with its FFTs (see
+    :func:`diffcam.model.psf.fields_for_fft`); both write over the last chunk's buffers."""
+    if buffers is None:
+        shape = jax.eval_shape(lambda *a: _chunk_inputs(None, *a, sharding), prepared,
+                               camera, wavelengths, z1, positions)
+        place = sharding if sharding is not None else prepared.sharding
+        buffers = [jax.device_put(jnp.zeros(shape.shape, shape.dtype), place)
+                   for _ in range(2)]
+    inputs = _chunk_inputs(buffers[0], prepared, camera, wavelengths, z1, positions,
+                           sharding)
+    return _chunk_outputs(inputs, buffers[1], camera, wavelengths, weights, z1, positions,
+                          normalise, sharding)
+
+
+_prepare = jax.jit(diffuser_fields)
+
+
+def _positions_array(positions):
+    if positions is None:
+        return np.zeros((1, 2))
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 2 or pos.shape[1] != 2 or pos.shape[0] == 0:
+        raise ShapeError(f"positions must be an (npos, 2) array of (x1, y1) in metres, "
+                         f"got shape {pos.shape}.")
+    if not np.all(np.isfinite(pos)):
+        raise DiffcamError("positions contain NaN/Inf; give finite (x1, y1) in metres.")
+    return pos
+
+
+def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
+                   normalise: bool = True, batch_size: int | None = None,
+                   devices: Sequence | None = None, accept_undersampling: bool = False,
+                   to_host: bool = True) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
+    """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
+    shape ``(n, npos, ny, nx)``: host numpy, or with ``to_host=False`` the device array
+    (for work that stays on the device, a GPU reconstruction say). Other arguments as in
+    :func:`psf_stack`; the inputs are checked when this is called, before the first
+    chunk."""
+    depths = np.asarray(z1, dtype=np.float64).reshape(-1)
+    if depths.size == 0:
+        raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
+    pos = _positions_array(positions)
+    wavelengths, weights = as_spectrum(spectrum, camera)
+    if batch_size is None:  # about 2**20 field samples per device per call
+        fields = len(wavelengths) * (len(pos) if camera.method == "direct" else 1)
+        batch_size = max(1, 2 ** 20 // (camera.padded_shape[0] * camera.padded_shape[1]
+                                        * fields))
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
+    check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
+                 accept_undersampling)
+    devices = list(jax.devices()) if devices is None else list(devices)
+    return _chunks(phase, camera, depths, pos, wavelengths, weights, normalise,
+                   batch_size, devices, to_host)
+
+
+def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_size,
+            devices, host):
+    sharding = None
+    step = batch_size * len(devices)
+    if len(devices) > 1:
+        mesh = Mesh(np.array(devices), ("batch",))
+        sharding = NamedSharding(mesh, PartitionSpec("batch"))
+        replicate = NamedSharding(mesh, PartitionSpec())
+        put = lambda a: jax.device_put(a, replicate)  # noqa: E731
+    else:
+        put = lambda a: jax.device_put(a, devices[0])  # noqa: E731
+    dtype = real_dtype(camera)
+    camera, phase = put(camera), put(phase)
+    wavelengths, weights = put(wavelengths.astype(dtype)), put(weights.astype(dtype))
+    prepared = _prepare(phase, camera, wavelengths)
+    pos_dev = put(jnp.asarray(pos, dtype))
+
+    def to_host(start, out, n):
+        return start, np.asarray(jax.device_get(out))[:n] if host else out[:n]
+
+    pending = buffers = None  # the chunk in flight is copied out after the next one starts
+    for start in range(0, depths.size, step):
+        block = depths[start:start + step]
+        n = block.size
+        block = np.pad(block, (0, step - n), mode="edge")  # fixed shape: one compilation
+        zb = jnp.asarray(block, dtype)
+        zb = jax.device_put(zb, sharding) if sharding is not None else put(zb)
+        out, buffers = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise,
+                              sharding, buffers)
+        if pending is not None:
+            yield to_host(*pending)
+        pending = (start, out, n)
+    yield to_host(*pending)
+
+
+def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
+              normalise: bool = True, batch_size: int | None = None,
+              out: str | os.PathLike | None = None, progress: bool | None = None,
+              devices: Sequence | None = None, accept_undersampling: bool = False) -> np.ndarray:
+    """PSFs for every depth in ``z1`` and every lateral position, chunk by chunk.
+
+    Args:
+        phase: the diffuser (phase in radians at ``camera.wavelength``, or a
+            :class:`~diffcam.model.camera.HeightMap`).
+        camera: the :class:`~diffcam.model.camera.Camera`.
+        z1: depths, metres, shape (nz,) (non-empty, all > 0).
+        positions: ``(npos, 2)`` lateral source positions ``(x1, y1)``, metres; ``None``
+            for an on-axis source (the position axis is then dropped).
+        spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.model.psf.psf`.
+        normalise: each PSF sums to one (default) or is the physical irradiance.
+        batch_size: depths per device per chunk; working memory grows with it.
+            Default: about 2**20 field samples per chunk (one depth from 1024², or
+            from fewer samples with several wavelengths or direct-path positions).
+        out: stream the stack to this file instead of memory: ``.npy`` (a memory-mapped
+            array; metadata in ``<out>.json``) or ``.tif``/``.tiff`` (ImageJ hyperstack
+            written page by page, metadata inside). ``None`` keeps it in memory.
+        progress: show a tqdm bar; default on from 32 depths.
+        devices: devices to shard the depth axis over (default ``jax.devices()``).
+        accept_undersampling: turn sampling errors into warnings.
+
+    Returns:
+        float array ``(nz, npos, ny, nx)`` (or ``(nz, ny, nx)`` without positions):
+        numpy in memory, or a read-only memory map of ``out``.
+    """
+    depths = np.asarray(z1, dtype=np.float64).reshape(-1)
+    chunks = iter_psf_stack(phase, camera, depths, positions, spectrum=spectrum,
+                            normalise=normalise, batch_size=batch_size, devices=devices,
+                            accept_undersampling=accept_undersampling)
+    npos = 1 if positions is None else len(positions)
+    full = (depths.size, npos) + tuple(camera.out_shape)
+    shape = full if positions is not None else (full[0],) + full[2:]
+    show = depths.size >= _PROGRESS_FROM if progress is None else progress
+    bar = tqdm(total=depths.size, unit="depth", disable=not show, desc="PSF stack")
+    meta = _meta(camera, depths, positions, spectrum, normalise)
+
+    def pages():
+        for start, block in chunks:
+            bar.update(block.shape[0])
+            yield block if positions is not None else block[:, 0]
+
+    try:
+        if out is None:
+            stack = np.empty(shape, np.float32)
+            for start, block in _blocks(pages()):
+                stack[start:start + len(block)] = block
+            return stack
+        path = os.fspath(out)
+        if path.endswith(".npy"):
+            stack = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape)
+            for start, block in _blocks(pages()):
+                stack[start:start + len(block)] = block
+            stack.flush()
+            del stack
+            with open(path + ".json", "w") as f:
+                f.write(meta.to_json())
+            return np.load(path, mmap_mode="r")
+        if path.endswith((".tif", ".tiff")):
+            _write_tiff(path, (page for block in pages() for page in block), shape, meta)
+            return tifffile.memmap(path, mode="r")
+        raise DiffcamError(f"out must end in .npy, .tif or .tiff, got {path!r}.")
+    finally:
+        bar.close()
+
+
+def _blocks(pages):
+    start = 0
+    for block in pages:
+        yield start, block
+        start += len(block)
+
+
+def _meta(camera, depths, positions, spectrum, normalise):
+    wavelengths, weights = as_spectrum(spectrum, camera)
+    return StackMeta(depths=np.asarray(depths, np.float64),
+                     positions=None if positions is None else _positions_array(positions),
+                     pitch=float(camera.dx), wavelengths=np.asarray(wavelengths, np.float64),
+                     weights=np.asarray(weights, np.float64), camera=camera_record(camera),
+                     normalised=bool(normalise))
+
+
+# ------------------------------------------------------------------------ save / load
+
+def _write_tiff(path, pages, shape, meta: StackMeta):
+    axes = "ZCYX" if len(shape) == 4 else "ZYX"
+    um = meta.pitch * 1e6
+    dz = float(np.median(np.diff(meta.depths))) * 1e3 if meta.depths.size > 1 else 1.0
+    with tifffile.TiffWriter(path, imagej=True) as tif:
+        tif.write(pages, shape=shape, dtype=np.float32, resolution=(1 / um, 1 / um),
+                  metadata={"axes": axes, "unit": "um", "spacing": dz,
+                            "Info": meta.to_json()}, contiguous=True)
+
+
+def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
+    """Write ``stack`` with ``meta`` to ``.npz`` (exact round trip) or ``.tif``/``.tiff``
+    (ImageJ hyperstack, float32; the ImageJ Z spacing is the median depth step in mm)."""
+    path = os.fspath(path)
+    stack = np.asarray(stack)
+    nz = meta.depths.size
+    want = 3 if meta.positions is None else 4
+    if stack.ndim != want or stack.shape[0] != nz or (
+            want == 4 and stack.shape[1] != len(meta.positions)):
+        npos = None if meta.positions is None else len(meta.positions)
+        raise ShapeError(f"stack shape {stack.shape} does not match the metadata "
+                         f"({nz} depths, {npos} positions).")
+    if path.endswith(".npz"):
+        np.savez(path, stack=stack, meta=np.array(meta.to_json()))
+    elif path.endswith((".tif", ".tiff")):
+        _write_tiff(path, stack.astype(np.float32), stack.shape, meta)
+    else:
+        raise DiffcamError(f"save_stack writes .npz, .tif or .tiff, got {path!r}.")
+
+
+def load_stack(path: str | os.PathLike) -> tuple[np.ndarray, StackMeta]:
+    """Read a stack written by :func:`save_stack` or :func:`psf_stack` (``out=``)."""
+    path = os.fspath(path)
+    if path.endswith(".npz"):
+        with np.load(path) as f:
+            return f["stack"], StackMeta.from_json(str(f["meta"]))
+    if path.endswith(".npy"):
+        with open(path + ".json") as f:
+            return np.load(path, mmap_mode="r"), StackMeta.from_json(f.read())
+    if path.endswith((".tif", ".tiff")):
+        with tifffile.TiffFile(path) as tif:
+            info = (tif.imagej_metadata or {}).get("Info")
+            if info is None:
+                raise DiffcamError(f"{path} has no diffcam metadata (ImageJ Info); was it "
+                                   f"written by diffcam.model.stack?")
+            meta = StackMeta.from_json(info)
+            stack = tif.asarray()
+        nz = meta.depths.size
+        shape = (nz,) + (() if meta.positions is None else (len(meta.positions),)) \
+            + stack.shape[-2:]
+        return stack.reshape(shape), meta
+    raise DiffcamError(f"load_stack reads .npz, .npy or .tif files, got {path!r}.")

@@ -1,0 +1,509 @@
+"""Free-space propagation (paper Eqs. 1–2, 6) and the Fourier lens (Eqs. 9–13).
+
+Four propagators, all pure, jitted, differentiable in their array and physical
+arguments, broadcasting over leading batch axes, complex64 unless given complex128:
+
+- :func:`fresnel_tf`       Fresnel transfer function  H = e^{jkz} e^{-jπλz(fx²+fy²)}
+- :func:`fresnel_ir`       Fresnel impulse response   h = e^{jkz}/(jλz) e^{jk(x²+y²)/(2z)}
+- :func:`angular_spectrum` exact scalar (Rayleigh–Sommerfeld) transfer function,
+  band-limited after Matsushima & Shimobaba (2009), evanescent waves dropped
+- :func:`fourier_lens`     the field at the back focal plane of a lens of focal length f,
+  U'(u) = e^{jkf}/(jλf) ∫ U(x) e^{-j2π x·u/(λf)} dx, at pitch λf/(N·dx) per axis
+
+and :func:`propagate`, which picks the method (and the padding) from the sampling
+criterion: for a grid of width L = N·dx a transfer function is sampled while
+|z| ≤ dx·L/λ, the impulse response beyond (docs/design.md, "Transfer function vs
+impulse response").
+
+Conventions. Fields are centred (index N//2 is the axis, :mod:`diffcam.core.grid`). Kernels
+are built in FFT order and multiply ``fft2(field)`` directly: convolution is translation
+invariant, so no ``fftshift`` is needed in the hot path. Kernels are separable where the
+physics is (Fresnel TF and IR): two 1-D chirps whose outer product XLA fuses into the
+multiply, so a step costs one FFT pair. The constant phase e^{jkz} is reduced modulo 2π
+in float64 when z and λ are concrete (in float32, kz at z = 0.1 m has a step of 0.125
+rad); when they are traced, it carries the precision of their dtype (it never affects an
+intensity).
+
+.. warning:: Without padding, the FFT makes every propagation circular: light leaving
+   one edge of the grid re-enters at the other. The low-level functions default to
+   ``pad=0`` (so that a step costs exactly one FFT pair on the given grid);
+   :func:`propagate` pads automatically by the spread it predicts.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import Complex, Num
+
+from diffcam.core.errors import (DiffcamError, check_field, check_positive, is_concrete, fmt_length,
+                     sampling_problem)
+from diffcam.core.grid import (coord_at, crop_to, fft_freq_at, fft_freqs, fft2c, ifft2c, pad_by,
+                   pitch_yx)
+from diffcam.core.backend import fft2, fft_size, ifft2, transfer_step, vector
+
+__all__ = [
+    "fresnel_tf",
+    "fresnel_ir",
+    "angular_spectrum",
+    "fourier_lens",
+    "inverse_fourier_lens",
+    "propagate",
+    "PropagationChoice",
+    "choose_propagation",
+    "critical_distance",
+    "transfer_function",
+    "apply_transfer",
+    "spherical_chirp",
+    "magnification",
+    "effective_distance",
+]
+
+METHODS = ("fresnel_tf", "fresnel_ir", "angular_spectrum")
+
+
+# --------------------------------------------------------------------------- helpers
+
+def _complex_dtype(field):
+    return jnp.complex128 if jnp.asarray(field).dtype in (jnp.float64, jnp.complex128) \
+        else jnp.complex64
+
+
+def piston(wavelength, z):
+    """The constant phase factor e^{jkz}, k = 2π/λ, with kz reduced modulo 2π.
+
+    Concrete arguments are reduced in float64 (numpy); traced ones in their own dtype.
+    """
+    if is_concrete(wavelength, z):
+        cycles = np.asarray(z, dtype=np.float64) / np.asarray(wavelength, dtype=np.float64)
+        phase = 2 * np.pi * np.mod(cycles, 1.0)
+        return jnp.asarray(np.exp(1j * phase))
+    cycles = z / wavelength
+    return jnp.exp(2j * jnp.pi * (cycles - jnp.floor(cycles)))
+
+
+def critical_distance(shape, dx, wavelength) -> tuple[float, float]:
+    """z at which a transfer function stops being sampled, per axis (m): N·dx²/λ.
+
+    A transfer function (Fresnel TF, angular spectrum) is sampled for |z| ≤ this
+    distance, the impulse response for |z| ≥ it.
+    """
+    dy, dxx = (float(p) for p in pitch_yx(dx))
+    ny, nx = shape[-2], shape[-1]
+    lam = float(wavelength)
+    return ny * dy * dy / lam, nx * dxx * dxx / lam
+
+
+def _check_common(field, dx, wavelength, z, pad):
+    check_field(field)
+    for p in pitch_yx(dx):
+        check_positive("dx (pixel pitch)", p, "m")
+    check_positive("wavelength", wavelength, "m")
+    check_positive("z (propagation distance)", z, "m", allow_negative=True)
+    py, px = (pad, pad) if isinstance(pad, int) else pad
+    if not (isinstance(py, int) and isinstance(px, int)) or py < 0 or px < 0:
+        raise DiffcamError(f"pad must be a non-negative int or (py, px) pair of ints, got {pad!r}.")
+
+
+def _padded_shape(shape, pad):
+    py, px = (pad, pad) if isinstance(pad, int) else pad
+    return shape[-2] + 2 * py, shape[-1] + 2 * px
+
+
+def _check_kernel_sampling(method, shape, dx, wavelength, z, pad, accept_undersampling):
+    """Concrete sampling check of the TF / IR chirp (docs/design.md, "Validation")."""
+    if not is_concrete(dx, wavelength, z) or method == "angular_spectrum":
+        return  # the band-limited angular spectrum never aliases its kernel
+    zc = min(critical_distance(_padded_shape(shape, pad), dx, wavelength))
+    az = abs(float(z))
+    if az == 0:
+        return
+    if method == "fresnel_tf" and az > zc:
+        sampling_problem(
+            f"Fresnel transfer function is undersampled: |z| = {fmt_length(az)} exceeds "
+            f"N·dx²/λ = {fmt_length(zc)} on this (padded) grid, so its chirp aliases; use "
+            f"method='fresnel_ir' (or propagate(..., method='auto')), or pad the grid",
+            accept_undersampling)
+    if method == "fresnel_ir" and az < zc:
+        sampling_problem(
+            f"Fresnel impulse response is undersampled: |z| = {fmt_length(az)} is below "
+            f"N·dx²/λ = {fmt_length(zc)}, so its chirp aliases at the grid edge; use "
+            f"method='fresnel_tf' or 'angular_spectrum' (or method='auto')",
+            accept_undersampling)
+
+
+# ---------------------------------------------------------------- transfer functions
+
+def spherical_chirp(n: int, dx, wavelength, z, centre=0.0):
+    """exp(jπ(t − centre)²/(λz)) on the centred axis t of ``n`` samples at pitch ``dx``:
+    the 1-D factor of a paraxial spherical wave (metres). Computed on its own, not once
+    per sample of the N² product that consumes it (:func:`diffcam.core.backend.vector`)."""
+    def chirp(i):
+        t = coord_at(i, n, dx) - centre
+        return jnp.exp(1j * jnp.pi * (t * t) / (wavelength * z))
+    return vector(chirp, n)
+
+
+def _fresnel_tf_kernel(shape, dy, dx, wavelength, z):
+    """exp(−jπλz(fy² + fx²)) as its two 1-D factors, FFT order, ``(ny, 1)`` and
+    ``(1, nx)`` (each computed on its own: :func:`diffcam.core.backend.vector`)."""
+    def factor(n, d):
+        return vector(lambda i: jnp.exp(-1j * jnp.pi * wavelength * z
+                                        * fft_freq_at(i, n, d) ** 2), n)
+    return factor(shape[-2], dy)[:, None], factor(shape[-1], dx)[None, :]
+
+
+def _fresnel_ir_kernel(shape, dy, dx, wavelength, z):
+    """FFT of the sampled, centred impulse response: separable, two 1-D FFTs."""
+    def factor(n, d):
+        return jnp.fft.fft(jnp.fft.ifftshift(spherical_chirp(n, d, wavelength, z))) * d
+    Hy = factor(shape[-2], dy) / (1j * wavelength * z)
+    return Hy[:, None], factor(shape[-1], dx)[None, :]
+
+
+def _angular_spectrum_kernel(shape, dy, dx, wavelength, z, band_limit):
+    """exp(j2πz(√(1/λ² − f²) − 1/λ)), evanescent waves set to zero.
+
+    The exponent is written −f²/(1/λ + √(1/λ² − f²)) so it stays accurate in float32
+    (no cancellation between two numbers near 1/λ); the e^{jkz} piston is separate.
+    The square root is guarded with a double ``where`` so gradients are finite.
+    """
+    fy, fx = fft_freqs(shape, (dy, dx))
+    f2 = fy ** 2 + fx ** 2
+    inv_l2 = 1.0 / wavelength ** 2
+    propagating = f2 < inv_l2
+    root = jnp.sqrt(jnp.where(propagating, inv_l2 - f2, 1.0))
+    excess = -f2 / (1.0 / wavelength + root)
+    H = jnp.where(propagating, jnp.exp(2j * jnp.pi * z * excess), 0.0)
+    if band_limit:
+        ny, nx = shape[-2], shape[-1]
+        # Matsushima & Shimobaba (2009): |f| ≤ 1/(λ√((2zΔf)² + 1)), Δf = 1/L per axis
+        fy_lim = 1.0 / (wavelength * jnp.sqrt((2 * z / (ny * dy)) ** 2 + 1))
+        fx_lim = 1.0 / (wavelength * jnp.sqrt((2 * z / (nx * dx)) ** 2 + 1))
+        H = H * ((jnp.abs(fy) <= fy_lim) & (jnp.abs(fx) <= fx_lim))
+    return H
+
+
+def transfer_function(shape, dx, wavelength, z, method: str = "angular_spectrum",
+                      *, band_limit: bool = True) -> Complex[Array, "ny nx"]:
+    """The kernel that multiplies ``fft2(field)`` (FFT order, piston included).
+
+    For loops that propagate the same distance many times (phase retrieval): build it
+    once with this, then call :func:`apply_transfer` inside the loop.
+
+    Args:
+        shape: ``(..., ny, nx)`` of the (already padded) field.
+        dx: sample pitch, metres (scalar or ``(dy, dx)``).
+        wavelength: metres.
+        z: propagation distance, metres (negative propagates backwards).
+        method: ``"fresnel_tf"``, ``"fresnel_ir"`` or ``"angular_spectrum"``.
+    """
+    if method not in METHODS:
+        raise DiffcamError(f"method must be one of {METHODS}, got {method!r}.")
+    dy, dxx = pitch_yx(dx)
+    return _kernel(shape, dy, dxx, wavelength, z, piston(wavelength, z), method, band_limit)
+
+
+def _kernel(shape, dy, dx, wavelength, z, p, method, band_limit):
+    """The transfer function with piston ``p``: for the Fresnel methods the product of
+    two 1-D factors, which fuses into the multiply that consumes it."""
+    if method == "angular_spectrum":
+        return p * _angular_spectrum_kernel(shape, dy, dx, wavelength, z, band_limit)
+    kernel = _fresnel_tf_kernel if method == "fresnel_tf" else _fresnel_ir_kernel
+    hy, hx = kernel(shape, dy, dx, wavelength, z)
+    return (p * hy) * hx
+
+
+@jax.jit
+def apply_transfer(field: Complex[Array, "... ny nx"],
+                   H: Complex[Array, "ny nx"]) -> Complex[Array, "... ny nx"]:
+    """``ifft2(fft2(field) · H)``: one propagation step with a prebuilt kernel."""
+    return transfer_step(field, H)
+
+
+def _step(u, H, in_place=True):
+    """``ifft2(fft2(u) · H)``. For a prebuilt or separable H through
+    :func:`diffcam.core.backend.transfer_step`; a kernel computed per sample (the angular
+    spectrum's square root and exponential) costs more computed serially than the inverse
+    FFT loses, so it is multiplied as one plain product."""
+    return transfer_step(u, H) if in_place else ifft2(fft2(u) * H)
+
+
+@partial(jax.jit, static_argnames=("method", "pad", "band_limit"))
+def _propagate_core(field, dy, dx, wavelength, z, p, *, method, pad, band_limit):
+    shape = field.shape
+    u = field.astype(_complex_dtype(field))
+    if pad != (0, 0):
+        u = pad_by(u, pad)
+    H = _kernel(u.shape, dy, dx, wavelength, z, p, method, band_limit)
+    out = _step(u, H, in_place=method != "angular_spectrum").astype(u.dtype)
+    if pad != (0, 0):
+        out = crop_to(out, shape)
+    return out
+
+
+def _run(method, field, dx, wavelength, z, pad, accept_undersampling, band_limit=True):
+    _check_common(field, dx, wavelength, z, pad)
+    pad = (pad, pad) if isinstance(pad, int) else tuple(pad)
+    _check_kernel_sampling(method, np.shape(field), dx, wavelength, z, pad,
+                           accept_undersampling)
+    if is_concrete(z) and float(np.max(np.abs(np.asarray(z)))) == 0.0:
+        return jnp.asarray(field).astype(_complex_dtype(field))  # z = 0 is the identity
+    dy, dxx = pitch_yx(dx)
+    field = jnp.asarray(field)
+    rdt = jnp.float64 if _complex_dtype(field) == jnp.complex128 else jnp.float32
+    return _propagate_core(field, jnp.asarray(dy, rdt), jnp.asarray(dxx, rdt),
+                           jnp.asarray(wavelength, rdt), jnp.asarray(z, rdt),
+                           piston(wavelength, z).astype(_complex_dtype(field)),
+                           method=method, pad=pad, band_limit=band_limit)
+
+
+def fresnel_tf(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
+               accept_undersampling: bool = False) -> Complex[Array, "... ny nx"]:
+    """Fresnel propagation by the transfer function (paraxial), paper Eq. 6.
+
+    Args:
+        field: complex field, last two axes space (centred grid).
+        dx: sample pitch, metres per sample (scalar or ``(dy, dx)``).
+        wavelength: metres.
+        z: distance, metres; negative propagates backwards, 0 is the identity.
+        pad: zero samples added on each side before the FFT and cropped after (int
+            or ``(py, px)``); 0 means circular propagation (wrap-around).
+        accept_undersampling: turn the aliasing error into a warning.
+
+    Raises:
+        SamplingError: ``|z| > N·dx²/λ`` on the padded grid (the chirp aliases).
+    """
+    return _run("fresnel_tf", field, dx, wavelength, z, pad, accept_undersampling)
+
+
+def fresnel_ir(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
+               accept_undersampling: bool = False) -> Complex[Array, "... ny nx"]:
+    """Fresnel propagation by the impulse response (paraxial), paper Eqs. 1–2.
+
+    Convolution with h = e^{jkz}/(jλz) e^{jk(x²+y²)/(2z)} sampled on the grid. Accurate
+    for ``|z| ≥ N·dx²/λ``; not exactly invertible (the sampled kernel is not unitary).
+    Arguments as in :func:`fresnel_tf`.
+    """
+    return _run("fresnel_ir", field, dx, wavelength, z, pad, accept_undersampling)
+
+
+def angular_spectrum(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
+                     band_limit: bool = True) -> Complex[Array, "... ny nx"]:
+    """Exact scalar propagation by the angular spectrum (Rayleigh–Sommerfeld).
+
+    H = exp(j2πz√(1/λ² − fx² − fy²)); evanescent components (f > 1/λ) are dropped.
+    With ``band_limit=True`` frequencies beyond 1/(λ√((2z/L)² + 1)) are also dropped
+    (Matsushima & Shimobaba 2009), which removes the aliasing of the kernel at long
+    distances; for short distances the limit lies beyond the grid's Nyquist and changes
+    nothing. Arguments as in :func:`fresnel_tf`.
+    """
+    return _run("angular_spectrum", field, dx, wavelength, z, pad, False, band_limit)
+
+
+# ---------------------------------------------------------------------- Fourier lens
+
+@partial(jax.jit, static_argnames=("inverse",))
+def _fourier_lens_core(field, dy, dx, wavelength, focal_length, p, *, inverse):
+    u = field.astype(_complex_dtype(field))
+    if not inverse:
+        return p / (1j * wavelength * focal_length) * dy * dx * fft2c(u)
+    ny, nx = u.shape[-2:]
+    # dy, dx here are the far-field pitches; ifft2c carries 1/(ny·nx)
+    return jnp.conj(p) / (-1j * wavelength * focal_length) * dy * dx * (ny * nx) * ifft2c(u)
+
+
+def _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse):
+    check_field(field)
+    for q in pitch_yx(dx):
+        check_positive("dx (pixel pitch)", q, "m")
+    check_positive("wavelength", wavelength, "m")
+    check_positive("focal_length", focal_length, "m")
+    field = jnp.asarray(field)
+    if pad:
+        field = pad_by(field, pad)
+    ny, nx = field.shape[-2:]
+    dy, dxx = pitch_yx(dx)
+    out_pitch = (wavelength * focal_length / (ny * dy), wavelength * focal_length / (nx * dxx))
+    rdt = jnp.float64 if _complex_dtype(field) == jnp.complex128 else jnp.float32
+    out = _fourier_lens_core(field, jnp.asarray(dy, rdt), jnp.asarray(dxx, rdt),
+                             jnp.asarray(wavelength, rdt), jnp.asarray(focal_length, rdt),
+                             piston(wavelength, focal_length).astype(_complex_dtype(field)),
+                             inverse=inverse)
+    return out, out_pitch
+
+
+def fourier_lens(field: Num[Array, "... ny nx"], dx, wavelength, focal_length, *, pad=0
+                 ) -> tuple[Complex[Array, "... my mx"], tuple]:
+    """Field at the back focal plane of a lens with ``field`` at its front focal plane.
+
+    Paper Eq. 13: U'(u) = e^{jkf}/(jλf) ∫ U(x) e^{-j2π x·u/(λf)} dx, evaluated on the
+    centred grid of pitch λf/(N·dx) per axis. Energy-preserving in physical units:
+    Σ|U'|²·du_y·du_x = Σ|U|²·dy·dx.
+
+    Args:
+        field: field at the front focal plane, last two axes space.
+        dx: its pitch, metres (scalar or ``(dy, dx)``).
+        wavelength: metres.
+        focal_length: metres.
+        pad: zero samples added on each side first; the output keeps the padded shape
+            and so has a finer pitch λf/((N + 2·pad)·dx).
+
+    Returns:
+        ``(far_field, (du_y, du_x))``: the field and its pitch in metres.
+    """
+    return _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse=False)
+
+
+def inverse_fourier_lens(field: Num[Array, "... ny nx"], du, wavelength, focal_length
+                         ) -> tuple[Complex[Array, "... ny nx"], tuple]:
+    """Front-focal-plane field from the back-focal-plane field: inverse of
+    :func:`fourier_lens`. ``du`` is the far-field pitch (metres); returns the field and
+    its pitch λf/(N·du)."""
+    return _fourier_lens_run(field, du, wavelength, focal_length, 0, inverse=True)
+
+
+# --------------------------------------------------------------- Fresnel scaling theorem
+
+def magnification(z1, z2):
+    """M = (z1 + z2)/z1: how much the Fresnel scaling theorem magnifies the diffuser's
+    plane-wave field for a point source at ``z1`` and a sensor at ``z2`` (metres).
+
+    A field g times a spherical wave diverging from distance z1, propagated by z2, is
+    g propagated by :func:`effective_distance` and magnified by M, scaled in amplitude by
+    1/M, times a known quadratic phase (docs/design.md, "Fresnel scaling theorem").
+    """
+    return (z1 + z2) / z1
+
+
+def effective_distance(z1, z2):
+    """z_eff = z1·z2/(z1 + z2) (metres): the plane-wave propagation distance of the
+    scaling theorem (see :func:`magnification`)."""
+    return z1 * z2 / (z1 + z2)
+
+
+# ------------------------------------------------------------------------ the chooser
+
+class PropagationChoice(NamedTuple):
+    """What :func:`propagate` ran, and why."""
+
+    method: str
+    pad: tuple[int, int]
+    critical_distance: float  # N·dx²/λ on the padded grid, metres (smaller axis)
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.method} (pad {self.pad[0]}×{self.pad[1]}): {self.reason}"
+
+
+def _energy_bounds(weights: np.ndarray, keep: float) -> tuple[int, int]:
+    c = np.cumsum(weights)
+    total = c[-1]
+    lo = int(np.searchsorted(c, (1 - keep) / 2 * total))
+    hi = int(np.searchsorted(c, (1 + keep) / 2 * total))
+    return lo, min(hi, len(weights) - 1)
+
+
+def _auto_pad(field, dx, wavelength, z, keep=0.999) -> tuple[int, int]:
+    """Zero padding per side that keeps the field's spread inside the grid.
+
+    The field's 99.9 % energy support and 99.9 % spectral bandwidth are measured; light
+    at the band edge travels |z|·tanθ sideways (sin θ = λ·f); the pad covers what that
+    spread takes beyond the room left between the support and the grid edge.
+    """
+    u = np.asarray(field)
+    intensity = np.abs(u.reshape((-1,) + u.shape[-2:])) ** 2
+    intensity = intensity.sum(axis=0)
+    spectrum = np.abs(np.fft.fftshift(np.fft.fft2(u.reshape((-1,) + u.shape[-2:])),
+                                      axes=(-2, -1))) ** 2
+    spectrum = spectrum.sum(axis=0)
+    pads = []
+    for axis, (n, p) in enumerate(zip(u.shape[-2:], pitch_yx(dx))):
+        other = 1 - axis
+        lo, hi = _energy_bounds(intensity.sum(axis=other), keep)
+        room = min(lo, n - 1 - hi)
+        flo, fhi = _energy_bounds(spectrum.sum(axis=other), keep)
+        f_edge = max(abs(flo - n // 2), abs(fhi - n // 2)) / (n * float(p))
+        sin_t = min(float(wavelength) * f_edge, 0.999)
+        spread = abs(float(z)) * sin_t / math.sqrt(1 - sin_t ** 2)
+        need = max(0, math.ceil(spread / float(p)) - room)
+        if need:
+            need = (fft_size(n + 2 * need) - n + 1) // 2
+        pads.append(need)
+    return pads[0], pads[1]
+
+
+def choose_propagation(shape, dx, wavelength, z, pad=(0, 0)) -> PropagationChoice:
+    """Pick the propagator for distance ``z`` on a grid padded by ``pad`` per side.
+
+    The angular spectrum (exact, and identical to Fresnel TF where that is valid) while
+    its transfer function is sampled, |z| ≤ N·dx²/λ; the Fresnel impulse response
+    beyond, where the transfer function's chirp would alias.
+    """
+    pad = (pad, pad) if isinstance(pad, int) else tuple(pad)
+    zc = min(critical_distance(_padded_shape(shape, pad), dx, wavelength))
+    az = abs(float(z))
+    if az <= zc:
+        return PropagationChoice("angular_spectrum", pad, zc,
+                                 f"|z| = {fmt_length(az)} ≤ N·dx²/λ = {fmt_length(zc)}: "
+                                 f"transfer function sampled")
+    return PropagationChoice("fresnel_ir", pad, zc,
+                             f"|z| = {fmt_length(az)} > N·dx²/λ = {fmt_length(zc)}: "
+                             f"impulse response sampled, transfer function would alias")
+
+
+def propagate(field: Num[Array, "... ny nx"], dx, wavelength, z, *, method: str = "auto",
+              pad="auto", accept_undersampling: bool = False, return_choice: bool = False,
+              verbose: bool = False):
+    """Propagate ``field`` by ``z`` with the method and padding the sampling calls for.
+
+    Args:
+        field: complex field, last two axes space (centred grid), concrete when
+            ``pad="auto"``.
+        dx: pitch, metres per sample (scalar or ``(dy, dx)``).
+        wavelength: metres.
+        z: metres.
+        method: ``"auto"`` (see :func:`choose_propagation`), ``"fresnel_tf"``,
+            ``"fresnel_ir"`` or ``"angular_spectrum"``.
+        pad: ``"auto"`` pads by the spread predicted from the field's support and
+            bandwidth (rounded up to an FFT-friendly size); or an int / ``(py, px)``.
+        accept_undersampling: warn instead of raising on an aliased kernel.
+        return_choice: also return the :class:`PropagationChoice` that ran.
+        verbose: print the choice.
+
+    Under an outer ``jit`` the automatic choices need concrete values: pass ``method``
+    and an integer ``pad`` explicitly there.
+    """
+    check_field(field)
+    if pad == "auto":
+        if not is_concrete(field, z, dx, wavelength):
+            raise DiffcamError("pad='auto' inspects the field and z, which are traced here; "
+                               "pass pad=<int> (zero samples per side) inside jit/grad/vmap.")
+        _check_common(field, dx, wavelength, z, 0)
+        pad = _auto_pad(field, dx, wavelength, z)
+    pad = (pad, pad) if isinstance(pad, int) else tuple(pad)
+    if method == "auto":
+        if not is_concrete(z, dx, wavelength):
+            raise DiffcamError("method='auto' compares z with N·dx²/λ, which needs concrete "
+                               "values; pass method='angular_spectrum', 'fresnel_tf' or "
+                               "'fresnel_ir' inside jit/grad/vmap.")
+        choice = choose_propagation(np.shape(field), dx, wavelength, z, pad)
+    elif method in METHODS:
+        zc = min(critical_distance(_padded_shape(np.shape(field), pad), dx, wavelength)) \
+            if is_concrete(dx, wavelength) else float("nan")
+        choice = PropagationChoice(method, pad, zc, "chosen by the caller")
+    else:
+        raise DiffcamError(f"method must be 'auto' or one of {METHODS}, got {method!r}.")
+    if verbose:
+        print(f"diffcam.optics.propagation: {choice}")
+    if choice.method == "angular_spectrum":
+        out = angular_spectrum(field, dx, wavelength, z, pad=choice.pad)
+    else:
+        out = _run(choice.method, field, dx, wavelength, z, choice.pad, accept_undersampling)
+    return (out, choice) if return_choice else out
