@@ -66,7 +66,7 @@ plt.tight_layout()
 stack = load_psf_stack_3d(downsample_by=2 if SMALL else 1)
 raw = load_raw_3d(downsample_by=2 if SMALL else 1)
 planes = stack[::4] if SMALL else stack
-sweep = focus_sweep(raw, planes, num_iter=10 if SMALL else 40)
+sweep = focus_sweep(raw, planes, iterations=10 if SMALL else 40)
 print("sharpest plane:", int(sweep.best), "of", len(planes))
 
 fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))

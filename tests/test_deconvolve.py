@@ -126,7 +126,7 @@ def test_skimage_even_psf_is_not_the_adjoint(x64):
     assert _rel(a / a.mean(), b / b.mean()) > 1e-2
 
 
-def _rl_direct(image, psf, num_iter, boundary):
+def _rl_direct(image, psf, iterations, boundary):
     """The default update written with scipy.signal.convolve (no FFT), in float64."""
     my, mx = psf.shape
     ny, nx = image.shape
@@ -149,7 +149,7 @@ def _rl_direct(image, psf, num_iter, boundary):
     sens = adj(np.ones_like(image))
     seen = sens > 1e-5 * sens.max()
     x = np.where(seen, image.sum() / sens[seen].sum(), 0.0)
-    for _ in range(num_iter):
+    for _ in range(iterations):
         x = np.where(seen, x * adj(image / (fwd(x) + 1e-12)) / np.where(seen, sens, 1), 0)
     return x
 
@@ -370,11 +370,11 @@ def test_bad_inputs_raise_clear_errors(solver):
         args(np.stack([image] * 2), np.stack([psf] * 3))
 
 
-@pytest.mark.parametrize("num_iter", [0, -3, 2.5, True])
-def test_bad_iterations(num_iter):
+@pytest.mark.parametrize("iterations", [0, -3, 2.5, True])
+def test_bad_iterations(iterations):
     image, psf = _problem()
-    with pytest.raises(DiffcamError, match="num_iter"):
-        richardson_lucy(image, psf, num_iter)
+    with pytest.raises(DiffcamError, match="iterations"):
+        richardson_lucy(image, psf, iterations)
 
 
 def test_rl_specific_errors():

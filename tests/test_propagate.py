@@ -11,6 +11,7 @@ from diffcam.core import grid
 from diffcam.core.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
 from diffcam.optics.elements import circular_aperture, thin_lens
 from diffcam.optics.propagation import (angular_spectrum, apply_transfer, choose_propagation,
+                                        plan_propagation,
                                fourier_lens, fresnel_ir, fresnel_tf, inverse_fourier_lens,
                                propagate, transfer_function)
 from conftest import assert_grad_matches_fd
@@ -249,14 +250,14 @@ def test_auto_chooses_by_critical_distance_and_pads_spreading_fields():
     n, dx = 256, 2e-6
     zc = n * dx * dx / LAM
     u, _ = _disc(n, dx, 20)
-    _, near = propagate(u, dx, LAM, 0.5 * zc, return_choice=True)
+    near = plan_propagation(u, dx, LAM, 0.5 * zc)
     assert near.method == "angular_spectrum" and "≤" in near.reason
-    _, far = propagate(u, dx, LAM, 20 * zc, pad=0, return_choice=True)
+    far = plan_propagation(u, dx, LAM, 20 * zc, pad=0)
     assert far.method == "fresnel_ir"
-    _, padded = propagate(u, dx, LAM, 4 * zc, return_choice=True)
+    padded = plan_propagation(u, dx, LAM, 4 * zc)
     assert padded.pad[0] > 0 and padded.pad[1] > 0
     g = _gaussian_beam(n, dx)
-    _, compact = propagate(g, dx, LAM, 0.1e-3, return_choice=True)
+    compact = plan_propagation(g, dx, LAM, 0.1e-3)
     assert compact.pad == (0, 0)
     assert choose_propagation((n, n), dx, LAM, zc).method == "angular_spectrum"
 

@@ -285,7 +285,7 @@ def _cmd_reconstruct(args) -> int:
         elif args.plane is not None:
             plane = args.plane
         else:
-            sweep = focus_sweep(raw, psfs, num_iter=min(args.iterations, 30))
+            sweep = focus_sweep(raw, psfs, iterations=min(args.iterations, 30))
             plane = int(sweep.best)
             print(f"diffcam reconstruct: sharpest plane {plane} of {len(psfs)}")
         if not 0 <= plane < len(psfs):

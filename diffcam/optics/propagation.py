@@ -57,6 +57,7 @@ __all__ = [
     "propagate",
     "PropagationChoice",
     "choose_propagation",
+    "plan_propagation",
     "critical_distance",
     "transfer_function",
     "apply_transfer",
@@ -458,27 +459,17 @@ def choose_propagation(shape, dx, wavelength, z, pad=(0, 0)) -> PropagationChoic
                              f"impulse response sampled, transfer function would alias")
 
 
-def propagate(field: Num[Array, "... ny nx"], dx, wavelength, z, *, method: str = "auto",
-              pad="auto", accept_undersampling: bool = False, return_choice: bool = False,
-              verbose: bool = False):
-    """Propagate ``field`` by ``z`` with the method and padding the sampling calls for.
+def plan_propagation(field: Num[Array, "... ny nx"], dx, wavelength, z, *,
+                     method: str = "auto", pad="auto") -> PropagationChoice:
+    """The method and padding :func:`propagate` runs for these arguments, and why.
 
     Args:
-        field: complex field, last two axes space (centred grid), concrete when
-            ``pad="auto"``.
-        dx: pitch, metres per sample (scalar or ``(dy, dx)``).
-        wavelength: metres.
-        z: metres.
-        method: ``"auto"`` (see :func:`choose_propagation`), ``"fresnel_tf"``,
-            ``"fresnel_ir"`` or ``"angular_spectrum"``.
-        pad: ``"auto"`` pads by the spread predicted from the field's support and
-            bandwidth (rounded up to an FFT-friendly size); or an int / ``(py, px)``.
-        accept_undersampling: warn instead of raising on an aliased kernel.
-        return_choice: also return the :class:`PropagationChoice` that ran.
-        verbose: print the choice.
-
-    Under an outer ``jit`` the automatic choices need concrete values: pass ``method``
-    and an integer ``pad`` explicitly there.
+        field: complex field (concrete when ``pad="auto"``: its support and bandwidth
+            set the padding).
+        dx, wavelength, z: metres.
+        method: ``"auto"`` (see :func:`choose_propagation`) or one of the methods.
+        pad: ``"auto"`` (the spread predicted from the field's support and bandwidth,
+            rounded up to an FFT-friendly size) or an int / ``(py, px)``.
     """
     check_field(field)
     if pad == "auto":
@@ -493,17 +484,36 @@ def propagate(field: Num[Array, "... ny nx"], dx, wavelength, z, *, method: str 
             raise DiffcamError("method='auto' compares z with N·dx²/λ, which needs concrete "
                                "values; pass method='angular_spectrum', 'fresnel_tf' or "
                                "'fresnel_ir' inside jit/grad/vmap.")
-        choice = choose_propagation(np.shape(field), dx, wavelength, z, pad)
-    elif method in METHODS:
+        return choose_propagation(np.shape(field), dx, wavelength, z, pad)
+    if method in METHODS:
         zc = min(critical_distance(_padded_shape(np.shape(field), pad), dx, wavelength)) \
             if is_concrete(dx, wavelength) else float("nan")
-        choice = PropagationChoice(method, pad, zc, "chosen by the caller")
-    else:
-        raise DiffcamError(f"method must be 'auto' or one of {METHODS}, got {method!r}.")
+        return PropagationChoice(method, pad, zc, "chosen by the caller")
+    raise DiffcamError(f"method must be 'auto' or one of {METHODS}, got {method!r}.")
+
+
+def propagate(field: Num[Array, "... ny nx"], dx, wavelength, z, *, method: str = "auto",
+              pad="auto", accept_undersampling: bool = False, verbose: bool = False
+              ) -> Complex[Array, "... ny nx"]:
+    """Propagate ``field`` by ``z`` with the method and padding the sampling calls for
+    (:func:`plan_propagation` says which, and why).
+
+    Args:
+        field: complex field, last two axes space (centred grid), concrete when
+            ``pad="auto"``.
+        dx: pitch, metres per sample (scalar or ``(dy, dx)``).
+        wavelength: metres.
+        z: metres.
+        method, pad: as for :func:`plan_propagation`.
+        accept_undersampling: warn instead of raising on an aliased kernel.
+        verbose: print the choice.
+
+    Under an outer ``jit`` the automatic choices need concrete values: pass ``method``
+    and an integer ``pad`` explicitly there.
+    """
+    choice = plan_propagation(field, dx, wavelength, z, method=method, pad=pad)
     if verbose:
-        print(f"diffcam.optics.propagation: {choice}")
+        print(f"diffcam.optics.propagate: {choice}")
     if choice.method == "angular_spectrum":
-        out = angular_spectrum(field, dx, wavelength, z, pad=choice.pad)
-    else:
-        out = _run(choice.method, field, dx, wavelength, z, choice.pad, accept_undersampling)
-    return (out, choice) if return_choice else out
+        return angular_spectrum(field, dx, wavelength, z, pad=choice.pad)
+    return _run(choice.method, field, dx, wavelength, z, choice.pad, accept_undersampling)

@@ -52,7 +52,7 @@ _AXES = (-2, -1)
 _BOUNDARIES = ("crop", "circular")
 
 
-def admm_tv(image: ArrayLike, psf: ArrayLike, num_iter: int = 100, *,
+def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100, *,
             mu1: float = 1e-6, mu2: float = 1e-5, mu3: float = 4e-5, tau: float = 1e-4,
             boundary: str = "crop", tol: float | None = None) -> Reconstruction:
     """DiffuserCam ADMM-TV reconstruction of a 2-D scene from one sensor image.
@@ -62,7 +62,7 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, num_iter: int = 100, *,
             negatives).
         psf: ``(..., my, mx)`` PSF, non-negative, ``my <= ny``, ``mx <= nx``; leading axes
             broadcast with the image's.
-        num_iter: iterations (static). The DiffuserCam tutorial shows 5; 50–200 converge
+        iterations: iterations (static). The DiffuserCam tutorial shows 5; 50–200 converge
             much further.
         mu1, mu2, mu3: ADMM penalties of the splits ``x = Hv``, ``u = Ψv``, ``w = v``
             (defaults from the DiffuserCam tutorial).
@@ -75,11 +75,11 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, num_iter: int = 100, *,
         :class:`Reconstruction`; ``image`` is the non-negative split variable ``w``,
         ``(..., oy, ox)``.
     """
-    return _admm(image, psf, num_iter, mu1=mu1, mu2=mu2, mu3=mu3, tau=tau,
+    return _admm(image, psf, iterations, mu1=mu1, mu2=mu2, mu3=mu3, tau=tau,
                  boundary=boundary, tol=tol, volume=False, tv_axial=False)
 
 
-def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, num_iter: int = 100, *,
+def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *,
                mu1: float = 1e-6, mu2: float = 1e-5, mu3: float = 4e-5, tau: float = 6e-4,
                tv_axial: bool = True, boundary: str = "crop",
                tol: float | None = None) -> Reconstruction:
@@ -90,21 +90,21 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, num_iter: int = 100, *,
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale, or a
             list of ``(my, mx)`` arrays.
         tv_axial: include differences along depth in the TV (3-D TV, as DiffuserCam).
-        num_iter, mu1, mu2, mu3, tau, boundary, tol: as for :func:`admm_tv` (``tau``
+        iterations, mu1, mu2, mu3, tau, boundary, tol: as for :func:`admm_tv` (``tau``
             default 6e-4, DiffuserCam's 3-D setting for raw counts minus the bias).
 
     Returns:
         :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)``.
     """
-    return _admm(image, as_psf_stack(psf_stack), num_iter, mu1=mu1, mu2=mu2, mu3=mu3,
+    return _admm(image, as_psf_stack(psf_stack), iterations, mu1=mu1, mu2=mu2, mu3=mu3,
                  tau=tau, boundary=boundary, tol=tol, volume=True, tv_axial=tv_axial)
 
 
-def _admm(image, psf, num_iter, *, mu1, mu2, mu3, tau, boundary, tol, volume, tv_axial):
+def _admm(image, psf, iterations, *, mu1, mu2, mu3, tau, boundary, tol, volume, tv_axial):
     if boundary not in _BOUNDARIES:
         raise DiffcamError(f"ADMM supports boundary in {_BOUNDARIES}, got {boundary!r}; "
                            f"for a 'same'-size model use richardson_lucy.")
-    num_iter = check_iterations(num_iter)
+    iterations = check_iterations(iterations)
     check_tol(tol)
     check_image(image, nonnegative=False)
     core = 3 if volume else 2
@@ -127,16 +127,16 @@ def _admm(image, psf, num_iter, *, mu1, mu2, mu3, tau, boundary, tol, volume, tv
     penalties = jnp.asarray([mu1, mu2, mu3, tau], dtype)
     out = _admm_batched(flat(image, 2), flat(psf, 3), penalties,
                         None if tol is None else jnp.asarray(tol, dtype),
-                        num_iter=num_iter, boundary=boundary, tv_axial=tv_axial)
+                        iterations=iterations, boundary=boundary, tv_axial=tv_axial)
     if not volume:
         out = out._replace(image=out.image[:, 0])
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
-@partial(jax.jit, static_argnames=("num_iter", "boundary", "tv_axial"))
-def _admm_batched(image, psf, penalties, tol, *, num_iter, boundary, tv_axial):
+@partial(jax.jit, static_argnames=("iterations", "boundary", "tv_axial"))
+def _admm_batched(image, psf, penalties, tol, *, iterations, boundary, tv_axial):
     def one(b, h):
-        return _admm_solve(b, h, penalties, tol, num_iter=num_iter, boundary=boundary,
+        return _admm_solve(b, h, penalties, tol, iterations=iterations, boundary=boundary,
                            tv_axial=tv_axial)
     return jax.vmap(one)(image, psf)
 
@@ -159,7 +159,7 @@ def _tv_adjoint(g, axial):
     return out
 
 
-def _admm_solve(b, psf, penalties, tol, *, num_iter, boundary, tv_axial):
+def _admm_solve(b, psf, penalties, tol, *, iterations, boundary, tv_axial):
     """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid."""
     mu1, mu2, mu3, tau = penalties
     h_norm = jnp.linalg.norm(psf)
@@ -226,7 +226,7 @@ def _admm_solve(b, psf, penalties, tol, *, num_iter, boundary, tv_axial):
     plane = jnp.zeros(grid, b.dtype)
     tv0 = _tv(v0, axial)
     state = (v0, plane, tv0, v0, plane, tv0, v0)
-    state, res, obj, its, done = iterate(step, state, num_iter, tol)
+    state, res, obj, its, done = iterate(step, state, iterations, tol)
     v, _, _, _, _, _, rho = state
     estimate = jnp.maximum(v + rho / mu3, 0) / h_norm
     return Reconstruction(image=estimate, residual=res, objective=obj, iterations=its,

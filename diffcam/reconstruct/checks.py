@@ -77,15 +77,15 @@ def check_image(image: Any, *, nonnegative: bool) -> None:
                 f"diffcam.io.subtract_background (clips small negatives) or use admm_tv.")
 
 
-def check_iterations(num_iter: Any) -> int:
-    """``num_iter`` as a positive Python int (it fixes the history length: static)."""
-    if isinstance(num_iter, jax.core.Tracer) or not isinstance(num_iter, numbers.Integral) \
-            or isinstance(num_iter, bool):
+def check_iterations(iterations: Any) -> int:
+    """``iterations`` as a positive Python int (it fixes the history length: static)."""
+    if isinstance(iterations, jax.core.Tracer) or not isinstance(iterations, numbers.Integral) \
+            or isinstance(iterations, bool):
         raise DiffcamError(
-            f"num_iter must be a Python int (it is static under jit), got {num_iter!r}.")
-    if num_iter <= 0:
-        raise DiffcamError(f"num_iter must be >= 1, got {num_iter}; 50–300 is typical.")
-    return int(num_iter)
+            f"iterations must be a Python int (it is static under jit), got {iterations!r}.")
+    if iterations <= 0:
+        raise DiffcamError(f"iterations must be >= 1, got {iterations}; 50–300 is typical.")
+    return int(iterations)
 
 
 def check_tol(tol: Any) -> None:

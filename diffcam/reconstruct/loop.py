@@ -17,9 +17,9 @@ class Reconstruction(NamedTuple):
     Attributes:
         image: ``(..., [nz,] oy, ox)`` estimated object on the model's object grid, in
             the units of ``image / sum(psf)``.
-        residual: ``(..., num_iter)`` relative data misfit ``||A x_k - b|| / ||b||`` of
+        residual: ``(..., iterations)`` relative data misfit ``||A x_k - b|| / ||b||`` of
             the estimate entering iteration ``k``; NaN after an early stop.
-        objective: ``(..., num_iter)`` the quantity the solver minimises, at the same
+        objective: ``(..., iterations)`` the quantity the solver minimises, at the same
             estimates (Richardson–Lucy: the I-divergence ``Σ b log(b/Ax) - b + Ax``
             plus its regulariser; ADMM: ``½||A x - b||² + tau·TV``; Wiener: the
             Tikhonov functional); NaN after an early stop.
@@ -41,17 +41,17 @@ def relative_residual(predicted: Array, data: Array) -> Array:
     return jnp.where(den > 0, num / jnp.where(den > 0, den, 1), num)
 
 
-def iterate(step: Callable, state, num_iter: int, tol: Array | None):
-    """Run ``state, (residual, objective) = step(state)`` up to ``num_iter`` times.
+def iterate(step: Callable, state, iterations: int, tol: Array | None):
+    """Run ``state, (residual, objective) = step(state)`` up to ``iterations`` times.
 
     With ``tol=None`` this is a ``lax.scan`` (reverse-mode differentiable); otherwise a
     ``lax.while_loop`` that stops once ``|f_k - f_{k-1}| <= tol·|f_{k-1}|`` for the
     objective ``f`` (forward-mode only). Returns ``(state, residual, objective,
-    iterations, converged)`` with NaN-filled histories of length ``num_iter``.
+    iterations, converged)`` with NaN-filled histories of length ``iterations``.
     """
     if tol is None:
-        state, (res, obj) = lax.scan(lambda s, _: step(s), state, None, length=num_iter)
-        return state, res, obj, jnp.asarray(num_iter), jnp.asarray(False)
+        state, (res, obj) = lax.scan(lambda s, _: step(s), state, None, length=iterations)
+        return state, res, obj, jnp.asarray(iterations), jnp.asarray(False)
 
     def body(carry):
         state, k, res, obj, _ = carry
@@ -62,10 +62,10 @@ def iterate(step: Callable, state, num_iter: int, tol: Array | None):
 
     def cond(carry):
         _, k, _, _, done = carry
-        return (k < num_iter) & ~done
+        return (k < iterations) & ~done
 
     _, (r0, f0) = jax.eval_shape(step, state)
-    nan = jnp.full((num_iter,), jnp.nan, dtype=f0.dtype)
+    nan = jnp.full((iterations,), jnp.nan, dtype=f0.dtype)
     carry = (state, jnp.asarray(0), nan.astype(r0.dtype), nan, jnp.asarray(False))
     state, k, res, obj, done = lax.while_loop(cond, body, carry)
     return state, res, obj, k, done

@@ -60,7 +60,7 @@ _TV_FLOOR = 1e-3  # the TV-RL denominator is clamped at this fraction of the sen
 _TV_SMOOTH = 1e-3  # |∇x| is smoothed by this fraction of the mean initial estimate
 
 
-def richardson_lucy(image: ArrayLike, psf: ArrayLike, num_iter: int = 150, *,
+def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
                     boundary: str = "same", convention: str = "adjoint",
                     accelerate: bool = False, tv_weight: float = 0.0,
                     init: ArrayLike | None = None, tol: float | None = None,
@@ -75,7 +75,7 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, num_iter: int = 150, *,
             ``(my//2, mx//2)``; ``my <= ny``, ``mx <= nx``. Leading axes of ``image`` and
             ``psf`` broadcast: one call deconvolves one image by a stack of PSFs (see
             :func:`focus_sweep`) or a stack of images by one PSF.
-        num_iter: iterations (static: it fixes the history length).
+        iterations: iterations (static: it fixes the history length).
         boundary: ``"same"`` (zero-padded linear convolution), ``"circular"`` or
             ``"crop"`` (the DiffuserCam model; the estimate is on the larger object grid).
         convention: ``"adjoint"`` (true adjoint, flux-normalised) or ``"skimage"`` (bit
@@ -85,7 +85,7 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, num_iter: int = 150, *,
         init: initial estimate (object-grid shape, non-negative), default the constant
             that matches the image's flux (0.5 for ``convention="skimage"``).
         tol: stop when the objective changes by less than ``tol`` (relative) in one
-            iteration; None runs all ``num_iter`` iterations and is the only setting that
+            iteration; None runs all ``iterations`` iterations and is the only setting that
             supports reverse-mode ``grad``.
         eps: added to ``A x`` before dividing, as scikit-image does.
         filter_epsilon: where ``A x + eps < filter_epsilon`` the ratio is set to 0
@@ -97,16 +97,16 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, num_iter: int = 150, *,
         ``"crop"``. Its values are in the units of ``image / sum(psf)``.
 
     Raises:
-        DiffcamError: negative, NaN/Inf or all-zero inputs, ``num_iter < 1``, or a
+        DiffcamError: negative, NaN/Inf or all-zero inputs, ``iterations < 1``, or a
             convention/boundary combination that does not exist.
         ShapeError: a PSF larger than the image, or batch axes that do not broadcast.
     """
-    return _richardson_lucy(image, psf, num_iter, boundary=boundary, convention=convention,
+    return _richardson_lucy(image, psf, iterations, boundary=boundary, convention=convention,
                             accelerate=accelerate, tv_weight=tv_weight, init=init, tol=tol,
                             eps=eps, filter_epsilon=filter_epsilon, volume=False)
 
 
-def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, num_iter: int = 150, *,
+def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 150, *,
                        boundary: str = "crop", accelerate: bool = False,
                        tv_weight: float = 0.0, init: ArrayLike | None = None,
                        tol: float | None = None, eps: float = 1e-12) -> Reconstruction:
@@ -121,13 +121,13 @@ def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, num_iter: int = 1
         image: ``(..., ny, nx)`` sensor image, non-negative.
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale (their
             relative intensities matter), or a list of ``(my, mx)`` arrays.
-        num_iter, boundary, accelerate, tv_weight, init, tol, eps: as for
+        iterations, boundary, accelerate, tv_weight, init, tol, eps: as for
             :func:`richardson_lucy`.
 
     Returns:
         :class:`Reconstruction` whose ``image`` is the volume ``(..., nz, oy, ox)``.
     """
-    return _richardson_lucy(image, as_psf_stack(psf_stack), num_iter, boundary=boundary,
+    return _richardson_lucy(image, as_psf_stack(psf_stack), iterations, boundary=boundary,
                             convention="adjoint", accelerate=accelerate,
                             tv_weight=tv_weight, init=init, tol=tol, eps=eps,
                             filter_epsilon=None, volume=True)
@@ -160,7 +160,7 @@ def sharpness(estimate: Float[Array, "... ny nx"]) -> Float[Array, "..."]:
     return n * jnp.sum(estimate ** 2, axis=(-2, -1)) / jnp.where(total != 0, total, 1) ** 2
 
 
-def focus_sweep(image: ArrayLike, psf_stack: ArrayLike, num_iter: int = 50,
+def focus_sweep(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 50,
                 **options) -> FocusSweep:
     """Deconvolve one sensor image at every depth of a PSF stack; pick the sharpest.
 
@@ -170,7 +170,7 @@ def focus_sweep(image: ArrayLike, psf_stack: ArrayLike, num_iter: int = 50,
     Args:
         image: ``(..., ny, nx)`` sensor image.
         psf_stack: ``(nz, my, mx)`` PSFs over depth (or a list of ``(my, mx)`` arrays).
-        num_iter: RL iterations per depth.
+        iterations: RL iterations per depth.
 
     Returns:
         :class:`FocusSweep`.
@@ -180,12 +180,12 @@ def focus_sweep(image: ArrayLike, psf_stack: ArrayLike, num_iter: int = 50,
         raise ShapeError(f"psf_stack must be (nz, my, mx), got shape {jnp.shape(psf_stack)}; "
                          f"for one PSF call richardson_lucy.")
     image = jnp.asarray(image)
-    rec = richardson_lucy(image[..., None, :, :], psf_stack, num_iter, **options)
+    rec = richardson_lucy(image[..., None, :, :], psf_stack, iterations, **options)
     score = sharpness(rec.image)
     return FocusSweep(reconstruction=rec, sharpness=score, best=jnp.argmax(score, axis=-1))
 
 
-def _richardson_lucy(image, psf, num_iter, *, boundary, convention, accelerate, tv_weight,
+def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate, tv_weight,
                      init, tol, eps, filter_epsilon, volume) -> Reconstruction:
     """Validate, broadcast the batch axes, run the jitted solver, restore the axes."""
     if boundary not in BOUNDARIES:
@@ -195,7 +195,7 @@ def _richardson_lucy(image, psf, num_iter, *, boundary, convention, accelerate, 
     if convention == "skimage" and boundary != "same":
         raise DiffcamError("convention='skimage' reproduces scikit-image's 'same'-size "
                            "convolution; use boundary='same' with it.")
-    num_iter = check_iterations(num_iter)
+    iterations = check_iterations(iterations)
     check_tol(tol)
     check_image(image, nonnegative=True)
     core = 3 if volume else 2
@@ -227,24 +227,24 @@ def _richardson_lucy(image, psf, num_iter, *, boundary, convention, accelerate, 
                       jnp.asarray(tv_weight, dtype), jnp.asarray(eps, dtype),
                       jnp.asarray(filter_epsilon if use_filter else 0, dtype),
                       None if tol is None else jnp.asarray(tol, dtype),
-                      num_iter=num_iter, boundary=boundary, convention=convention,
+                      iterations=iterations, boundary=boundary, convention=convention,
                       accelerate=accelerate, use_tv=use_tv, use_filter=use_filter,
                       volume=volume)
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
-@partial(jax.jit, static_argnames=("num_iter", "boundary", "convention", "accelerate",
+@partial(jax.jit, static_argnames=("iterations", "boundary", "convention", "accelerate",
                                    "use_tv", "use_filter", "volume"))
-def _rl_batched(image, psf, init, tv_weight, eps, filter_epsilon, tol, *, num_iter,
+def _rl_batched(image, psf, init, tv_weight, eps, filter_epsilon, tol, *, iterations,
                 boundary, convention, accelerate, use_tv, use_filter, volume):
     def one(b, h, x0):
-        return _rl_solve(b, h, x0, tv_weight, eps, filter_epsilon, tol, num_iter=num_iter,
+        return _rl_solve(b, h, x0, tv_weight, eps, filter_epsilon, tol, iterations=iterations,
                          boundary=boundary, convention=convention, accelerate=accelerate,
                          use_tv=use_tv, use_filter=use_filter, volume=volume)
     return jax.vmap(one)(image, psf, init)
 
 
-def _rl_solve(b, psf, x0, tv_weight, eps, filter_epsilon, tol, *, num_iter, boundary,
+def _rl_solve(b, psf, x0, tv_weight, eps, filter_epsilon, tol, *, iterations, boundary,
               convention, accelerate, use_tv, use_filter, volume) -> Reconstruction:
     """One problem: ``b (ny, nx)``, ``psf ([nz,] my, mx)``."""
     b = jnp.maximum(b, 0)  # rounding-level negatives passed validation
@@ -308,7 +308,7 @@ def _rl_solve(b, psf, x0, tv_weight, eps, filter_epsilon, tol, *, num_iter, boun
         zeros = jnp.zeros_like(x0)
         state = (x0, x0, zeros, zeros, jnp.asarray(0))
 
-    state, res, obj, its, done = iterate(step, state, num_iter, tol)
+    state, res, obj, its, done = iterate(step, state, iterations, tol)
     x = state if not accelerate else state[0]
     return Reconstruction(image=x, residual=res, objective=obj, iterations=its,
                           converged=done)
