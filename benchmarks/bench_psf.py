@@ -50,7 +50,7 @@ from benchmarks.harness import (markdown_table, optional_import, time_against,
                                 write_json)
 from diffcam.model import Camera, psf
 from diffcam.optics.propagation import fresnel_tf
-from diffcam.model.psf import diffuser_fields
+from diffcam.model.point_spread import diffuser_fields
 from diffcam.model.stack import _chunk_inputs, _chunk_outputs, iter_psf_stack, psf_stack
 
 LAM, DX, Z2 = 532e-9, 5e-6, 1e-3

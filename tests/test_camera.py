@@ -228,7 +228,7 @@ def test_direct_path_at_paper_real_camera_is_undersampled():
     with pytest.raises(SamplingError, match="scaling"):
         psf(phase, cam, 29e-3)
     with pytest.warns(UndersamplingWarning):
-        from diffcam.model.psf import check_inputs
+        from diffcam.model.point_spread import check_inputs
         check_inputs(phase, cam, 22e-3, 0.0, [LAM], accept_undersampling=True)
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -1,7 +1,7 @@
 """Fitting the diffuser phase to captured PSFs through paper Eq. 7, then predicting
 PSFs at other depths.
 
-The model of PSF k is s_k·PSF(θd; z1_k, z2) + b_k (:func:`diffcam.model.psf.psf`), fitted
+The model of PSF k is s_k·PSF(θd; z1_k, z2) + b_k (:func:`diffcam.model.point_spread.psf`), fitted
 together with optional near/far captures (:func:`diffcam.calibrate.lsq.near_far_model`)
 by :func:`diffcam.calibrate.lsq.fit_phase`. A PSF is a defocused, magnified intensity
 of the diffuser field, so it also breaks the conjugate-twin ambiguity of near/far
@@ -124,7 +124,7 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
         init: ``"flat"``, ``"random"`` (with ``key``) or a phase on the camera grid.
         coarse: phase unknowns every ``coarse`` samples.
         masks: K (or K + 2 with near/far) weight images, 0 at saturated pixels.
-        spectrum: broadband light as in :func:`diffcam.model.psf.psf`.
+        spectrum: broadband light as in :func:`diffcam.model.point_spread.psf`.
         sensor_pitch: pixel pitch of the measured PSFs (m) when it is coarser than the
             camera's grid: the model then integrates each PSF over those pixels
             (:func:`diffcam.model.sensor.bin_pixels`), so the phase can live on a finer grid

@@ -9,7 +9,7 @@
 """
 
 from diffcam.model.camera import Camera, HeightMap, Spectrum, random_diffuser, with_method
-from diffcam.model.psf import psf
+from diffcam.model.point_spread import psf
 from diffcam.model.stack import iter_psf_stack, load_stack, psf_stack, save_stack
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "random_diffuser", "psf", "psf_stack",

@@ -7,7 +7,7 @@
 - :class:`Spectrum` — broadband light;
 - :func:`random_diffuser` — a random phase screen like the paper's Fig. 6.
 
-The PSF these describe is :func:`diffcam.model.psf.psf` (paper Eq. 7).
+The PSF these describe is :func:`diffcam.model.point_spread.psf` (paper Eq. 7).
 """
 
 from __future__ import annotations

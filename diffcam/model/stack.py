@@ -5,7 +5,7 @@ in chunks of ``batch_size`` depths per device, each copied to a host array (or a
 memory-mapped file) while the next one computes, so at most two chunks are in flight
 and working memory is set by the chunk, not by the number of depths. A chunk is two
 jitted calls: the fields (or spectra) its FFTs start from, then the FFTs and
-intensities (see :func:`diffcam.model.psf.fields_for_fft`); both write over the last chunk's
+intensities (see :func:`diffcam.model.point_spread.fields_for_fft`); both write over the last chunk's
 two field-sized buffers (donated), which spares a fresh, page-faulted buffer per call.
 A chunk holds one field per depth, wavelength and, on the direct path, lateral position.
 With
@@ -36,7 +36,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
 from diffcam.model.camera import Camera, as_spectrum, real_dtype
-from diffcam.model.psf import (_irradiance_and_fields, check_inputs, diffuser_fields,
+from diffcam.model.point_spread import (_irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
 from diffcam.core.errors import DiffcamError, ShapeError
 
@@ -131,7 +131,7 @@ def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sha
            buffers=None):
     """PSFs (nz, npos, ny, nx) for the depths ``z1``, and the ``buffers`` to pass to the
     next call. Two jitted calls, so that the second one starts with its FFTs (see
-    :func:`diffcam.model.psf.fields_for_fft`); both write over the last chunk's buffers."""
+    :func:`diffcam.model.point_spread.fields_for_fft`); both write over the last chunk's buffers."""
     if buffers is None:
         shape = jax.eval_shape(lambda *a: _chunk_inputs(None, *a, sharding), prepared,
                                camera, wavelengths, z1, positions)
@@ -234,7 +234,7 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
         z1: depths, metres, shape (nz,) (non-empty, all > 0).
         positions: ``(npos, 2)`` lateral source positions ``(x1, y1)``, metres; ``None``
             for an on-axis source (the position axis is then dropped).
-        spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.model.psf.psf`.
+        spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.model.point_spread.psf`.
         normalise: each PSF sums to one (default) or is the physical irradiance.
         batch_size: depths per device per chunk; working memory grows with it.
             Default: about 2**20 field samples per chunk (one depth from 1024², or

@@ -123,7 +123,7 @@ def point_source_field(shape, dx, wavelength, z1, x1=0.0, y1=0.0, *, aperture_ra
     Raises:
         SamplingError: the chirp's local frequency exceeds Nyquist 1/(2·dx) within
             the checked radius. Close sources need the scaling-theorem path
-            (:mod:`diffcam.model.psf`), which never samples this chirp.
+            (:mod:`diffcam.model.point_spread`), which never samples this chirp.
     """
     _check_grid(shape, dx)
     check_positive("wavelength", wavelength, "m")

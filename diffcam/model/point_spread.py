@@ -107,7 +107,7 @@ def _magnified(field, camera, wavelength, z1, x1, y1):
     ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
     tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
     s = cubic_sample(cubic_sample(field, ty, -2), tx, -1) / (mag * wavelength * z1)
-    return materialise(s.real ** 2 + s.imag ** 2)
+    return materialise(s.real ** 2 + s.imag ** 2, camera.dx)
 
 
 def fields_for_fft(prepared, camera: Camera, wavelengths, z1, positions) -> Array:
