@@ -24,7 +24,6 @@
 import os
 
 import matplotlib.pyplot as plt
-import numpy as np
 
 from diffcam.apps import paper
 from diffcam.calibrate import cameraman_phase, resolve_twin

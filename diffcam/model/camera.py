@@ -25,7 +25,7 @@ from jaxtyping import Float
 from diffcam.core.backend import fft2, ifft2
 
 from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite, check_positive,
-                     fmt_length, is_concrete, sampling_problem)
+                     fmt_length, is_concrete)
 from diffcam.optics.elements import circular_aperture
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "as_spectrum", "diffuser_phase", "random_diffuser",

@@ -47,8 +47,7 @@ import numpy as np
 from jaxtyping import Float
 from jax import Array
 
-from diffcam.core.backend import (fft2, ifft2, materialise, staged, transfer_step,
-                                  transfer_step_with_spectrum)
+from diffcam.core.backend import (fft2, ifft2, materialise, staged, transfer_step_with_spectrum)
 from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, check_positive,
                                  fmt_length, is_concrete, sampling_problem)
 from diffcam.core.grid import crop_to, pad_to

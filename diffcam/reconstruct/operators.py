@@ -35,7 +35,6 @@ from __future__ import annotations
 from typing import Sequence
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Complex, Float
