@@ -25,7 +25,8 @@ import numpy as np
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.evaluate.metrics import phase_scores
 from diffcam.optics.elements import circular_aperture
-from diffcam.calibrate import (CalibrationGeometry, retrieve_phase, calibration_intensities,
+from diffcam.calibrate.pipeline import POLISH
+from diffcam.calibrate import (CalibrationGeometry, FitOptions, retrieve_phase, calibration_intensities,
                                cameraman_phase, prepare_captures, retrieve_projections,
                                synthetic_captures)
 
@@ -105,8 +106,10 @@ def main():
                          **scores(r.phase, truth, mask), "error": float(r.history[-1]),
                          "wall_s": round(r.stats["wall_time"], 1)})
             print(rows[-1], flush=True)
-    r = retrieve_phase(near, far, geometry, aperture, key=jax.random.key(0), restarts=args.restarts,
-                  iterations=args.iterations, refine_iterations=args.refine, masks=masks)
+    refine = FitOptions.of(POLISH, iterations=args.refine) if args.refine else None
+    r = retrieve_phase(near, far, geometry, aperture, key=jax.random.key(0),
+                       restarts=args.restarts, iterations=args.iterations, refine=refine,
+                       masks=masks)
     rows.append({"solver": f"calibrate: raar {args.iterations} it × {args.restarts} restarts"
                            f" + lsq {args.refine}", **scores(r.phase, truth, mask),
                  "wall_s": round(r.stats["wall_time"], 1)})

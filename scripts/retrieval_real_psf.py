@@ -29,7 +29,7 @@ from diffcam.model.camera import Camera
 from diffcam.data import load_psf_stack_3d
 from diffcam.evaluate.metrics import pearson
 from diffcam.optics.elements import rectangular_aperture
-from diffcam.calibrate import fit_to_psfs, predict_psfs
+from diffcam.calibrate import DepthLaw, fit_to_psfs, predict_psfs
 from diffcam.calibrate.psf_fit import depths
 from diffcam.evaluate.baseline import magnify_psf
 
@@ -95,7 +95,7 @@ def main():
     r = fit_to_psfs(stack[fit_planes], camera, z1_start[fit_planes],
                     iterations=args.iterations, **sensor)
     r = fit_to_psfs(stack[fit_planes], camera, z1_start[fit_planes], init=r.phase,
-                    fit_z2=True, depth_model="inverse_linear", plane_index=fit_planes,
+                    depth=DepthLaw("inverse_linear", plane_index=fit_planes, fit_z2=True),
                     iterations=args.iterations // 2, **sensor)
     fit_s = time.perf_counter() - t
     z2 = r.stats["z2"]

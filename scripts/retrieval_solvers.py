@@ -65,8 +65,8 @@ def main():
     init = "flat"
     for coarse in stages:
         its = args.psf_iterations // len(stages)
-        r = fit_to_psfs(p[None], camera, [25e-3], near=sim.near, far=sim.far,
-                        geometry=sim.geometry, init=init, coarse=coarse, iterations=its,
+        r = fit_to_psfs(p[None], camera, [25e-3], near_far=(sim.near, sim.far, sim.geometry),
+                        init=init, coarse=coarse, iterations=its,
                         loss=args.psf_loss)
         init = r.phase
         record(f"lsq lbfgs {args.psf_loss} (near+far+PSF z1=25mm z2=1mm, flat start), "

@@ -133,6 +133,7 @@ def calibration_files(tmp_path_factory):
     return d, f"{geometry.focal_length * 1e3:.4f}mm"
 
 
+@pytest.mark.slow
 def test_calibrate_psf_compare_pipeline(calibration_files):
     """calibrate (twin resolved by one captured PSF) → psf → compare on files: each writes
     its output, the PSF stack has the requested depths (range end included) and its

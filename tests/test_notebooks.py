@@ -7,10 +7,13 @@ from pathlib import Path
 
 import pytest
 
-NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.py"))
+# the paper-figure notebooks take ~50 s each even reduced: run with the slow tests
+_SLOW = {"02_fig5_fig6_psf_and_reconstruction", "03_fig9_depth_sweep"}
+NOTEBOOKS = [pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if p.stem in _SLOW else [])
+             for p in sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.py"))]
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", NOTEBOOKS)
 def test_notebook_executes(path, tmp_path):
     """Run the notebook's source as a script (cells in order), headless."""
     env = dict(os.environ, DIFFCAM_NOTEBOOK_SMALL="1", MPLBACKEND="Agg")

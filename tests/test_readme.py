@@ -3,7 +3,10 @@
 import re
 from pathlib import Path
 
+import pytest
 
+
+@pytest.mark.slow
 def test_readme_python_tour_runs():
     """Extract the README's Python block and execute it."""
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()

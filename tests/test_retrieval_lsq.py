@@ -9,7 +9,7 @@ from jax.test_util import check_grads
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.core.grid import crop_to
 from diffcam.evaluate.metrics import phase_scores
-from diffcam.calibrate import (PhaseGrid, retrieve_phase, near_far_model, paper_simulation, raar,
+from diffcam.calibrate import (FitOptions, PhaseGrid, retrieve_phase, near_far_model, paper_simulation, raar,
                                retrieve_lsq)
 from diffcam.calibrate.lsq import ConvergenceWarning, _linear_fit, _residual
 
@@ -142,7 +142,8 @@ def test_model_is_jittable_and_vmappable(sim):
 
 def test_calibrate_default_path(sim):
     r = retrieve_phase(sim.near, sim.far, sim.geometry, sim.aperture, key=jax.random.key(0),
-                  iterations=200, restarts=2, refine_iterations=20)
+                       iterations=200, restarts=2, refine=FitOptions(loss="intensity",
+                                                                      iterations=20))
     assert twin_resolved(r, sim) > 0.999
     assert [s["method"] for s in r.stats["stages"]] == ["raar", "lsq/lbfgs/intensity"]
 

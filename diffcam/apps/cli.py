@@ -329,12 +329,7 @@ def _cmd_plan(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="diffcam",
-        description="Differentiable wave optics for lensless diffuser cameras.")
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_demo(sub) -> None:
     demo = sub.add_parser("demo", help="run the built-in demonstration and write a report",
                           description="Run the built-in demonstration on built-in data and "
                                       "write PNG figures and metrics.json to a folder.")
@@ -349,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="iterations of diffcam's calibration (300)")
     demo.set_defaults(func=_cmd_demo)
 
+
+def _add_plan(sub) -> None:
     plan = sub.add_parser("plan", help="check the sampling of a diffuser-camera geometry",
                           description="Report Fresnel numbers, point-source chirp sampling, "
                                       "propagator validity and padding before simulating.")
@@ -362,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="largest lateral source offset")
     plan.set_defaults(func=_cmd_plan)
 
+
+def _add_reconstruct(sub) -> None:
     rec = sub.add_parser("reconstruct", help="deconvolve a sensor image with a PSF",
                          description="Reconstruct a scene from a raw capture and the PSF of "
                                      "its depth. With a PSF stack, pick the plane by --depth, "
@@ -378,6 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("-o", "--out", required=True, help="output .png, .tif or .npy")
     rec.set_defaults(func=_cmd_reconstruct)
 
+
+def _add_calibrate(sub) -> None:
     cal = sub.add_parser("calibrate", help="diffuser phase from near/far captures",
                          description="Estimate the diffuser phase from a near-field capture "
                                      "(diffuser on the sensor) and a far-field capture (back "
@@ -410,6 +411,8 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("-o", "--out", required=True, help="phase file (.npz)")
     cal.set_defaults(func=_cmd_calibrate)
 
+
+def _add_psf(sub) -> None:
     ps = sub.add_parser("psf", help="PSFs at depths from a phase file",
                         description="Compute the camera's PSF (paper Eq. 7) for point "
                                     "sources on axis at each depth; writes .npz or a "
@@ -422,6 +425,8 @@ def build_parser() -> argparse.ArgumentParser:
     ps.add_argument("-o", "--out", required=True, help="output .npz or .tif")
     ps.set_defaults(func=_cmd_psf)
 
+
+def _add_compare(sub) -> None:
     cmp_ = sub.add_parser("compare", help="captured vs model vs scaled PSFs per depth",
                           description="Pearson (registered) of the wave model and of the "
                                       "scaling baseline against captured PSFs, per depth; "
@@ -435,6 +440,14 @@ def build_parser() -> argparse.ArgumentParser:
                       help="depth of the PSF the scaling baseline magnifies (default: first)")
     cmp_.add_argument("-o", "--out", required=True, help="figure (.png)")
     cmp_.set_defaults(func=_cmd_compare)
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="diffcam",
+        description="Differentiable wave optics for lensless diffuser cameras.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_demo, _add_plan, _add_reconstruct, _add_calibrate, _add_psf, _add_compare):
+        add(sub)
     return parser
 
 

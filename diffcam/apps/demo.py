@@ -132,79 +132,108 @@ def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = Fals
     say(f"diffcam demo: grid {s.grid}² at 5 µm, GS {s.gs_iterations} iterations; expect about "
         f"{max(1, round(3 * scale ** 0.8))} min on a 2-core CPU. Report → {out}/")
     t0 = time.perf_counter()
+    fig3 = _fig3(s, out, say)
+    fig5 = _fig5(s, fig3, out, say)
+    rnd, fig6 = _fig6(s, out, say)
+    say(f"[5/{_STEPS}] Fig. 9: PSFs over z1 = 22 … 30 mm vs the scaling baseline ...")
+    sweeps = {"z2 = 1 mm": paper.fig9_depth_sweep(fig3["truth"], fig3["resolved"], s),
+              "z2 = 5 mm": paper.fig9_depth_sweep(fig3["truth"], fig3["resolved"], s,
+                                                  z2=5e-3, crop=min(s.grid, 704))}
+    _plot_depths(out / "fig9_depths.png", sweeps)
+    metrics = _metrics(s, fig3, fig5, rnd, fig6, sweeps)
+    metrics["wall_time_s"] = time.perf_counter() - t0
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    (out / "report.md").write_text(_report(s, metrics, fig3, sweeps))
+    say(f"diffcam demo: phase Pearson GS {metrics['fig3']['phase_pearson_gs']:.3f} → diffcam "
+        f"{metrics['fig3']['phase_pearson_calibrated']:.4f}; PSF Pearson at 25 mm "
+        f"{fig5[-1]['psf_pearson']:.4f}; {metrics['wall_time_s']:.0f} s → {out / 'report.md'}")
+    return metrics
 
+
+def _fig3(s, out, say) -> dict:
+    """Fig. 3 and the twin resolved by a captured PSF at 22 mm (steps 1 and 2)."""
     say(f"[1/{_STEPS}] Fig. 3: phase retrieval (textbook GS, then diffcam's calibration) ...")
-    truth = cameraman_phase()
-    fig3 = paper.fig3_phase_retrieval(truth, s)
+    fig3 = paper.fig3_phase_retrieval(cameraman_phase(), s)
     say(f"      GS {s.gs_iterations} it: phase Pearson {fig3['gs_scores']['pearson']:.4f} "
         f"({fig3['gs_seconds']:.0f} s); calibration: twin-resolved "
         f"{fig3['calibrated_scores']['twin_resolved']:.4f} ({fig3['calibrated_seconds']:.0f} s)")
-
     say(f"[2/{_STEPS}] resolving the twin with a captured PSF at z1 = 22 mm ...")
     cam = paper.camera(s)
-    reference = paper.captured_reference(fig3["truth"], cam, paper.DEPTHS[0])
-    resolved, used_twin = resolve_twin(fig3["calibrated"], reference, cam, paper.DEPTHS[0])
-    fig3["resolved"] = resolved
-    fig3["resolved_scores"] = paper._scores(resolved, fig3["truth"], s.grid)
+    fig3["reference"] = paper.captured_reference(fig3["truth"], cam, paper.DEPTHS[0])
+    fig3["resolved"], fig3["twin_chosen"] = resolve_twin(fig3["calibrated"], fig3["reference"],
+                                                         cam, paper.DEPTHS[0])
+    fig3["resolved_scores"] = paper._scores(fig3["resolved"], fig3["truth"], s.grid)
     _plot_phases(out / "fig3_phase.png", fig3)
+    return fig3
 
+
+def _fig5(s, fig3, out, say) -> list[dict]:
+    """Fig. 5: PSFs and RL of an 'F' for the phase after several calibration lengths."""
     say(f"[3/{_STEPS}] Fig. 5: PSFs at z1 = 25 mm and Richardson–Lucy of an 'F' ...")
+    cam = paper.camera(s)
     stages = {"true phase": None, f"GS {s.gs_iterations} it": fig3["gs"]}
     for it in (10, 50):
-        early = paper.paper_phase(fig3["near"], fig3["far"], iterations=it, refine_iterations=0,
-                                restarts=1).phase
-        stages[f"calibration {it} it"] = resolve_twin(early, reference, cam,
+        early = paper.paper_phase(fig3["near"], fig3["far"], iterations=it,
+                                  refine_iterations=0, restarts=1).phase
+        stages[f"calibration {it} it"] = resolve_twin(early, fig3["reference"], cam,
                                                       paper.DEPTHS[0])[0]
-    stages[f"calibration {s.calibration_iterations} it"] = resolved
+    stages[f"calibration {s.calibration_iterations} it"] = fig3["resolved"]
     fig5 = paper.fig5_psf_and_reconstruction(fig3["truth"], stages, paper.letter_f(), s)
     _plot_stages(out / "fig5_cameraman.png", fig5, "Fig. 5 — cameraman diffuser, object 'F'")
+    return fig5
 
+
+def _fig6(s, out, say) -> tuple[dict, list[dict]]:
+    """Fig. 6: a random 30 µm diffuser, near/far alone and with one PSF as a third plane."""
     say(f"[4/{_STEPS}] Fig. 6: random 30 µm diffuser and a 'flower' ...")
+    cam = paper.camera(s)
     rnd = paper.fig3_phase_retrieval(paper.random_phase(), s, psf_z1=paper.DEPTHS[0])
-    rnd_resolved, _ = resolve_twin(
-        rnd["calibrated"], paper.captured_reference(rnd["truth"], cam, paper.DEPTHS[0]), cam,
-        paper.DEPTHS[0])
+    reference = paper.captured_reference(rnd["truth"], cam, paper.DEPTHS[0])
+    rnd["resolved"] = resolve_twin(rnd["calibrated"], reference, cam, paper.DEPTHS[0])[0]
     fig6 = paper.fig5_psf_and_reconstruction(
         rnd["truth"], {"true phase": None, f"GS {s.gs_iterations} it": rnd["gs"],
-                       f"calibration {s.calibration_iterations} it": rnd_resolved,
+                       f"calibration {s.calibration_iterations} it": rnd["resolved"],
                        "calibration + PSF at 22 mm": rnd["with_psf"]},
         paper.flower(), s)
     _plot_stages(out / "fig6_random.png", fig6, "Fig. 6 — random diffuser, 'flower'")
+    return rnd, fig6
 
-    say(f"[5/{_STEPS}] Fig. 9: PSFs over z1 = 22 … 30 mm vs the scaling baseline ...")
-    sweeps = {"z2 = 1 mm": paper.fig9_depth_sweep(fig3["truth"], resolved, s),
-              "z2 = 5 mm": paper.fig9_depth_sweep(fig3["truth"], resolved, s, z2=5e-3,
-                                                  crop=min(s.grid, 704))}
-    _plot_depths(out / "fig9_depths.png", sweeps)
 
-    metrics = {
+def _metrics(s, fig3, fig5, rnd, fig6, sweeps) -> dict:
+    """The numbers written to ``metrics.json``."""
+    return {
         "grid": s.grid,
         "fig3": {
             "gs_iterations": s.gs_iterations,
             "phase_pearson_gs": fig3["gs_scores"]["pearson"],
             "phase_pearson_gs_twin_resolved": fig3["gs_scores"]["twin_resolved"],
             "phase_pearson_calibrated": fig3["resolved_scores"]["pearson"],
+            "phase_pearson_calibrated_twin_resolved": fig3["resolved_scores"]["twin_resolved"],
             "phase_pearson_calibrated_raw": fig3["resolved_scores"]["raw"],
             "phase_pearson_flat_estimate_floor": fig3["flat_scores"]["pearson"],
+            "phase_pearson_flat_estimate_floor_twin_resolved":
+                fig3["flat_scores"]["twin_resolved"],
             "phase_mse_calibrated": fig3["resolved_scores"]["mse"],
             "calibration": f"{fig3['calibration_method']} "
                            f"{s.calibration_iterations} it + twin from one PSF",
-            "twin_chosen": used_twin,
+            "twin_chosen": fig3["twin_chosen"],
             "seconds_gs": fig3["gs_seconds"], "seconds_calibration": fig3["calibrated_seconds"],
             "phase_pearson_paper_gs_2000": 0.7890,
         },
         "fig5": _public(fig5[1:]),
         "fig6": {"phase_pearson_gs": rnd["gs_scores"]["pearson"],
-                 "phase_pearson_calibrated": paper._scores(rnd_resolved, rnd["truth"],
+                 "phase_pearson_calibrated": paper._scores(rnd["resolved"], rnd["truth"],
                                                            s.grid)["pearson"],
                  "phase_pearson_calibrated_with_psf": rnd["with_psf_scores"]["pearson"],
                  "phase_mse_calibrated_with_psf": rnd["with_psf_scores"]["mse"],
                  "seconds_calibration_with_psf": rnd["with_psf_seconds"],
                  "stages": _public(fig6[1:])},
         "fig9": {k.replace(" ", "").replace("=", "_"): v for k, v in sweeps.items()},
-        "wall_time_s": time.perf_counter() - t0,
     }
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+
+
+def _report(s, metrics, fig3, sweeps) -> str:
+    """``report.md``: the tables of ``metrics`` and the figures."""
     cols = ["stage", "phase_mse", "psf_pearson", "recon_ssim", "recon_pearson"]
     f3 = metrics["fig3"]
     report = [
@@ -216,12 +245,12 @@ def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = Fals
                  "twin_resolved": f3["phase_pearson_gs_twin_resolved"],
                  "seconds": f3["seconds_gs"]},
                 {"solver": f3["calibration"], "pearson": f3["phase_pearson_calibrated"],
-                 "twin_resolved": fig3["resolved_scores"]["twin_resolved"],
+                 "twin_resolved": f3["phase_pearson_calibrated_twin_resolved"],
                  "seconds": f3["seconds_calibration"]},
                 {"solver": "paper, GS 2000 it", "pearson": 0.7890},
                 {"solver": "a flat estimate (the metric's floor)",
-                 "pearson": fig3["flat_scores"]["pearson"], "twin_resolved":
-                 fig3["flat_scores"]["twin_resolved"]}],
+                 "pearson": f3["phase_pearson_flat_estimate_floor"],
+                 "twin_resolved": f3["phase_pearson_flat_estimate_floor_twin_resolved"]}],
                ["solver", "pearson", "twin_resolved", "seconds"]), "",
         "The metric aligns the piston and scores θtrue + wrap(θest − θtrue − d) against "
         "θtrue, so even a flat estimate scores high (last row): read the phase MSE "
@@ -245,8 +274,4 @@ def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = Fals
         report += [f"### {label}", "",
                    _table(rows, ["z1_mm", "model", "scaling_ideal", "scaling_captured"]), ""]
     report += ["![](fig9_depths.png)", ""]
-    (out / "report.md").write_text("\n".join(report))
-    say(f"diffcam demo: phase Pearson GS {f3['phase_pearson_gs']:.3f} → diffcam "
-        f"{f3['phase_pearson_calibrated']:.4f}; PSF Pearson at 25 mm "
-        f"{fig5[-1]['psf_pearson']:.4f}; {metrics['wall_time_s']:.0f} s → {out / 'report.md'}")
-    return metrics
+    return "\n".join(report)

@@ -31,7 +31,8 @@ from diffcam.reconstruct import convolution_model, richardson_lucy
 from diffcam.calibrate import CalibrationGeometry, gerchberg_saxton, paper_simulation, psf_plane
 from diffcam.calibrate.simulation import (PAPER_APERTURE_RADIUS, PAPER_DX, PAPER_FOCAL_LENGTH,
                                 PAPER_WAVELENGTH)
-from diffcam.calibrate import retrieve_phase
+from diffcam.calibrate import FitOptions, retrieve_phase
+from diffcam.calibrate.pipeline import POLISH
 from diffcam.evaluate.baseline import magnify_psf
 from diffcam.model.stack import psf_stack
 
@@ -102,16 +103,16 @@ def _scores(estimate, truth, n):
 
 
 def paper_phase(near, far, *, iterations: int, refine_iterations: int = 50, restarts: int = 2,
-              planes=()):
+                planes=()):
     """diffcam's default calibration path (:func:`diffcam.calibrate.retrieve_phase`: RAAR with
-    random restarts, then least squares) on the paper's aperture; a RetrievalResult.
-    With ``planes`` (a captured PSF, :func:`diffcam.calibrate.psf_plane`) it starts flat,
-    once."""
+    random restarts, then ``refine_iterations`` least-squares steps, 0 for none) on the
+    paper's aperture; a RetrievalResult. With ``planes`` (a captured PSF,
+    :func:`diffcam.calibrate.psf_plane`) it starts flat, once."""
     n = np.shape(near)[-1]
     aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
+    refine = FitOptions.of(POLISH, iterations=refine_iterations) if refine_iterations else None
     return retrieve_phase(near, far, geometry(), aperture, iterations=iterations,
-                             refine_iterations=refine_iterations, planes=planes,
-                             restarts=None if planes else restarts)
+                          refine=refine, planes=planes, restarts=None if planes else restarts)
 
 
 def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0,

@@ -18,7 +18,8 @@ from diffcam.calibrate.captures import (PreparedCaptures, centre_on_axis, centro
                                         merge_exposures, normalise_min_max, prepare_captures,
                                         resample_capture, resample_far_field,
                                         synthetic_captures)
-from diffcam.calibrate.lsq import (ConvergenceWarning, PhaseGrid, fit_phase, near_far_model,
+from diffcam.calibrate.lsq import (ConvergenceWarning, FitOptions, PhaseGrid, fit_phase,
+                                   near_far_model,
                                    retrieve_lsq)
 from diffcam.calibrate.near_far import (CalibrationGeometry, NearFarModel,
                                         calibration_intensities, check_far_pitch,
@@ -26,9 +27,9 @@ from diffcam.calibrate.near_far import (CalibrationGeometry, NearFarModel,
 from diffcam.calibrate.phase_io import PhaseFile, load_phase, save_phase
 from diffcam.calibrate.pipeline import retrieve_phase
 from diffcam.calibrate.planes import DefocusedPlane, psf_plane
-from diffcam.calibrate.projections import (gerchberg_saxton, hio, initial_phase, raar,
+from diffcam.calibrate.projections import (ProjectionOptions, gerchberg_saxton, hio, initial_phase, raar,
                                            retrieve_projections)
-from diffcam.calibrate.psf_fit import fit_to_psfs, predict_psfs, resolve_twin
+from diffcam.calibrate.psf_fit import DepthLaw, fit_to_psfs, predict_psfs, resolve_twin
 from diffcam.calibrate.result import RetrievalResult
 from diffcam.calibrate.simulation import PaperSimulation, cameraman_phase, paper_simulation
 
@@ -39,9 +40,9 @@ __all__ = [
     "RetrievalResult", "ConvergenceWarning",
     # solvers
     "retrieve_phase", "retrieve_projections", "gerchberg_saxton", "hio", "raar",
-    "initial_phase", "DefocusedPlane", "psf_plane",
-    "retrieve_lsq", "fit_phase", "near_far_model", "PhaseGrid",
-    "fit_to_psfs", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
+    "initial_phase", "ProjectionOptions", "DefocusedPlane", "psf_plane",
+    "retrieve_lsq", "fit_phase", "FitOptions", "near_far_model", "PhaseGrid",
+    "fit_to_psfs", "DepthLaw", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
     # captures
     "prepare_captures", "PreparedCaptures", "synthetic_captures", "merge_exposures",
     "normalise_min_max", "centroid", "centre_on_axis", "resample_capture",

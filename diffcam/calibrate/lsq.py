@@ -44,6 +44,7 @@ Optional regularisers on the phase inside the aperture, wrap-safe through e^{jθ
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from typing import Sequence
@@ -64,7 +65,7 @@ from diffcam.calibrate.result import RetrievalResult
 from diffcam.core.errors import DiffcamError, ShapeError, check_field
 from diffcam.core.grid import crop_to, pad_to
 
-__all__ = ["fit_phase", "retrieve_lsq", "near_far_model", "PhaseGrid", "JaxoptLBFGS",
+__all__ = ["FitOptions", "fit_phase", "retrieve_lsq", "near_far_model", "PhaseGrid", "JaxoptLBFGS",
            "ConvergenceWarning", "fit_status", "warn_if_stalled", "LOSSES", "SOLVERS"]
 
 LOSSES = ("amplitude", "intensity", "weighted_intensity", "poisson")
@@ -362,11 +363,48 @@ def _real_dtype(*arrays):
     return jnp.float64 if wide and jax.config.jax_enable_x64 else jnp.float32
 
 
+class FitOptions(eqx.Module):
+    """How a least-squares fit runs (the settings shared by every fit in diffcam).
+
+    Attributes:
+        loss: one of :data:`LOSSES` (see the module docstring).
+        solver: an optimistix solver object, :class:`JaxoptLBFGS`, or a name in
+            :data:`SOLVERS`.
+        iterations: solver steps.
+        smoothness, tv: regularisation weights (per unit residual², dimensionless, ≥ 0).
+        fit_background: fit the per-image background b_k (else b_k = 0).
+    """
+
+    loss: str = "weighted_intensity"
+    solver: object = "lbfgs"
+    iterations: int = 200
+    smoothness: float = 0.0
+    tv: float = 0.0
+    fit_background: bool = True
+
+    def __check_init__(self):
+        if self.loss not in LOSSES:
+            raise DiffcamError(f"loss must be one of {LOSSES}, got {self.loss!r}.")
+        if not isinstance(self.iterations, (int, np.integer)) or self.iterations < 1:
+            raise DiffcamError(f"iterations must be a positive int, got {self.iterations!r}.")
+        for name in ("smoothness", "tv"):
+            w = getattr(self, name)
+            if not (np.isfinite(float(w)) and float(w) >= 0):
+                raise DiffcamError(f"{name} must be a finite weight ≥ 0, got {w!r}.")
+
+    @classmethod
+    def of(cls, options: "FitOptions | None" = None, **overrides) -> "FitOptions":
+        """``options`` (default: the defaults) with the named fields replaced."""
+        unknown = set(overrides) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise DiffcamError(f"unknown fit option(s) {sorted(unknown)}; the options are "
+                               f"{sorted(cls.__dataclass_fields__)}.")
+        return dataclasses.replace(options or cls(), **overrides)
+
+
 def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
               phase_grid: PhaseGrid, *, support=None, masks=None,
-              loss: str = "weighted_intensity", solver="lbfgs", iterations: int = 200,
-              smoothness: float = 0.0, tv: float = 0.0, fit_background: bool = True,
-              extra0=None) -> RetrievalResult:
+              options: FitOptions = FitOptions(), extra0=None) -> RetrievalResult:
     """Fit the phase (and per-image scale and background) to measured intensities.
 
     The engine under :func:`retrieve_lsq` and :func:`diffcam.calibrate.fit_to_psfs`.
@@ -381,25 +419,15 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
         phase_grid: the phase parameterisation.
         support: (ny, nx) mask where the regularisers act (default: everywhere).
         masks: K weight images (0 = ignore, e.g. saturated pixels), or ``None``.
-        loss: one of :data:`LOSSES` (see the module docstring).
-        solver: an optimistix solver object, :class:`JaxoptLBFGS`, or a name in
-            :data:`SOLVERS`.
-        iterations: solver steps.
-        smoothness, tv: regularisation weights (per unit residual², dimensionless, ≥ 0).
-        fit_background: fit b_k (else b_k = 0).
+        options: :class:`FitOptions` (loss, solver, iterations, regularisation).
         extra0: starting extra parameters passed to ``model`` (fitted too).
 
     Returns:
         :class:`RetrievalResult`; ``stats["status"]`` is :func:`fit_status` of the run.
     """
-    if loss not in LOSSES:
-        raise DiffcamError(f"loss must be one of {LOSSES}, got {loss!r}.")
+    loss, solver, iterations = options.loss, options.solver, options.iterations
+    smoothness, tv, fit_background = options.smoothness, options.tv, options.fit_background
     opt = solver_object(solver)
-    if not isinstance(iterations, (int, np.integer)) or iterations < 1:
-        raise DiffcamError(f"iterations must be a positive int, got {iterations!r}.")
-    for name, w in (("smoothness", smoothness), ("tv", tv)):
-        if not (np.isfinite(float(w)) and float(w) >= 0):
-            raise DiffcamError(f"{name} must be a finite weight ≥ 0, got {w!r}.")
     dtype = _real_dtype(theta0, *measured)
     measured = tuple(jnp.asarray(m, dtype) for m in measured)
     masks = tuple(jnp.ones_like(m) for m in measured) if masks is None else \
@@ -439,7 +467,8 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
 def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
                  geometry: CalibrationGeometry, aperture: Float[Array, "ny nx"], *,
                  init="raar", key=None, coarse: int = 1, far_pitch=None, masks=None,
-                 warm_start_iterations: int = 30, **options) -> RetrievalResult:
+                 warm_start_iterations: int = 30, options: FitOptions | None = None,
+                 **overrides) -> RetrievalResult:
     """Diffuser phase from near/far intensities by least squares through the forward model.
 
     Args:
@@ -454,8 +483,8 @@ def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
         coarse: phase unknowns every ``coarse`` samples, upsampled (cubic).
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
         masks: ``(near_mask, far_mask)`` weights, 0 at saturated or bad pixels.
-        **options: passed to :func:`fit_phase` (``loss``, ``solver``, ``iterations``,
-            ``smoothness``, ``tv``, ``fit_background``).
+        options: :class:`FitOptions`; keyword ``**overrides`` replace its fields
+            (``loss=``, ``iterations=``, ...).
     """
     check_captures(near, far)
     shape = np.shape(near)
@@ -472,4 +501,4 @@ def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
     model = near_far_model(jnp.asarray(aperture, dtype), geometry)
     return warn_if_stalled(fit_phase(model, (near, far), theta0, grid,
                                      support=jnp.asarray(aperture) > 0, masks=masks,
-                                     **options), init)
+                                     options=FitOptions.of(options, **overrides)), init)

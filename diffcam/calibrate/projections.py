@@ -31,9 +31,11 @@ field's energy (Parseval), which also absorbs any exposure difference.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -48,7 +50,7 @@ from diffcam.calibrate.near_far import CalibrationGeometry, check_captures, chec
 from diffcam.calibrate.planes import check_planes
 from diffcam.calibrate.result import RetrievalResult
 
-__all__ = ["retrieve_projections", "gerchberg_saxton", "hio", "raar", "initial_phase",
+__all__ = ["retrieve_projections", "ProjectionOptions", "gerchberg_saxton", "hio", "raar", "initial_phase",
            "METHODS"]
 
 METHODS = ("gs", "hio", "raar")
@@ -148,21 +150,54 @@ def initial_phase(init, shape, key=None, restarts: int = 1) -> Float[Array, "res
     return phase[None]
 
 
-def _check_options(method, iterations, beta, restarts):
-    if method not in METHODS:
-        raise DiffcamError(f"method must be one of {METHODS}, got {method!r}.")
-    if not isinstance(iterations, int) or iterations < 1:
-        raise DiffcamError(f"iterations must be a positive int, got {iterations!r}.")
-    if not isinstance(restarts, int) or restarts < 1:
-        raise DiffcamError(f"restarts must be a positive int, got {restarts!r}.")
-    if not 0 < float(beta) <= 1:
-        raise DiffcamError(f"beta must be in (0, 1] (0.9 is usual), got {beta!r}.")
+class ProjectionOptions(eqx.Module):
+    """How alternating projections run.
+
+    Attributes:
+        method: ``"gs"``, ``"hio"`` or ``"raar"``.
+        iterations: number of iterations (one FFT pair each).
+        beta: HIO / RAAR relaxation, in (0, 1].
+        restarts: independent random starts, run batched with ``vmap`` (memory grows
+            with it); the run with the smallest final error is returned. ``None``: 1 here;
+            in :func:`~diffcam.calibrate.retrieve_phase` 4, or 1 with extra planes.
+        init: ``"random"``, ``"flat"`` or a diffuser-plane phase (ny, nx), radians (the
+            starting field is the near amplitude times e^{j·init}, carried to the near
+            plane when ``near_distance > 0``). ``None``: ``"flat"`` with extra planes and
+            one start (it converges; random starts can stall on a slightly inconsistent
+            plane), else ``"random"``.
+    """
+
+    method: str = "raar"
+    iterations: int = 300
+    beta: float = 0.9
+    restarts: int | None = None
+    init: object = None
+
+    def __check_init__(self):
+        if self.method not in METHODS:
+            raise DiffcamError(f"method must be one of {METHODS}, got {self.method!r}.")
+        if not isinstance(self.iterations, (int, np.integer)) or self.iterations < 1:
+            raise DiffcamError(f"iterations must be a positive int, got {self.iterations!r}.")
+        if self.restarts is not None and (not isinstance(self.restarts, (int, np.integer))
+                                          or self.restarts < 1):
+            raise DiffcamError(f"restarts must be a positive int, got {self.restarts!r}.")
+        if not 0 < float(self.beta) <= 1:
+            raise DiffcamError(f"beta must be in (0, 1] (0.9 is usual), got {self.beta!r}.")
+
+    @classmethod
+    def of(cls, options: "ProjectionOptions | None" = None, **overrides):
+        """``options`` (default: the defaults) with the named fields replaced."""
+        unknown = set(overrides) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise DiffcamError(f"unknown projection option(s) {sorted(unknown)}; the options "
+                               f"are {sorted(cls.__dataclass_fields__)}.")
+        return dataclasses.replace(options or cls(), **overrides)
 
 
 def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
-                         geometry: CalibrationGeometry, *, method: str = "raar",
-                         iterations: int = 300, beta: float = 0.9, init=None, key=None,
-                         restarts: int = 1, far_pitch=None, planes=()) -> RetrievalResult:
+                         geometry: CalibrationGeometry, *,
+                         options: ProjectionOptions | None = None, key=None, far_pitch=None,
+                         planes=(), **overrides) -> RetrievalResult:
     """Retrieve the diffuser phase from near- and far-field intensities by projections.
 
     Args:
@@ -171,17 +206,9 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
         far: far-field intensity at the Fourier-lens pitch λf/(N·dx) (any scale; it is
             matched to the near field's energy).
         geometry: the set-up, SI units.
-        method: ``"gs"``, ``"hio"`` or ``"raar"``.
-        iterations: number of iterations (one FFT pair each).
-        beta: HIO / RAAR relaxation, in (0, 1].
-        init: ``"random"``, ``"flat"`` or a diffuser-plane phase (ny, nx), radians (the
-            starting field is the near amplitude times e^{j·init}, carried to the near
-            plane when ``near_distance > 0``). Default: ``"flat"`` with ``planes`` and one
-            start (it converges; random starts can stall on a slightly inconsistent
-            plane), else ``"random"``.
+        options: :class:`ProjectionOptions` (method, iterations, beta, restarts, init);
+            ``**overrides`` replace its fields (``method=``, ``iterations=``, ...).
         key: ``jax.random`` key for ``init="random"``.
-        restarts: independent random starts, run batched with ``vmap`` (memory grows
-            with it); the run with the smallest final error is returned.
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
         planes: extra intensities, :class:`~diffcam.calibrate.DefocusedPlane` (a captured
             PSF through :func:`~diffcam.calibrate.psf_plane`): each adds a projection
@@ -193,7 +220,9 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
     """
     check_captures(near, far)
     shape = np.shape(near)
-    _check_options(method, iterations, beta, restarts)
+    o = ProjectionOptions.of(options, **overrides)
+    method, iterations, beta, init = o.method, int(o.iterations), o.beta, o.init
+    restarts = 1 if o.restarts is None else int(o.restarts)
     if far_pitch is not None:
         check_far_pitch(far_pitch, geometry, shape)
     t0 = time.perf_counter()

@@ -39,12 +39,12 @@ from diffcam.model import Camera, psf
 from diffcam.model.camera import real_dtype
 from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_positive
 from diffcam.model.sensor import bin_pixels
-from diffcam.calibrate.near_far import CalibrationGeometry, NearFarModel, check_captures
-from diffcam.calibrate.lsq import PhaseGrid, fit_phase, near_far_model, warn_if_stalled
+from diffcam.calibrate.near_far import NearFarModel, check_captures
+from diffcam.calibrate.lsq import FitOptions, PhaseGrid, fit_phase, near_far_model, warn_if_stalled
 from diffcam.calibrate.projections import initial_phase
 from diffcam.calibrate.result import RetrievalResult
 
-__all__ = ["fit_to_psfs", "predict_psfs", "resolve_twin", "depths", "PSFModel", "DEPTH_MODELS"]
+__all__ = ["fit_to_psfs", "DepthLaw", "predict_psfs", "resolve_twin", "depths", "PSFModel", "DEPTH_MODELS"]
 
 DEPTH_MODELS = ("fixed", "per_psf", "inverse_linear")
 
@@ -101,11 +101,54 @@ class PSFModel(eqx.Module):
         return out
 
 
+class DepthLaw(eqx.Module):
+    """Which distances a PSF fit may change, and how the depths are parameterised.
+
+    Attributes:
+        kind: ``"fixed"`` (the given depths), ``"per_psf"`` (one free depth per PSF) or
+            ``"inverse_linear"`` (1/z1 linear in the plane index: two parameters).
+        plane_index: the plane number of each PSF (needed by ``"inverse_linear"``).
+        fit_z2: also fit the diffuser-to-sensor distance.
+    """
+
+    kind: str = "fixed"
+    plane_index: tuple | None = eqx.field(default=None, converter=lambda t: None if t is None
+                                          else tuple(float(v) for v in np.ravel(t)))
+    fit_z2: bool = False
+
+    def __check_init__(self):
+        if self.kind not in DEPTH_MODELS:
+            raise DiffcamError(f"depth law must be one of {DEPTH_MODELS}, got {self.kind!r}.")
+        if self.kind == "inverse_linear":
+            if self.plane_index is None:
+                raise DiffcamError("DepthLaw('inverse_linear') needs plane_index: the plane "
+                                   "number of each PSF.")
+            if len(set(self.plane_index)) < 2:
+                raise DiffcamError("DepthLaw('inverse_linear') needs PSFs of ≥ 2 planes.")
+
+    def start(self, n_psfs: int, dtype) -> dict:
+        """The fitted parameters' start values (log-ratios to the given distances)."""
+        if self.plane_index is not None and len(self.plane_index) != n_psfs:
+            raise DiffcamError(f"plane_index has {len(self.plane_index)} entries for "
+                               f"{n_psfs} PSFs; give one plane number per PSF.")
+        extra = {"log_z2": jnp.zeros((), dtype)} if self.fit_z2 else {}
+        if self.kind == "per_psf":
+            extra["log_z1"] = jnp.zeros(n_psfs, dtype)
+        if self.kind == "inverse_linear":
+            extra["log_z1_ends"] = jnp.zeros(2, dtype)
+        return extra
+
+
+def _depth_law(depth) -> DepthLaw:
+    if isinstance(depth, DepthLaw):
+        return depth
+    return DepthLaw(depth)
+
+
 def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[float], *,
-                near=None, far=None, geometry: CalibrationGeometry | None = None,
-                fit_z2: bool = False, depth_model: str = "fixed", plane_index=None,
-                init="flat", key=None, coarse: int = 1, masks=None, spectrum=None,
-                sensor_pitch=None, **options) -> RetrievalResult:
+                depth: DepthLaw | str = "fixed", near_far=None, init="flat", key=None,
+                coarse: int = 1, masks=None, spectrum=None, sensor_pitch=None,
+                options: FitOptions | None = None, **overrides) -> RetrievalResult:
     """Fit θd (with or without near/far captures) to one or more captured PSFs.
 
     Args:
@@ -113,14 +156,12 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
             (or on pixels of ``sensor_pitch``), registered to the optical axis (any scale
             and background: both are fitted).
         camera: the :class:`~diffcam.model.camera.Camera`: grid, pitch dx, λ, z2 (the start
-            value when ``fit_z2``), aperture.
+            value when the depth law fits z2), aperture.
         z1: depths of the PSFs, metres, (k,): known values, or start values.
-        near, far: optional calibration intensities on the camera grid (``camera.shape``,
-            pitch ``camera.dx``; far at the Fourier-lens pitch); need ``geometry``.
-        geometry: the near/far set-up; its ``dx`` must be the camera's.
-        fit_z2: fit the diffuser-to-sensor distance.
-        depth_model: ``"fixed"``, ``"per_psf"`` or ``"inverse_linear"`` (needs
-            ``plane_index``, the plane number of each PSF).
+        depth: a :class:`DepthLaw` (or its kind): which distances are fitted.
+        near_far: optional ``(near, far, geometry)``: calibration intensities on the
+            camera grid (``camera.shape``, pitch ``camera.dx``; far at the Fourier-lens
+            pitch) and their :class:`CalibrationGeometry` (``dx`` the camera's).
         init: ``"flat"``, ``"random"`` (with ``key``) or a phase on the camera grid.
         coarse: phase unknowns every ``coarse`` samples.
         masks: K (or K + 2 with near/far) weight images, 0 at saturated pixels.
@@ -129,15 +170,44 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
             camera's grid: the model then integrates each PSF over those pixels
             (:func:`diffcam.model.sensor.bin_pixels`), so the phase can live on a finer grid
             than binned data.
-        **options: :func:`diffcam.calibrate.lsq.fit_phase` options (``loss``, default
+        options: :class:`~diffcam.calibrate.lsq.FitOptions` (default loss
             ``"weighted_intensity"``: each residual over √(y + ȳ), y the measured intensity
-            and ȳ its mean, which keeps the dim tails of a far field in the fit;
-            ``solver``, ``iterations``, ``smoothness``, ``tv``, ``fit_background``).
+            and ȳ its mean, which keeps the dim tails of a far field in the fit);
+            ``**overrides`` replace its fields (``iterations=``, ...).
 
     Returns:
         :class:`RetrievalResult`; ``stats`` adds ``z1`` and ``z2`` (m), ``zeta1`` and
         ``zeta2`` (λz/dx²) and ``depth_model``.
     """
+    depth = _depth_law(depth)
+    dtype = real_dtype(camera)
+    psfs = _check_psfs(psfs, camera, sensor_pitch)
+    z1 = np.asarray(z1, np.float64).reshape(-1)
+    check_positive("z1", z1, "m")
+    if z1.size != psfs.shape[0]:
+        raise ShapeError(f"{z1.size} depths for {psfs.shape[0]} PSFs; give one z1 per PSF.")
+    extra = depth.start(z1.size, dtype)
+    nf_model, nf_measured = _near_far(near_far, camera)
+    aperture = np.asarray(camera.aperture())
+    grid = PhaseGrid.for_aperture(aperture, coarse)
+    theta0 = grid.restrict(initial_phase(init, camera.shape, key)[0].astype(dtype))
+    plane_index = None if depth.plane_index is None else jnp.asarray(depth.plane_index, dtype)
+    model = PSFModel(camera, jnp.asarray(z1, dtype), plane_index, spectrum, nf_model,
+                     depth.kind, _sensor(camera, sensor_pitch))
+    result = warn_if_stalled(fit_phase(model, list(psfs) + nf_measured, theta0, grid,
+                                       support=aperture > 0, masks=masks, extra0=extra or None,
+                                       options=FitOptions.of(options, **overrides)), init)
+    fitted = result.stats["extra"] or {}
+    z2 = float(camera.z2) * float(np.exp(fitted.get("log_z2", 0.0)))
+    z1_fit = np.asarray(depths(fitted, z1, depth.kind, depth.plane_index), np.float64)
+    scale = float(camera.wavelength) / float(camera.dx) ** 2
+    stats = dict(result.stats, z1=z1_fit, z2=z2, zeta1=z1_fit * scale, zeta2=z2 * scale,
+                 depth_model=depth.kind)
+    return result._replace(stats=stats)
+
+
+def _check_psfs(psfs, camera, sensor_pitch) -> np.ndarray:
+    """The measured PSFs as an array of the camera's dtype, after checking them."""
     psfs = np.asarray(psfs, np.dtype(real_dtype(camera)))
     check_field(psfs, "psfs")
     sensor = _sensor(camera, sensor_pitch)
@@ -145,63 +215,30 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
     if psfs.ndim != 3 or psfs.shape[-2:] != want:
         raise ShapeError(f"psfs must be (k, {want[0]}, {want[1]}) (the camera's out_shape, "
                          f"binned to sensor_pitch if given), got {psfs.shape}.")
-    z1 = np.asarray(z1, np.float64).reshape(-1)
-    check_positive("z1", z1, "m")
-    if z1.size != psfs.shape[0]:
-        raise ShapeError(f"{z1.size} depths for {psfs.shape[0]} PSFs; give one z1 per PSF.")
-    if depth_model not in DEPTH_MODELS:
-        raise DiffcamError(f"depth_model must be one of {DEPTH_MODELS}, got {depth_model!r}.")
     for k, p in enumerate(psfs):
         if p.min() < 0 or p.max() == p.min():
             raise DiffcamError(f"PSF {k} is negative somewhere or constant (min {p.min():.3g}, "
                                f"max {p.max():.3g}); subtract the background with "
                                f"diffcam.io.subtract_background and check the exposure.")
-    extra = {}
-    if fit_z2:
-        extra["log_z2"] = jnp.zeros((), real_dtype(camera))
-    if depth_model == "per_psf":
-        extra["log_z1"] = jnp.zeros(z1.size, real_dtype(camera))
-    if depth_model == "inverse_linear":
-        if plane_index is None or np.size(plane_index) != z1.size:
-            raise DiffcamError("depth_model='inverse_linear' needs plane_index: the plane "
-                               "number of each PSF (k values).")
-        if z1.size < 2:
-            raise DiffcamError("depth_model='inverse_linear' needs at least 2 PSFs.")
-        plane_index = tuple(float(t) for t in np.asarray(plane_index).reshape(-1))
-        if len(set(plane_index)) < 2:
-            raise DiffcamError("depth_model='inverse_linear' needs PSFs of ≥ 2 planes.")
-        extra["log_z1_ends"] = jnp.zeros(2, real_dtype(camera))
-    measured = list(psfs)
-    near_far = None
-    if (near is None) != (far is None):
-        raise DiffcamError("give both near and far captures, or neither.")
-    if near is not None:
-        if geometry is None:
-            raise DiffcamError("near/far captures need geometry=CalibrationGeometry(...).")
-        check_captures(near, far)
-        if np.shape(near) != tuple(camera.shape):
-            raise ShapeError(f"near/far captures {np.shape(near)} must be on the camera grid "
-                             f"{tuple(camera.shape)}.")
-        if abs(float(geometry.dx) - float(camera.dx)) > 1e-6 * float(camera.dx):
-            raise DiffcamError(f"geometry.dx {geometry.dx} m differs from camera.dx "
-                               f"{float(camera.dx)} m; put both on one grid.")
-        near_far = near_far_model(camera.aperture(), geometry)
-        measured += [near, far]
-    aperture = np.asarray(camera.aperture())
-    grid = PhaseGrid.for_aperture(aperture, coarse)
-    theta0 = grid.restrict(initial_phase(init, camera.shape, key)[0].astype(real_dtype(camera)))
-    model = PSFModel(camera, jnp.asarray(z1, real_dtype(camera)),
-                     None if plane_index is None else jnp.asarray(plane_index, real_dtype(camera)),
-                     spectrum, near_far, depth_model, sensor)
-    result = warn_if_stalled(fit_phase(model, measured, theta0, grid, support=aperture > 0,
-                                       masks=masks, extra0=extra or None, **options), init)
-    fitted = result.stats["extra"] or {}
-    z2 = float(camera.z2) * float(np.exp(fitted.get("log_z2", 0.0)))
-    z1_fit = np.asarray(depths(fitted, z1, depth_model, plane_index), np.float64)
-    scale = float(camera.wavelength) / float(camera.dx) ** 2
-    stats = dict(result.stats, z1=z1_fit, z2=z2, zeta1=z1_fit * scale, zeta2=z2 * scale,
-                 depth_model=depth_model)
-    return result._replace(stats=stats)
+    return psfs
+
+
+def _near_far(near_far, camera) -> tuple[NearFarModel | None, list]:
+    """The near/far forward model and captures of ``near_far=(near, far, geometry)``."""
+    if near_far is None:
+        return None, []
+    if len(near_far) != 3 or near_far[2] is None:
+        raise DiffcamError("near_far must be (near, far, geometry) with geometry a "
+                           "CalibrationGeometry.")
+    near, far, geometry = near_far
+    check_captures(near, far)
+    if np.shape(near) != tuple(camera.shape):
+        raise ShapeError(f"near/far captures {np.shape(near)} must be on the camera grid "
+                         f"{tuple(camera.shape)}.")
+    if abs(float(geometry.dx) - float(camera.dx)) > 1e-6 * float(camera.dx):
+        raise DiffcamError(f"geometry.dx {geometry.dx} m differs from camera.dx "
+                           f"{float(camera.dx)} m; put both on one grid.")
+    return near_far_model(camera.aperture(), geometry), [near, far]
 
 
 def _sensor(camera, sensor_pitch):

@@ -136,6 +136,26 @@ def _method_for(z: float, z_crit: float) -> str:
     return f"impulse response (z = {fmt_length(z)} > N·dx²/λ; a transfer function would alias)"
 
 
+def _diffuser_bandwidth(phase, dx, diffuser_frequency, notes) -> float:
+    """The diffuser's bandwidth (cycles/m) from its phase or as given; 0 with a note."""
+    if phase is not None:
+        return phase_bandwidth(phase, dx)
+    if diffuser_frequency is not None:
+        check_positive("diffuser_frequency", diffuser_frequency, "cycles/m", allow_zero=True)
+        return float(diffuser_frequency)
+    notes.append("no diffuser phase given: its bandwidth (a 1° diffuser adds about "
+                 "16–33 cycles/mm) is not included")
+    return 0.0
+
+
+def _footprint(wavelength, z1, z2, aperture_radius, offset, diffuser_frequency) -> float:
+    """Half-width (m) of the PSF on the sensor: the aperture's shadow magnified by M, plus
+    the diffuser's deflection over z2 (tan of its largest angle), plus the source offset."""
+    sin_d = min(wavelength * diffuser_frequency, 0.999)
+    return (aperture_radius * magnification(z1, z2) + offset * z2 / z1
+            + z2 * sin_d / math.sqrt(1 - sin_d ** 2))
+
+
 def plan_sampling(wavelength: float, dx: float, n: int, z1: float, z2: float,
                   aperture_radius: float, max_offset: float = 0.0, phase=None,
                   diffuser_frequency: float | None = None) -> SamplingPlan:
@@ -170,15 +190,7 @@ def plan_sampling(wavelength: float, dx: float, n: int, z1: float, z2: float,
         raise DiffcamError(f"aperture radius {fmt_length(R)} exceeds the grid half-width "
                            f"{fmt_length(half_width)}; use more samples.")
     notes = []
-    f_diff = 0.0
-    if phase is not None:
-        f_diff = phase_bandwidth(phase, dx)
-    elif diffuser_frequency is not None:
-        check_positive("diffuser_frequency", diffuser_frequency, "cycles/m", allow_zero=True)
-        f_diff = float(diffuser_frequency)
-    else:
-        notes.append("no diffuser phase given: its bandwidth (a 1° diffuser adds about "
-                     "16–33 cycles/mm) is not included")
+    f_diff = _diffuser_bandwidth(phase, dx, diffuser_frequency, notes)
     nyquist = 1 / (2 * dx)
     f_chirp = point_source_max_frequency(lam, z1, R, rho)
     total = f_chirp + f_diff
@@ -189,11 +201,7 @@ def plan_sampling(wavelength: float, dx: float, n: int, z1: float, z2: float,
         notes.append("the diffuser alone exceeds Nyquist: refine dx")
     z_eff, m = effective_distance(z1, z2), magnification(z1, z2)
     z_crit = n * dx * dx / lam
-    # PSF footprint on the sensor: the aperture's shadow magnified by M, plus the
-    # diffuser's deflection over z2 (tan of its largest angle), plus the source offset
-    sin_d = min(lam * f_diff, 0.999)
-    footprint = R * m + rho * z2 / z1 + z2 * sin_d / math.sqrt(1 - sin_d ** 2)
-    pad = max(0, math.ceil((footprint - half_width) / dx))
+    pad = max(0, math.ceil((_footprint(lam, z1, z2, R, rho, f_diff) - half_width) / dx))
     direct = total <= nyquist
     if direct:
         path = "direct (point-source chirp sampled); the scaling theorem also works"

@@ -168,30 +168,7 @@ def _admm_solve(b, psf, penalties, tol, *, iterations, boundary, tv_axial):
     nz = psf.shape[0]
     axial = tv_axial and nz > 1
 
-    # Eigenvalues of ΨᵀΨ: lateral circular differences under the 2-D DFT, axial Neumann
-    # differences under the orthonormal DCT-II.
-    ky = 2 * jnp.pi * jnp.fft.fftfreq(grid[0])[:, None]
-    kx = 2 * jnp.pi * jnp.fft.rfftfreq(grid[1])[None, :]
-    lateral = (4 - 2 * jnp.cos(ky) - 2 * jnp.cos(kx)).astype(b.dtype)
-    if axial:
-        axial_eig = (2 - 2 * jnp.cos(jnp.pi * jnp.arange(nz) / nz)).astype(b.dtype)
-        diag = mu2 * (lateral + axial_eig[:, None, None]) + mu3     # (nz, fy, fxr)
-    else:
-        diag = mu2 * lateral + mu3                                    # (fy, fxr)
-
-    def diag_solve(r):
-        """(mu2 ΨᵀΨ + mu3)⁻¹ r, ``r`` lateral spectra ``(nz, fy, fxr)``."""
-        if not axial:
-            return r / diag
-        return idct(dct(r, axis=0, norm="ortho") / diag, axis=0, norm="ortho")
-
-    dinv_g = diag_solve(jnp.conj(otf))
-    coupling = 1 + mu1 * jnp.real(jnp.sum(otf * dinv_g, axis=0))   # (fy, fxr)
-
-    def v_solve(r):
-        """(mu1 HᵀH + mu2 ΨᵀΨ + mu3)⁻¹ r by Sherman–Morrison over depth."""
-        t = diag_solve(r)
-        return t - dinv_g * (mu1 * jnp.sum(otf * t, axis=0) / coupling)
+    v_solve = _v_solver(otf, grid, axial, (mu1, mu2, mu3), b.dtype)
 
     if boundary == "crop":
         crop_mask = pad_to(jnp.ones_like(b), grid)
@@ -231,6 +208,40 @@ def _admm_solve(b, psf, penalties, tol, *, iterations, boundary, tv_axial):
     estimate = jnp.maximum(v + rho / mu3, 0) / h_norm
     return Reconstruction(image=estimate, residual=res, objective=obj, iterations=its,
                           converged=done)
+
+
+def _v_solver(otf, grid, axial, mu, dtype):
+    """r ↦ (mu1 HᵀH + mu2 ΨᵀΨ + mu3)⁻¹ r on lateral spectra ``(nz, fy, fxr)``.
+
+    ΨᵀΨ is diagonal under the 2-D DFT (lateral circular differences) and the orthonormal
+    DCT-II over depth (axial Neumann differences); HᵀH couples the depths through one
+    rank-one term per frequency, inverted by Sherman–Morrison.
+    """
+    mu1, mu2, mu3 = mu
+    nz = otf.shape[0]
+    ky = 2 * jnp.pi * jnp.fft.fftfreq(grid[0])[:, None]
+    kx = 2 * jnp.pi * jnp.fft.rfftfreq(grid[1])[None, :]
+    lateral = (4 - 2 * jnp.cos(ky) - 2 * jnp.cos(kx)).astype(dtype)
+    if axial:
+        axial_eig = (2 - 2 * jnp.cos(jnp.pi * jnp.arange(nz) / nz)).astype(dtype)
+        diag = mu2 * (lateral + axial_eig[:, None, None]) + mu3     # (nz, fy, fxr)
+    else:
+        diag = mu2 * lateral + mu3                                    # (fy, fxr)
+
+    def diag_solve(r):
+        """(mu2 ΨᵀΨ + mu3)⁻¹ r."""
+        if not axial:
+            return r / diag
+        return idct(dct(r, axis=0, norm="ortho") / diag, axis=0, norm="ortho")
+
+    dinv_g = diag_solve(jnp.conj(otf))
+    coupling = 1 + mu1 * jnp.real(jnp.sum(otf * dinv_g, axis=0))   # (fy, fxr)
+
+    def v_solve(r):
+        t = diag_solve(r)
+        return t - dinv_g * (mu1 * jnp.sum(otf * t, axis=0) / coupling)
+
+    return v_solve
 
 
 def _soft(x, threshold):

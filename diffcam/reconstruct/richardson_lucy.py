@@ -223,33 +223,45 @@ def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate
     use_filter = filter_epsilon is not None and (not is_concrete(filter_epsilon)
                                                  or float(filter_epsilon) != 0)
     flat = lambda a, k: a.reshape((-1,) + a.shape[a.ndim - k:])  # noqa: E731
-    out = _rl_batched(flat(image, 2), flat(psf, core), init,
-                      jnp.asarray(tv_weight, dtype), jnp.asarray(eps, dtype),
-                      jnp.asarray(filter_epsilon if use_filter else 0, dtype),
-                      None if tol is None else jnp.asarray(tol, dtype),
-                      iterations=iterations, boundary=boundary, convention=convention,
-                      accelerate=accelerate, use_tv=use_tv, use_filter=use_filter,
-                      volume=volume)
+    weights = _Weights(jnp.asarray(tv_weight, dtype), jnp.asarray(eps, dtype),
+                       jnp.asarray(filter_epsilon if use_filter else 0, dtype),
+                       None if tol is None else jnp.asarray(tol, dtype))
+    config = _Config(iterations, boundary, convention, bool(accelerate), use_tv, use_filter,
+                     volume)
+    out = _rl_batched(flat(image, 2), flat(psf, core), init, weights, config)
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
-@partial(jax.jit, static_argnames=("iterations", "boundary", "convention", "accelerate",
-                                   "use_tv", "use_filter", "volume"))
-def _rl_batched(image, psf, init, tv_weight, eps, filter_epsilon, tol, *, iterations,
-                boundary, convention, accelerate, use_tv, use_filter, volume):
-    def one(b, h, x0):
-        return _rl_solve(b, h, x0, tv_weight, eps, filter_epsilon, tol, iterations=iterations,
-                         boundary=boundary, convention=convention, accelerate=accelerate,
-                         use_tv=use_tv, use_filter=use_filter, volume=volume)
-    return jax.vmap(one)(image, psf, init)
+class _Weights(NamedTuple):
+    """The traced numbers of a run (arrays; ``tol`` may be None)."""
+
+    tv_weight: Array
+    eps: Array
+    filter_epsilon: Array
+    tol: Array | None
 
 
-def _rl_solve(b, psf, x0, tv_weight, eps, filter_epsilon, tol, *, iterations, boundary,
-              convention, accelerate, use_tv, use_filter, volume) -> Reconstruction:
-    """One problem: ``b (ny, nx)``, ``psf ([nz,] my, mx)``."""
-    b = jnp.maximum(b, 0)  # rounding-level negatives passed validation
+class _Config(NamedTuple):
+    """The static settings of a run (hashable: one compilation per distinct value)."""
+
+    iterations: int
+    boundary: str
+    convention: str
+    accelerate: bool
+    use_tv: bool
+    use_filter: bool
+    volume: bool
+
+
+@partial(jax.jit, static_argnames=("config",))
+def _rl_batched(image, psf, init, weights: _Weights, config: _Config):
+    return jax.vmap(lambda b, h, x0: _rl_solve(b, h, x0, weights, config))(image, psf, init)
+
+
+def _operators(b, psf, x0, config: _Config):
+    """(forward, back, sensitivity Aᵀ1, seen mask, start) of one problem."""
     sensor_shape = b.shape
-    if convention == "skimage":
+    if config.convention == "skimage":
         my, mx = psf.shape[-2:]
         forward = convolution_model(psf, sensor_shape, "same",
                                     psf_centre=((my - 1) // 2, (mx - 1) // 2))
@@ -258,17 +270,26 @@ def _rl_solve(b, psf, x0, tv_weight, eps, filter_epsilon, tol, *, iterations, bo
         seen = jnp.ones((), bool)
         if x0 is None:
             x0 = jnp.full(sensor_shape, 0.5, b.dtype)
-    else:
-        forward = back = convolution_model(psf, sensor_shape, boundary, volume=volume)
-        sensitivity = forward.adjoint(jnp.ones(sensor_shape, b.dtype))
-        seen = sensitivity > _SEEN * jnp.max(sensitivity)
-        if x0 is None:
-            flux = jnp.sum(b) / jnp.sum(jnp.where(seen, sensitivity, 0))
-            x0 = jnp.where(seen, flux, 0).astype(b.dtype)
+        return forward, back, sensitivity, seen, x0
+    forward = convolution_model(psf, sensor_shape, config.boundary, volume=config.volume)
+    sensitivity = forward.adjoint(jnp.ones(sensor_shape, b.dtype))
+    seen = sensitivity > _SEEN * jnp.max(sensitivity)
+    if x0 is None:
+        flux = jnp.sum(b) / jnp.sum(jnp.where(seen, sensitivity, 0))
+        x0 = jnp.where(seen, flux, 0).astype(b.dtype)
+    return forward, forward, sensitivity, seen, x0
+
+
+def _rl_solve(b, psf, x0, weights: _Weights, config: _Config) -> Reconstruction:
+    """One problem: ``b (ny, nx)``, ``psf ([nz,] my, mx)``."""
+    b = jnp.maximum(b, 0)  # rounding-level negatives passed validation
+    forward, back, sensitivity, seen, x0 = _operators(b, psf, x0, config)
+    eps, filter_epsilon = weights.eps, weights.filter_epsilon
+    use_tv, use_filter, accelerate = config.use_tv, config.use_filter, config.accelerate
     inv_sensitivity = jnp.where(seen, 1 / jnp.where(seen, sensitivity, 1), 0)
     if use_tv:
         psf_sum = jnp.sum(psf, axis=(-2, -1), keepdims=True)
-        tv_scale = tv_weight * psf_sum
+        tv_scale = weights.tv_weight * psf_sum
         smooth = _TV_SMOOTH * jnp.mean(x0)
 
     def rl_step(y):
@@ -308,7 +329,7 @@ def _rl_solve(b, psf, x0, tv_weight, eps, filter_epsilon, tol, *, iterations, bo
         zeros = jnp.zeros_like(x0)
         state = (x0, x0, zeros, zeros, jnp.asarray(0))
 
-    state, res, obj, its, done = iterate(step, state, iterations, tol)
+    state, res, obj, its, done = iterate(step, state, config.iterations, weights.tol)
     x = state if not accelerate else state[0]
     return Reconstruction(image=x, residual=res, objective=obj, iterations=its,
                           converged=done)
