@@ -39,8 +39,8 @@ def test_plan_reports_and_rejects_bad_units():
     r = _diffcam("plan", "--pixel", "3.45um", "--n", "4096", "--z1", "22mm", "--z2", "1mm",
                  "--aperture-radius", "2.3mm")
     assert r.returncode == 0 and "29.83 mm" in r.stdout
-    bad = _diffcam("plan", "--pixel", "3.45furlong", "--n", "8", "--z1", "1", "--z2", "1",
-                   "--aperture-radius", "1")
+    bad = _diffcam("plan", "--pixel", "3.45furlong", "--n", "8", "--z1", "1m", "--z2", "1m",
+                   "--aperture-radius", "1m")
     assert bad.returncode == 2 and "unknown unit" in bad.stderr
     too_big = _diffcam("plan", "--pixel", "5um", "--n", "100", "--z1", "25mm", "--z2", "1mm",
                        "--aperture-radius", "1mm")
@@ -53,7 +53,12 @@ def test_units():
     assert parse_length("25mm") == pytest.approx(0.025)
     assert parse_length("3.45um") == pytest.approx(3.45e-6)
     assert parse_length("532nm") == pytest.approx(532e-9)
-    assert parse_length("1e-3") == pytest.approx(1e-3)
+    assert parse_length("1e-3m") == pytest.approx(1e-3)
+    assert parse_length("0") == 0.0
+    with pytest.raises(DiffcamError, match="no unit"):
+        parse_length("25", name="z1")  # 25 metres is almost never meant
+    with pytest.raises(DiffcamError, match="expands to"):
+        parse_length_range("20mm:30mm:1nm")
     r = parse_length_range("22mm:30mm:1mm")
     assert len(r) == 9 and r[-1] == pytest.approx(0.030)
     with pytest.raises(DiffcamError, match="unit"):

@@ -14,16 +14,28 @@ from diffcam.core.errors import DiffcamError
 __all__ = ["parse_length", "parse_length_range"]
 
 _SCALE = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "μm": 1e-6, "nm": 1e-9}
+# the most values a range may expand to (a step typo such as 20mm:30mm:1nm would ask
+# for ten million depths)
+MAX_RANGE = 10_000
 _PATTERN = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zµμ]*)\s*$")
 
 
 def parse_length(text: str, *, name: str = "length") -> float:
-    """``"25mm"``, ``"3.45um"``, ``"532nm"``, ``"0.05m"`` or ``"1e-3"`` (metres) → metres."""
+    """``"25mm"``, ``"3.45um"``, ``"532nm"`` or ``"0.05m"`` → metres.
+
+    A unit is required (a bare ``25`` would be 25 metres, almost never what was meant);
+    only ``0`` may go without one.
+    """
     m = _PATTERN.match(str(text))
     if not m:
         raise DiffcamError(f"{name}: cannot read {text!r} as a length; write e.g. 25mm, "
-                           f"3.45um, 532nm or 0.025 (metres).")
-    value, unit = float(m.group(1)), m.group(2) or "m"
+                           f"3.45um, 532nm or 0.025m.")
+    value, unit = float(m.group(1)), m.group(2)
+    if not unit:
+        if value != 0:
+            raise DiffcamError(f"{name}: {text!r} has no unit; write e.g. {m.group(1)}mm, "
+                               f"{m.group(1)}um or {m.group(1)}m.")
+        unit = "m"
     if unit not in _SCALE:
         raise DiffcamError(f"{name}: unknown unit {unit!r} in {text!r}; use one of "
                            f"{', '.join(sorted(set(_SCALE) - {'μm'}))}.")
@@ -43,4 +55,7 @@ def parse_length_range(text: str, *, name: str = "range") -> np.ndarray:
     if step <= 0 or stop < start:
         raise DiffcamError(f"{name}: need start ≤ stop and step > 0, got {text!r}.")
     count = int(np.floor((stop - start) / step + 1e-9)) + 1
+    if count > MAX_RANGE:
+        raise DiffcamError(f"{name}: {text!r} expands to {count} values (limit {MAX_RANGE}); "
+                           f"check the step.")
     return start + step * np.arange(count)
