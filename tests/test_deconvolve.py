@@ -267,8 +267,10 @@ def test_rl_3d_separates_planes(x64):
 
 
 def test_wiener_equals_dense_tikhonov(x64):
-    """Circular Wiener = argmin ||h⊛x - b||² + λ||x||², solved with the dense matrix."""
+    """Circular Wiener = argmin ||h⊛x - b||² + λ||x||², solved with the dense matrix
+    (h the PSF normalised to unit sum, as wiener normalises it)."""
     image, psf = _problem(shape=(8, 10), psf_shape=(3, 4), seed=12)
+    psf = psf / psf.sum()
     model = convolution_model(jnp.asarray(psf), image.shape, "circular")
     a = _dense(model, image.shape)
     lam = 1e-2 * float(np.max(np.abs(np.asarray(model.otf)) ** 2))

@@ -57,7 +57,7 @@ def check_positive(name: str, value: Any, unit: str, *, allow_zero: bool = False
     """
     if not is_concrete(value):
         return
-    arr = np.asarray(value, dtype=np.float64)
+    arr = _as_real(name, value, f"a real number in {unit}").astype(np.float64)
     if arr.size == 0:
         raise DiffcamError(f"{name} is empty; give at least one value in {unit}.")
     if not np.all(np.isfinite(arr)):
@@ -85,7 +85,7 @@ def check_finite(name: str, arr: Any) -> None:
             ok = bool(_all_finite(arr))
             n_bad = 0 if ok else int(arr.size - jax.numpy.isfinite(arr).sum())
     else:
-        finite = np.isfinite(np.asarray(arr))
+        finite = np.isfinite(_as_real(name, arr, "numeric", complex_ok=True))
         ok = bool(finite.all())
         n_bad = 0 if ok else int(finite.size - np.count_nonzero(finite))
     if not ok:
@@ -93,6 +93,20 @@ def check_finite(name: str, arr: Any) -> None:
             f"{name} contains {n_bad} NaN/Inf value(s); clean the input "
             f"(e.g. np.nan_to_num) or mask those pixels before calling diffcam."
         )
+
+
+def _as_real(name: str, value: Any, what: str, *, complex_ok: bool = False) -> np.ndarray:
+    """``value`` as a NumPy array of numbers (no copy if it already is one; float64 for
+    other inputs), or a DiffcamError naming ``name``."""
+    try:
+        arr = np.asarray(value)
+        if arr.dtype.kind not in ("biufc" if complex_ok else "biuf"):
+            if arr.dtype.kind == "c":
+                raise TypeError("complex")
+            arr = arr.astype(np.float64)
+    except (TypeError, ValueError):
+        raise DiffcamError(f"{name} must be {what}, got {value!r:.80}.") from None
+    return arr
 
 
 def check_field(field: Any, name: str = "field", *, finite: bool = True) -> None:

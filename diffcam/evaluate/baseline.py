@@ -14,7 +14,9 @@ for z2 = 1 mm, a lot for larger z2 (and everything the measurement got wrong).
 
 from __future__ import annotations
 
+import math
 import warnings
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -22,7 +24,9 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from diffcam.core.errors import check_field, check_positive, is_concrete
+from diffcam.core.backend import fft_size
+from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
+                                 check_positive, is_concrete)
 from diffcam.model.sensor import resample
 from diffcam.optics.propagation import magnification
 
@@ -36,11 +40,19 @@ def relative_magnification(z1_ref, z1, z2):
 
 
 def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0, 0.0), *,
-              kind: str = "cubic") -> Float[Array, "... ny nx"]:
+                kind: str = "cubic") -> Float[Array, "... ny nx"]:
     """Predict PSFs at depths ``z1`` from ``psf_ref`` measured at ``z1_ref``.
 
+    **Outside its frame the reference is taken to be zero.** For ``kind="cubic"`` the
+    frame is zero-padded by at least :data:`_SPLINE_PAD` samples per side before the
+    spline prefilter, which works by FFT and is therefore periodic: unpadded, light at
+    one edge would leak into the opposite edge. With the padding, m = 1 returns the
+    reference unchanged even when it has signal at the frame edge, a shrunk PSF (m < 1)
+    has zeros where the frame ends, and a magnified one loses what leaves the frame.
+
     Args:
-        psf_ref: the reference PSF (power per pixel).
+        psf_ref: the reference PSF (power per pixel), finite, non-negative, with some
+            light.
         dx: its pixel pitch, metres.
         z1_ref: depth of the reference, metres.
         z1: target depth(s), metres: a scalar or an array of shape (nz,).
@@ -51,23 +63,72 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
             point-sampled PSFs, e.g. simulated) or ``"area"`` (pixel-integrated ones).
 
     Returns:
-        ``z1.shape + psf_ref.shape``: the magnified, area-resampled reference,
-        renormalised to the reference's sum. Differentiable in every argument; with
-        ``kind="area"`` the magnification must stay ≥ 0.5 when it is traced.
+        ``z1.shape + psf_ref.shape``: the magnified, resampled reference, renormalised
+        to the reference's sum. Differentiable in every argument; with ``kind="area"``
+        the magnification must stay ≥ 0.5 when it is traced.
+
+    Raises:
+        DiffcamError: NaN/Inf in any argument (named), a negative or all-zero reference,
+            non-positive lengths; ``ShapeError`` unless ``psf_ref`` is 2-D.
     """
     check_field(psf_ref, "psf_ref")
+    if np.ndim(psf_ref) != 2:
+        raise ShapeError(f"psf_ref must be one 2-D PSF (ny, nx), got shape "
+                         f"{np.shape(psf_ref)}; magnify a stack one PSF at a time.")
     for name, v in (("dx", dx), ("z1_ref", z1_ref), ("z1", z1), ("z2", z2)):
         check_positive(name, v, "m")
+    if np.shape(centre) != (2,):
+        raise ShapeError(f"centre must be (y0, x0) in metres, got {centre!r}.")
+    check_finite("centre", centre)
+    if is_concrete(psf_ref):
+        ref_np = np.asarray(psf_ref)
+        if np.min(ref_np) < 0 or not np.sum(ref_np, dtype=np.float64) > 0:
+            raise DiffcamError(
+                f"psf_ref must be non-negative with some light (min {np.min(ref_np):.3g}, "
+                f"sum {np.sum(ref_np, dtype=np.float64):.3g}); subtract the background "
+                f"with diffcam.io.subtract_background, which clips small negatives.")
+    if kind not in ("cubic", "area"):
+        raise DiffcamError(f"kind must be 'cubic' or 'area', got {kind!r}.")
     m = relative_magnification(z1_ref, jnp.asarray(z1), z2)
-    max_width = 1 / float(np.min(np.asarray(m))) if is_concrete(m) else 2.0
+    # the area kernel's taps depend only on ceil(max_width): one compilation per count
+    max_width = float(math.ceil(1 / float(np.min(np.asarray(m))))) if is_concrete(m) else 2.0
     ref = jnp.asarray(psf_ref)
+    if not jnp.issubdtype(ref.dtype, jnp.floating):
+        ref = ref.astype(jnp.float32)
+    out = _magnify(ref, dx, m, jnp.asarray(centre), kind=kind, max_width=max_width)
+    if is_concrete(out) and not bool(jnp.isfinite(out).all()):
+        raise DiffcamError(
+            f"magnifying psf_ref by m = {np.asarray(m).min():.4g}…{np.asarray(m).max():.4g} "
+            f"leaves no light in the frame; check z1, z1_ref and z2 (metres).")
+    return out
+
+
+@partial(jax.jit, static_argnames=("kind", "max_width"))
+def _magnify(ref, dx, m, centre, *, kind, max_width):
     shape = ref.shape[-2:]
+    padded = _zero_extend(ref) if kind == "cubic" else ref
 
     def one(mi):
-        out = resample(ref, dx, dx, shape, mi, centre, kind=kind, max_width=max_width)
+        out = resample(padded, dx, dx, shape, mi, centre, kind=kind, max_width=max_width)
         return out * (jnp.sum(ref) / jnp.sum(out))
 
     return jax.vmap(one)(m.reshape(-1)).reshape(m.shape + shape)
+
+
+_SPLINE_PAD = 16
+"""Zeros added on each side before the periodic cubic-spline prefilter: its impulse
+response decays as (2 − √3)^k, so light wrapped across 2·16 zeros is below 1e-18."""
+
+
+def _zero_extend(ref):
+    """``ref`` centred in a zero frame at least :data:`_SPLINE_PAD` wider on every side,
+    on an FFT-friendly length; index n//2 stays the centre, so does every coordinate."""
+    widths = []
+    for n in ref.shape[-2:]:
+        size = fft_size(n + 2 * _SPLINE_PAD)
+        before = size // 2 - n // 2
+        widths.append((before, size - n - before))
+    return jnp.pad(ref, [(0, 0)] * (ref.ndim - 2) + widths)
 
 
 def scale_psf(*args, **kwargs):

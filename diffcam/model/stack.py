@@ -39,6 +39,7 @@ from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (_irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
 from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.io import atomic_output, check_output_path
 
 __all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
            "FORMAT_VERSION"]
@@ -241,7 +242,12 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
             from fewer samples with several wavelengths or direct-path positions).
         out: stream the stack to this file instead of memory: ``.npy`` (a memory-mapped
             array; metadata in ``<out>.json``) or ``.tif``/``.tiff`` (ImageJ hyperstack
-            written page by page, metadata inside). ``None`` keeps it in memory.
+            written page by page, metadata inside). ``None`` keeps it in memory. The
+            path is checked before anything is computed
+            (:func:`diffcam.io.check_output_path`), and the file is written atomically
+            (:func:`diffcam.io.atomic_output`): an existing file is replaced only once
+            the whole stack is written, and an error, Ctrl-C or SIGTERM meanwhile leaves
+            it as it was, with no temporary file behind.
         progress: show a tqdm bar; default on from 32 depths.
         devices: devices to shard the depth axis over (default ``jax.devices()``).
         accept_undersampling: turn sampling errors into warnings.
@@ -250,6 +256,7 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
         float array ``(nz, npos, ny, nx)`` (or ``(nz, ny, nx)`` without positions):
         numpy in memory, or a read-only memory map of ``out``.
     """
+    outputs = _output_paths(out)  # before any work: a bad path costs nothing
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
     chunks = iter_psf_stack(phase, camera, depths, positions, spectrum=spectrum,
                             normalise=normalise, batch_size=batch_size, devices=devices,
@@ -272,22 +279,35 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
             for start, block in _blocks(pages()):
                 stack[start:start + len(block)] = block
             return stack
-        path = os.fspath(out)
-        if path.endswith(".npy"):
-            stack = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape)
-            for start, block in _blocks(pages()):
-                stack[start:start + len(block)] = block
-            stack.flush()
-            del stack
-            with open(path + ".json", "w") as f:
-                f.write(meta.to_json())
+        path = outputs[0]
+        if path.endswith(".npy"):  # pixels and metadata replace the old pair together
+            with atomic_output(*outputs) as (temp, temp_json):
+                stack = np.lib.format.open_memmap(temp, mode="w+", dtype=np.float32,
+                                                  shape=shape)
+                for start, block in _blocks(pages()):
+                    stack[start:start + len(block)] = block
+                stack.flush()
+                del stack
+                with open(temp_json, "w") as f:
+                    f.write(meta.to_json())
             return np.load(path, mmap_mode="r")
-        if path.endswith((".tif", ".tiff")):
-            _write_tiff(path, (page for block in pages() for page in block), shape, meta)
-            return tifffile.memmap(path, mode="r")
-        raise DiffcamError(f"out must end in .npy, .tif or .tiff, got {path!r}.")
+        with atomic_output(path) as temp:
+            _write_tiff(temp, (page for block in pages() for page in block), shape, meta)
+        return tifffile.memmap(path, mode="r")
     finally:
         bar.close()
+
+
+def _output_paths(out) -> tuple[str, ...]:
+    """The files ``psf_stack(out=...)`` will write, checked: ``()`` for ``None``."""
+    if out is None:
+        return ()
+    path = os.fspath(check_output_path(out))
+    if path.endswith(".npy"):
+        return path, os.fspath(check_output_path(path + ".json"))
+    if path.endswith((".tif", ".tiff")):
+        return (path,)
+    raise DiffcamError(f"out must end in .npy, .tif or .tiff, got {path!r}.")
 
 
 def _blocks(pages):
@@ -320,8 +340,14 @@ def _write_tiff(path, pages, shape, meta: StackMeta):
 
 def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
     """Write ``stack`` with ``meta`` to ``.npz`` (exact round trip) or ``.tif``/``.tiff``
-    (ImageJ hyperstack, float32; the ImageJ Z spacing is the median depth step in mm)."""
+    (ImageJ hyperstack, float32; the ImageJ Z spacing is the median depth step in mm).
+
+    The path is checked first and the file written atomically
+    (:func:`diffcam.io.atomic_output`): an existing file is untouched on any failure."""
     path = os.fspath(path)
+    if not path.endswith((".npz", ".tif", ".tiff")):
+        raise DiffcamError(f"save_stack writes .npz, .tif or .tiff, got {path!r}.")
+    check_output_path(path)
     stack = np.asarray(stack)
     nz = meta.depths.size
     want = 3 if meta.positions is None else 4
@@ -330,12 +356,13 @@ def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
         npos = None if meta.positions is None else len(meta.positions)
         raise ShapeError(f"stack shape {stack.shape} does not match the metadata "
                          f"({nz} depths, {npos} positions).")
-    if path.endswith(".npz"):
-        np.savez(path, stack=stack, meta=np.array(meta.to_json()))
-    elif path.endswith((".tif", ".tiff")):
-        _write_tiff(path, stack.astype(np.float32), stack.shape, meta)
-    else:
-        raise DiffcamError(f"save_stack writes .npz, .tif or .tiff, got {path!r}.")
+    text = meta.to_json()
+    with atomic_output(path) as temp:
+        if path.endswith(".npz"):
+            with open(temp, "wb") as fh:  # a file object: numpy appends no second suffix
+                np.savez(fh, stack=stack, meta=np.array(text))
+        else:
+            _write_tiff(temp, stack.astype(np.float32), stack.shape, meta)
 
 
 def load_stack(path: str | os.PathLike) -> tuple[np.ndarray, StackMeta]:

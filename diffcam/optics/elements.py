@@ -76,8 +76,16 @@ def circular_aperture(shape, dx, radius, centre=(0.0, 0.0), *, edge: str = "hard
                 f"aperture (radius {fmt_length(float(radius))}, centre {centre}) reaches "
                 f"beyond the grid half-width ({fmt_length(half_y)} × {fmt_length(half_x)}); "
                 f"enlarge the grid (more samples) or reduce the radius.")
-    r = jnp.sqrt(radius2(shape, dx, centre))
-    return _edge(radius - r, jnp.minimum(*pitch_yx(dx)), edge)
+    return _edge(radius - _safe_sqrt(radius2(shape, dx, centre)), jnp.minimum(*pitch_yx(dx)),
+                 edge)
+
+
+def _safe_sqrt(r2):
+    """sqrt with a finite gradient at 0 (the sample on the centre): the double ``where``
+    keeps d sqrt(r²) = 1/(2r) = inf out of the backward pass, where inf·0 would be NaN
+    (in the gradient with respect to ``dx``, ``radius`` or ``centre``)."""
+    positive = r2 > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, r2, 1.0)), 0.0)
 
 
 def rectangular_aperture(shape, dx, height, width, centre=(0.0, 0.0), *, edge: str = "hard"

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import ArrayLike
 
 from diffcam.core.backend import irfft2, rfft2
@@ -25,29 +27,51 @@ def wiener(image: ArrayLike, psf: ArrayLike, regularization: float = 1e-3, *,
            boundary: str = "circular") -> Reconstruction:
     """Tikhonov-regularised inverse filter ``X = conj(H) B / (|H|² + λ)``.
 
+    **The PSF is normalised to unit sum** (each one, over its last two axes) before its
+    transfer function ``H`` is built, so ``H(0) = 1``: the estimate is in the image's
+    units (for ``"circular"`` its sum is about the image's), and multiplying the PSF by
+    any positive constant leaves the result unchanged. A measured PSF in counts can be
+    passed as it is.
+
     With ``λ = regularization · max|H|²`` (dimensionless ``regularization``), this is the
-    exact minimiser of ``||h ⊛ x - b||² + λ||x||²`` for ``boundary="circular"``. For
-    ``"same"`` and ``"crop"`` the image is zero-padded to the model's FFT grid and the
-    same division applied there: the circulant approximation of those models (fast, but
-    it rings at the borders), cropped to the model's object grid.
+    exact minimiser of ``||h ⊛ x - b||² + λ||x||²``, ``h = psf / sum(psf)``, for
+    ``boundary="circular"``. For ``"same"`` and ``"crop"`` the image is zero-padded to
+    the model's FFT grid and the same division applied there: the circulant
+    approximation of those models (fast, but it rings at the borders), cropped to the
+    model's object grid.
 
     Args:
-        image: ``(..., ny, nx)`` sensor image.
-        psf: ``(..., my, mx)`` PSF, non-negative, at most the image size.
-        regularization: λ relative to ``max|H|²``, > 0 (a noise-to-signal power ratio).
+        image: ``(..., ny, nx)`` sensor image, finite.
+        psf: ``(..., my, mx)`` PSF, finite, non-negative, not all zero, at most the
+            image size; its scale does not matter.
+        regularization: λ relative to ``max|H|²``, finite and > 0 (a noise-to-signal
+            power ratio).
         boundary: ``"circular"``, ``"same"`` or ``"crop"``.
 
     Returns:
         :class:`Reconstruction` with one-entry histories: the relative misfit of the
-        estimate under the chosen model, and the Tikhonov functional. The estimate is
-        linear in the image and can be negative.
+        estimate under the chosen model (with the normalised PSF), and the Tikhonov
+        functional. The estimate is linear in the image and can be negative.
+
+    Raises:
+        DiffcamError: NaN/Inf in ``image``, ``psf`` or ``regularization`` (named), a
+            negative or all-zero PSF, a bad ``boundary``; ``ShapeError`` for shapes.
     """
     if boundary not in BOUNDARIES:
         raise DiffcamError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}.")
     check_image(image, nonnegative=False)
     check_psf(psf, jnp.shape(image))
-    if is_concrete(regularization) and not float(regularization) > 0:
-        raise DiffcamError(f"regularization must be > 0 (e.g. 1e-3), got {regularization!r}.")
+    if np.ndim(regularization) != 0:
+        raise DiffcamError(f"regularization must be one number, got shape "
+                           f"{np.shape(regularization)}.")
+    if is_concrete(regularization):
+        try:
+            reg = float(regularization)
+        except (TypeError, ValueError):
+            reg = math.nan
+        if not (math.isfinite(reg) and reg > 0):
+            raise DiffcamError(f"regularization must be a finite number > 0 (e.g. 1e-3), "
+                               f"got {regularization!r}.")
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), 2)
     dtype = float_dtype(image, psf)
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
@@ -57,6 +81,7 @@ def wiener(image: ArrayLike, psf: ArrayLike, regularization: float = 1e-3, *,
 
 @partial(jax.jit, static_argnames=("boundary",))
 def _wiener(b, psf, regularization, *, boundary):
+    psf = psf / jnp.sum(psf, axis=_AXES, keepdims=True)  # H(0) = 1: the PSF's scale drops out
     model = convolution_model(psf, b.shape, boundary)
     power = jnp.real(model.otf * jnp.conj(model.otf))
     lam = regularization * jnp.max(power, axis=_AXES, keepdims=True)
