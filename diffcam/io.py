@@ -582,6 +582,12 @@ def _fmt_bytes(n: int) -> str:
     return f"{n} bytes"
 
 
+def check_read_size(path, what: str, shape, dtype, max_bytes: int | None = None) -> None:
+    """Refuse to read ``shape``×``dtype`` declared by a header of ``path`` when it exceeds
+    ``max_bytes`` (default :data:`MAX_READ_BYTES`): a DiffcamError saying how big."""
+    _check_declared(Path(path), what, shape, dtype, _limit(max_bytes))
+
+
 def _check_declared(path: Path, what: str, shape, dtype, limit: int) -> None:
     """Refuse ``shape``×``dtype`` (as declared by a header) above ``limit`` bytes, counted
     at the larger of the file's item size and float32 (what the reader returns)."""

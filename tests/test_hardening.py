@@ -102,7 +102,7 @@ def test_check_output_path_finds_problems_before_work(tmp_path, small, monkeypat
     cam, phase = small
     monkeypatch.setattr(stack_module, "iter_psf_stack",
                         lambda *a, **k: pytest.fail("psf_stack computed before the path check"))
-    meta = StackMeta(depths=np.array([0.02]), positions=None, pitch=4e-6,
+    meta = StackMeta(depths=np.array([0.02]), offsets=None, pitch=4e-6,
                      wavelengths=np.array([LAM]), weights=np.array([1.0]), camera={})
     cases = _bad_outputs(tmp_path)
     before = _listing(tmp_path)
@@ -119,7 +119,7 @@ def test_check_output_path_finds_problems_before_work(tmp_path, small, monkeypat
         if suffix in (".tif", ".npy"):
             with pytest.raises(DiffcamError, match=message):
                 psf_stack(phase, cam, [0.02], out=path)
-    with pytest.raises(DiffcamError, match=r"\.npy, \.tif or \.tiff"):
+    with pytest.raises(DiffcamError, match=r"\.npy, \.npz, \.tif or \.tiff"):
         psf_stack(phase, cam, [0.02], out=tmp_path / "s.png")
     with pytest.raises(DiffcamError, match="must end in .npz"):
         check_output_path(tmp_path / "x.txt", suffixes=(".npz",))
@@ -245,7 +245,7 @@ def test_interrupted_psf_stack_keeps_the_old_file(tmp_path, small, monkeypatch, 
 
 
 def test_save_stack_failure_keeps_the_old_file(tmp_path, monkeypatch):
-    meta = StackMeta(depths=np.array([0.02, 0.03]), positions=None, pitch=4e-6,
+    meta = StackMeta(depths=np.array([0.02, 0.03]), offsets=None, pitch=4e-6,
                      wavelengths=np.array([LAM]), weights=np.array([1.0]), camera={})
     for name in ("a.npz", "a.tif"):
         (tmp_path / name).write_bytes(b"old")

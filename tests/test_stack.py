@@ -32,12 +32,15 @@ def test_stack_equals_single_psfs_and_batch_size_does_not_matter(setup):
     the peak), for batch sizes that do and do not divide the number of depths."""
     cam, phase = setup
     z = np.array([20e-3, 22e-3, 25e-3, 30e-3, 40e-3])
-    pos = np.array([[0.0, 0.0], [40e-6, -20e-6]])
-    a = psf_stack(phase, cam, z, pos, batch_size=2)
-    b = psf_stack(phase, cam, z, pos, batch_size=5)
+    pos = np.array([[0.0, 0.0], [-20e-6, 40e-6]])  # (y1, x1)
+    a = psf_stack(phase, cam, z, offsets=pos, batch_size=2)
+    b = psf_stack(phase, cam, z, offsets=pos, batch_size=5)
     assert a.shape == (5, 2, 80, 72)
-    ref = np.asarray(psf(phase, cam, z[3], x1=40e-6, y1=-20e-6))
+    ref = np.asarray(psf(phase, cam, z[3], y1=-20e-6, x1=40e-6))
     np.testing.assert_allclose(a[3, 1], ref, atol=1e-5 * ref.max())
+    with pytest.warns(DeprecationWarning, match="offsets"):  # old spelling: (x1, y1) rows
+        old = psf_stack(phase, cam, z[3:4], positions=pos[:, ::-1])
+    np.testing.assert_allclose(old[0], a[3], atol=1e-6 * a.max())
     np.testing.assert_allclose(a, b, atol=1e-6 * a.max())
     on_axis = psf_stack(phase, cam, z, batch_size=3)
     assert on_axis.shape == (5, 80, 72)
@@ -60,14 +63,14 @@ def test_empty_depths_and_bad_positions(setup):
     cam, phase = setup
     with pytest.raises(DiffcamError, match="empty"):
         psf_stack(phase, cam, [])
-    with pytest.raises(ShapeError, match="positions"):
-        psf_stack(phase, cam, [25e-3], positions=[1e-6, 2e-6])
+    with pytest.raises(ShapeError, match="offsets"):
+        psf_stack(phase, cam, [25e-3], offsets=[1e-6, 2e-6])
     with pytest.raises(DiffcamError, match="z1"):
         psf_stack(phase, cam, [25e-3, -1e-3])
 
 
 def test_stream_to_npy_and_tiff_match_memory(setup, tmp_path, capsys):
-    """out='.npy' and out='.tif' write the same numbers as the in-memory stack, with
+    """out='.npy', '.tif' and '.npz' write the same numbers as the in-memory stack, with
     their metadata; the TIFF is an ImageJ hyperstack; progress=True shows a bar."""
     cam, phase = setup
     z = np.linspace(20e-3, 30e-3, 7)
@@ -85,6 +88,10 @@ def test_stream_to_npy_and_tiff_match_memory(setup, tmp_path, capsys):
     stack, meta = load_stack(tmp_path / "s.npy")
     np.testing.assert_array_equal(stack, mem)
     assert meta.camera["crop"] == [80, 72]
+    npz = psf_stack(phase, cam, z, batch_size=3, out=tmp_path / "s.npz")  # streamed
+    np.testing.assert_array_equal(npz, mem)
+    with np.load(tmp_path / "s.npz") as f:  # a plain .npz numpy reads
+        np.testing.assert_array_equal(f["stack"], mem)
 
 
 def test_save_load_round_trip(setup, tmp_path):
@@ -93,15 +100,15 @@ def test_save_load_round_trip(setup, tmp_path):
     cam, phase = setup
     z = np.array([21e-3, 27e-3])
     pos = np.array([[0.0, 0.0], [10e-6, 5e-6], [-3e-6, 0.0]])
-    s = psf_stack(phase, cam, z, pos)
-    meta = StackMeta(depths=z, positions=pos, pitch=4e-6, wavelengths=np.array([LAM]),
+    s = psf_stack(phase, cam, z, offsets=pos)
+    meta = StackMeta(depths=z, offsets=pos, pitch=4e-6, wavelengths=np.array([LAM]),
                      weights=np.array([1.0]), camera={"z2": 1e-3})
     for name in ("a.npz", "a.tif"):
         save_stack(tmp_path / name, s, meta)
         back, m2 = load_stack(tmp_path / name)
         np.testing.assert_array_equal(back, s)
         np.testing.assert_array_equal(m2.depths, z)
-        np.testing.assert_array_equal(m2.positions, pos)
+        np.testing.assert_array_equal(m2.offsets, pos)
         assert m2.format_version == FORMAT_VERSION and m2.camera == {"z2": 1e-3}
     with pytest.raises(ShapeError):
         save_stack(tmp_path / "b.npz", s[:1], meta)
@@ -136,8 +143,8 @@ def test_sharded_matches_unsharded():
         ph = random_diffuser(jax.random.key(0), (96, 96), 4e-6, 532e-9, 40e-6)
         z = np.linspace(20e-3, 30e-3, 10)
         pos = np.array([[0.0, 0.0], [20e-6, 0.0]])
-        a = psf_stack(ph, cam, z, pos, batch_size=2)
-        b = psf_stack(ph, cam, z, pos, batch_size=2, devices=jax.devices()[:1])
+        a = psf_stack(ph, cam, z, offsets=pos, batch_size=2)
+        b = psf_stack(ph, cam, z, offsets=pos, batch_size=2, devices=jax.devices()[:1])
         print(float(np.abs(a - b).max() / b.max()))
     """)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
@@ -146,3 +153,12 @@ def test_sharded_matches_unsharded():
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert float(out.stdout.strip().splitlines()[-1]) < 1e-6
+
+
+def test_format_1_positions_are_read_as_offsets():
+    """Files of format 1 stored (x1, y1) rows as ``positions``; they load as (y1, x1)."""
+    old = json.dumps({"depths": [0.02], "positions": [[1e-6, 2e-6]], "pitch": 4e-6,
+                      "wavelengths": [LAM], "weights": [1.0], "camera": {},
+                      "normalised": True, "format_version": 1})
+    meta = StackMeta.from_json(old)
+    np.testing.assert_array_equal(meta.offsets, [[2e-6, 1e-6]])

@@ -1,6 +1,6 @@
 """The diffuser-camera PSF at any depth (paper Eqs. 7–8).
 
-A point source at ``(x1, y1, z1)`` lights a circular aperture C (or any mask) carrying
+A point source at ``(y1, x1, z1)`` lights a circular aperture C (or any mask) carrying
 a thin diffuser of phase θd; the field travels ``z2`` to the sensor, which records the
 intensity:
 
@@ -77,10 +77,11 @@ def _fresnel_kernel(camera, wavelength, z):
 
 
 def _source_fields(diffuser, camera, wavelength, z1, positions):
-    """C·e^{jθd}·U1 for each source position (x1, y1) (Eq. 2 times Eqs. 4–5): (npos, ny,
+    """C·e^{jθd}·U1 for each source offset (y1, x1) (Eq. 2 times Eqs. 4–5): (npos, ny,
     nx); U1's constant 1/(jλz1) is applied to the intensity."""
-    def one(position):
-        cy, cx = spherical_wave(diffuser.shape, camera.dx, wavelength, z1, *position)
+    def one(offset):
+        cy, cx = spherical_wave(diffuser.shape, camera.dx, wavelength, z1, y1=offset[0],
+                                x1=offset[1])
         return diffuser * (cy * cx)
     return jax.vmap(one)(positions)
 
@@ -95,7 +96,7 @@ def _zeff_spectrum(diffuser_hat, camera, wavelength, z1):
     return (diffuser_hat * (kernel * prefilter))[None]
 
 
-def _magnified(field, camera, wavelength, z1, x1, y1):
+def _magnified(field, camera, wavelength, z1, y1, x1):
     """Irradiance at the sensor-grid points: the z_eff field magnified by M about the
     image of the source, amplitude 1/M and the source's 1/(λz1) (scaling theorem)."""
     z2 = camera.z2
@@ -113,7 +114,7 @@ def fields_for_fft(prepared, camera: Camera, wavelengths, z1, positions) -> Arra
     """What the FFTs of one depth start from, (nλ, n, ny, nx) complex: the source fields
     C·e^{jθd}·U1 (direct, n = npos) or the spectra of the z_eff fields (scaling, n = 1).
 
-    ``prepared`` is :func:`diffuser_fields`; ``positions`` (npos, 2) of (x1, y1), metres.
+    ``prepared`` is :func:`diffuser_fields`; ``positions`` (npos, 2) of (y1, x1), metres.
     """
     def per_wavelength(prep, lam):
         if camera.method == "scaling":
@@ -206,7 +207,7 @@ def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling):
                                         "at the aperture edge", accept_undersampling)
 
 
-def psf(phase, camera: Camera, z1, x1=0.0, y1=0.0, *, spectrum=None, normalise: bool = True,
+def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: bool = True,
         accept_undersampling: bool = False) -> Float[Array, "ny nx"]:
     """The camera's PSF for a point source at ``(x1, y1, z1)`` (paper Eq. 7).
 
@@ -215,7 +216,8 @@ def psf(phase, camera: Camera, z1, x1=0.0, y1=0.0, *, spectrum=None, normalise: 
             ``camera.wavelength``), or a :class:`HeightMap`.
         camera: the :class:`Camera` (its ``method`` picks scaling theorem or direct).
         z1: source-to-aperture distance, metres (> 0).
-        x1, y1: lateral source position, metres; the PSF moves by −(x1, y1)·z2/z1.
+        y1, x1: lateral source position, metres (keywords); the PSF moves by
+            −(y1, x1)·z2/z1.
         spectrum: ``(wavelengths, weights)`` (metres, relative power) for broadband
             light: the weight-averaged PSF; ``None`` is monochromatic at
             ``camera.wavelength``.
@@ -240,5 +242,5 @@ def psf(phase, camera: Camera, z1, x1=0.0, y1=0.0, *, spectrum=None, normalise: 
     dtype = real_dtype(camera)
     wavelengths, weights, z1 = wavelengths.astype(dtype), weights.astype(dtype), \
         jnp.asarray(z1, dtype)
-    positions = jnp.stack([jnp.asarray(x1, dtype), jnp.asarray(y1, dtype)])[None]
+    positions = jnp.stack([jnp.asarray(y1, dtype), jnp.asarray(x1, dtype)])[None]
     return _psf(phase, camera, wavelengths, weights, z1, positions, normalise=normalise)[0]

@@ -25,6 +25,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import warnings
+import zipfile
 from functools import partial
 from typing import Iterator, Sequence
 
@@ -39,12 +41,12 @@ from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (_irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
 from diffcam.core.errors import DiffcamError, ShapeError
-from diffcam.io import atomic_output, check_output_path
+from diffcam.io import atomic_output, check_output_path, check_read_size, read_npz
 
 __all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
            "FORMAT_VERSION"]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: lateral offsets stored as (y1, x1)
 _PROGRESS_FROM = 32  # show a progress bar by default from this many depths
 
 
@@ -54,8 +56,9 @@ class StackMeta:
 
     Attributes:
         depths: z1 of each slice, metres, shape (nz,).
-        positions: (x1, y1) of each lateral position, metres, shape (npos, 2), or
-            ``None`` when the stack has no position axis (on-axis source).
+        offsets: (y1, x1) of each lateral source position, metres, shape (npos, 2), or
+            ``None`` when the stack has no position axis (on-axis source). Files of
+            format version 1 stored ``positions`` as (x1, y1); they are read into this.
         pitch: sample pitch of the stored images, metres.
         wavelengths: metres; ``weights``: their relative power.
         camera: the camera's fields as plain numbers (``Camera`` attribute names).
@@ -64,7 +67,7 @@ class StackMeta:
     """
 
     depths: np.ndarray
-    positions: np.ndarray | None
+    offsets: np.ndarray | None
     pitch: float
     wavelengths: np.ndarray
     weights: np.ndarray
@@ -74,7 +77,7 @@ class StackMeta:
 
     def to_json(self) -> str:
         d = dataclasses.asdict(self)
-        for k in ("depths", "positions", "wavelengths", "weights"):
+        for k in ("depths", "offsets", "wavelengths", "weights"):
             d[k] = None if d[k] is None else np.asarray(d[k], dtype=np.float64).tolist()
         return json.dumps(d)
 
@@ -84,10 +87,13 @@ class StackMeta:
         if d.get("format_version", 0) > FORMAT_VERSION:
             raise DiffcamError(f"stack written by format version {d['format_version']}, this "
                                f"diffcam reads ≤ {FORMAT_VERSION}; upgrade diffcam.")
+        if "positions" in d:  # format 1: (x1, y1) columns
+            legacy = d.pop("positions")
+            d["offsets"] = None if legacy is None else np.asarray(legacy)[:, ::-1]
         for k in ("depths", "wavelengths", "weights"):
             d[k] = np.asarray(d[k], dtype=np.float64)
-        if d["positions"] is not None:
-            d["positions"] = np.asarray(d["positions"], dtype=np.float64).reshape(-1, 2)
+        if d["offsets"] is not None:
+            d["offsets"] = np.asarray(d["offsets"], dtype=np.float64).reshape(-1, 2)
         return cls(**d)
 
 
@@ -148,22 +154,36 @@ def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sha
 _prepare = jax.jit(diffuser_fields)
 
 
-def _positions_array(positions):
+def _offsets_array(positions):
     if positions is None:
         return np.zeros((1, 2))
     pos = np.asarray(positions, dtype=np.float64)
     if pos.ndim != 2 or pos.shape[1] != 2 or pos.shape[0] == 0:
-        raise ShapeError(f"positions must be an (npos, 2) array of (x1, y1) in metres, "
+        raise ShapeError(f"offsets must be an (npos, 2) array of (y1, x1) in metres, "
                          f"got shape {pos.shape}.")
     if not np.all(np.isfinite(pos)):
-        raise DiffcamError("positions contain NaN/Inf; give finite (x1, y1) in metres.")
+        raise DiffcamError("offsets contain NaN/Inf; give finite (y1, x1) in metres.")
     return pos
 
 
-def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
+def _legacy_positions(offsets, positions):
+    """``offsets`` (y1, x1), or the deprecated ``positions`` (x1, y1) turned into them."""
+    if positions is None:
+        return offsets
+    if offsets is not None:
+        raise DiffcamError("give offsets (y1, x1) or the deprecated positions (x1, y1), "
+                           "not both.")
+    warnings.warn("positions= (x1, y1) is deprecated: pass offsets= with (y1, x1) rows, "
+                  "the array order every lateral pair in diffcam uses.", DeprecationWarning,
+                  stacklevel=3)
+    return np.asarray(positions, dtype=np.float64)[:, ::-1]
+
+
+def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
                    normalise: bool = True, batch_size: int | None = None,
                    devices: Sequence | None = None, accept_undersampling: bool = False,
-                   to_host: bool = True) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
+                   to_host: bool = True, positions=None
+                   ) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
     """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
     shape ``(n, npos, ny, nx)``: host numpy, or with ``to_host=False`` the device array
     (for work that stays on the device, a GPU reconstruction say). Other arguments as in
@@ -172,13 +192,13 @@ def iter_psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
     if depths.size == 0:
         raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
-    pos = _positions_array(positions)
+    pos = _offsets_array(_legacy_positions(offsets, positions))
     wavelengths, weights = as_spectrum(spectrum, camera)
     if batch_size is None:  # about 2**20 field samples per device per call
         fields = len(wavelengths) * (len(pos) if camera.method == "direct" else 1)
         batch_size = max(1, 2 ** 20 // (camera.padded_shape[0] * camera.padded_shape[1]
                                         * fields))
-    if not isinstance(batch_size, int) or batch_size < 1:
+    if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
         raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
     check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
                  accept_undersampling)
@@ -222,10 +242,11 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
     yield to_host(*pending)
 
 
-def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
+def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
               normalise: bool = True, batch_size: int | None = None,
               out: str | os.PathLike | None = None, progress: bool | None = None,
-              devices: Sequence | None = None, accept_undersampling: bool = False) -> np.ndarray:
+              devices: Sequence | None = None, accept_undersampling: bool = False,
+              positions=None) -> np.ndarray:
     """PSFs for every depth in ``z1`` and every lateral position, chunk by chunk.
 
     Args:
@@ -233,8 +254,10 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
             :class:`~diffcam.model.camera.HeightMap`).
         camera: the :class:`~diffcam.model.camera.Camera`.
         z1: depths, metres, shape (nz,) (non-empty, all > 0).
-        positions: ``(npos, 2)`` lateral source positions ``(x1, y1)``, metres; ``None``
-            for an on-axis source (the position axis is then dropped).
+        offsets: ``(npos, 2)`` lateral source positions ``(y1, x1)``, metres (array
+            order, like every lateral pair in diffcam); ``None`` for an on-axis source
+            (the position axis is then dropped). ``positions=`` of (x1, y1) rows is the
+            deprecated spelling.
         spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.model.point_spread.psf`.
         normalise: each PSF sums to one (default) or is the physical irradiance.
         batch_size: depths per device per chunk; working memory grows with it.
@@ -258,20 +281,21 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
     """
     outputs = _output_paths(out)  # before any work: a bad path costs nothing
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
-    chunks = iter_psf_stack(phase, camera, depths, positions, spectrum=spectrum,
+    offsets = _legacy_positions(offsets, positions)
+    chunks = iter_psf_stack(phase, camera, depths, offsets=offsets, spectrum=spectrum,
                             normalise=normalise, batch_size=batch_size, devices=devices,
                             accept_undersampling=accept_undersampling)
-    npos = 1 if positions is None else len(positions)
+    npos = 1 if offsets is None else len(offsets)
     full = (depths.size, npos) + tuple(camera.out_shape)
-    shape = full if positions is not None else (full[0],) + full[2:]
+    shape = full if offsets is not None else (full[0],) + full[2:]
     show = depths.size >= _PROGRESS_FROM if progress is None else progress
     bar = tqdm(total=depths.size, unit="depth", disable=not show, desc="PSF stack")
-    meta = _meta(camera, depths, positions, spectrum, normalise)
+    meta = _meta(camera, depths, offsets, spectrum, normalise)
 
     def pages():
         for start, block in chunks:
             bar.update(block.shape[0])
-            yield block if positions is not None else block[:, 0]
+            yield block if offsets is not None else block[:, 0]
 
     try:
         if out is None:
@@ -291,6 +315,10 @@ def psf_stack(phase, camera: Camera, z1, positions=None, *, spectrum=None,
                 with open(temp_json, "w") as f:
                     f.write(meta.to_json())
             return np.load(path, mmap_mode="r")
+        if path.endswith(".npz"):
+            with atomic_output(path) as temp:
+                _write_npz(temp, pages(), shape, meta)
+            return load_stack(path)[0]
         with atomic_output(path) as temp:
             _write_tiff(temp, (page for block in pages() for page in block), shape, meta)
         return tifffile.memmap(path, mode="r")
@@ -305,9 +333,9 @@ def _output_paths(out) -> tuple[str, ...]:
     path = os.fspath(check_output_path(out))
     if path.endswith(".npy"):
         return path, os.fspath(check_output_path(path + ".json"))
-    if path.endswith((".tif", ".tiff")):
+    if path.endswith((".tif", ".tiff", ".npz")):
         return (path,)
-    raise DiffcamError(f"out must end in .npy, .tif or .tiff, got {path!r}.")
+    raise DiffcamError(f"out must end in .npy, .npz, .tif or .tiff, got {path!r}.")
 
 
 def _blocks(pages):
@@ -317,10 +345,10 @@ def _blocks(pages):
         start += len(block)
 
 
-def _meta(camera, depths, positions, spectrum, normalise):
+def _meta(camera, depths, offsets, spectrum, normalise):
     wavelengths, weights = as_spectrum(spectrum, camera)
     return StackMeta(depths=np.asarray(depths, np.float64),
-                     positions=None if positions is None else _positions_array(positions),
+                     offsets=None if offsets is None else _offsets_array(offsets),
                      pitch=float(camera.dx), wavelengths=np.asarray(wavelengths, np.float64),
                      weights=np.asarray(weights, np.float64), camera=camera_record(camera),
                      normalised=bool(normalise))
@@ -338,6 +366,20 @@ def _write_tiff(path, pages, shape, meta: StackMeta):
                             "Info": meta.to_json()}, contiguous=True)
 
 
+def _write_npz(path, blocks, shape, meta: StackMeta):
+    """``stack`` and ``meta`` members of an uncompressed ``.npz``, the stack streamed
+    block by block (memory stays one block whatever the number of depths)."""
+    header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)),
+              "fortran_order": False, "shape": tuple(shape)}
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
+        with archive.open("stack.npy", "w", force_zip64=True) as member:
+            np.lib.format.write_array_header_2_0(member, header)
+            for block in blocks:
+                member.write(np.ascontiguousarray(block, np.float32).tobytes())
+        with archive.open("meta.npy", "w") as member:
+            np.lib.format.write_array(member, np.array(meta.to_json()))
+
+
 def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
     """Write ``stack`` with ``meta`` to ``.npz`` (exact round trip) or ``.tif``/``.tiff``
     (ImageJ hyperstack, float32; the ImageJ Z spacing is the median depth step in mm).
@@ -350,10 +392,10 @@ def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
     check_output_path(path)
     stack = np.asarray(stack)
     nz = meta.depths.size
-    want = 3 if meta.positions is None else 4
+    want = 3 if meta.offsets is None else 4
     if stack.ndim != want or stack.shape[0] != nz or (
-            want == 4 and stack.shape[1] != len(meta.positions)):
-        npos = None if meta.positions is None else len(meta.positions)
+            want == 4 and stack.shape[1] != len(meta.offsets)):
+        npos = None if meta.offsets is None else len(meta.offsets)
         raise ShapeError(f"stack shape {stack.shape} does not match the metadata "
                          f"({nz} depths, {npos} positions).")
     text = meta.to_json()
@@ -366,24 +408,63 @@ def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
 
 
 def load_stack(path: str | os.PathLike) -> tuple[np.ndarray, StackMeta]:
-    """Read a stack written by :func:`save_stack` or :func:`psf_stack` (``out=``)."""
+    """Read a stack written by :func:`save_stack` or :func:`psf_stack` (``out=``).
+
+    Raises:
+        DiffcamError: one line naming the file and what is wrong with it (not a stack,
+            damaged, metadata missing or not matching the pixels).
+    """
     path = os.fspath(path)
+    what = "a diffcam PSF stack"
     if path.endswith(".npz"):
-        with np.load(path) as f:
-            return f["stack"], StackMeta.from_json(str(f["meta"]))
-    if path.endswith(".npy"):
-        with open(path + ".json") as f:
-            return np.load(path, mmap_mode="r"), StackMeta.from_json(f.read())
-    if path.endswith((".tif", ".tiff")):
-        with tifffile.TiffFile(path) as tif:
-            info = (tif.imagej_metadata or {}).get("Info")
-            if info is None:
-                raise DiffcamError(f"{path} has no diffcam metadata (ImageJ Info); was it "
-                                   f"written by diffcam.model.stack?")
-            meta = StackMeta.from_json(info)
-            stack = tif.asarray()
-        nz = meta.depths.size
-        shape = (nz,) + (() if meta.positions is None else (len(meta.positions),)) \
-            + stack.shape[-2:]
-        return stack.reshape(shape), meta
-    raise DiffcamError(f"load_stack reads .npz, .npy or .tif files, got {path!r}.")
+        arrays = read_npz(path, ["stack", "meta"], what=what)
+        stack, meta = arrays["stack"], _meta_from(path, str(arrays["meta"]))
+    elif path.endswith(".npy"):
+        try:
+            with open(path + ".json") as f:
+                text = f.read()
+        except OSError as e:
+            raise DiffcamError(f"{path}: its metadata {path}.json cannot be read "
+                               f"({e.strerror or e}).") from None
+        meta = _meta_from(path, text)
+        try:
+            stack = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise DiffcamError(f"{path}: not {what} ({e}).") from None
+    elif path.endswith((".tif", ".tiff")):
+        try:
+            with tifffile.TiffFile(path) as tif:
+                info = (tif.imagej_metadata or {}).get("Info")
+                if info is None:
+                    raise DiffcamError(f"{path} has no diffcam metadata (ImageJ Info); was it "
+                                       f"written by diffcam.model.stack?")
+                meta = _meta_from(path, info)
+                series = tif.series[0]
+                check_read_size(path, "the TIFF", series.shape, series.dtype)
+                stack = series.asarray()
+        except DiffcamError:
+            raise
+        except Exception as e:  # tifffile raises many kinds on damaged files
+            raise DiffcamError(f"{path}: not {what} ({type(e).__name__}: {e}).") from None
+    else:
+        raise DiffcamError(f"load_stack reads .npz, .npy or .tif files, got {path!r}.")
+    nz = meta.depths.size
+    shape = (nz,) + (() if meta.offsets is None else (len(meta.offsets),))
+    if stack.ndim < 2 or stack.size != int(np.prod(shape)) * int(np.prod(stack.shape[-2:])):
+        raise DiffcamError(f"{path}: {stack.shape} pixels do not match its metadata "
+                           f"({nz} depths{'' if meta.offsets is None else f', {len(meta.offsets)} offsets'}).")
+    stack = stack.reshape(shape + stack.shape[-2:])
+    if not path.endswith(".npy") and not np.all(np.isfinite(stack)):
+        raise DiffcamError(f"{path}: the stack holds NaN/Inf values; the file is damaged.")
+    return stack, meta
+
+
+def _meta_from(path, text) -> StackMeta:
+    try:
+        return StackMeta.from_json(text)
+    except DiffcamError as e:
+        raise DiffcamError(f"{path}: {e}") from None
+    except (ValueError, TypeError, KeyError, AttributeError) as e:
+        raise DiffcamError(f"{path}: damaged stack metadata ({type(e).__name__}: {e}).") \
+            from None
+

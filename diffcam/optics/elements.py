@@ -101,7 +101,7 @@ def rectangular_aperture(shape, dx, height, width, centre=(0.0, 0.0), *, edge: s
     return ty * tx
 
 
-def spherical_wave(shape, dx, wavelength, z1, x1=0.0, y1=0.0):
+def spherical_wave(shape, dx, wavelength, z1, *, y1=0.0, x1=0.0):
     """The two 1-D factors ``(cy[:, None], cx[None, :])`` of the paraxial spherical wave
     exp(jk((x − x1)² + (y − y1)²)/(2 z1)) of a point source at (x1, y1, z1) (metres), on
     the centred grid of ``shape`` and pitch ``dx``: paper Eq. 2 without its constant
@@ -112,7 +112,7 @@ def spherical_wave(shape, dx, wavelength, z1, x1=0.0, y1=0.0):
     return cy[:, None], cx[None, :]
 
 
-def point_source_field(shape, dx, wavelength, z1, x1=0.0, y1=0.0, *, aperture_radius=None,
+def point_source_field(shape, dx, wavelength, z1, *, y1=0.0, x1=0.0, aperture_radius=None,
                        accept_undersampling: bool = False) -> Complex[Array, "ny nx"]:
     """Paraxial field of a unit point source at (x1, y1, z1) on the aperture plane, Eq. 2:
 
@@ -123,7 +123,7 @@ def point_source_field(shape, dx, wavelength, z1, x1=0.0, y1=0.0, *, aperture_ra
         dx: pitch, metres.
         wavelength: metres.
         z1: source distance in front of the aperture, metres (> 0).
-        x1, y1: lateral source position, metres.
+        y1, x1: lateral source position, metres (keywords).
         aperture_radius: the chirp must be sampled only where light passes: give the
             aperture radius (metres) to check there; ``None`` checks the whole grid.
         accept_undersampling: warn instead of raising when the chirp aliases.
@@ -147,7 +147,7 @@ def point_source_field(shape, dx, wavelength, z1, x1=0.0, y1=0.0, *, aperture_ra
         check_point_source_sampling(float(wavelength), float(z1), radius,
                                     float(np.hypot(float(x1), float(y1))), max(dy, dxx), where,
                                     accept_undersampling)
-    cy, cx = spherical_wave(shape, dx, wavelength, z1, x1, y1)
+    cy, cx = spherical_wave(shape, dx, wavelength, z1, y1=y1, x1=x1)
     return piston(wavelength, z1) / (1j * wavelength * z1) * (cy * cx)
 
 
