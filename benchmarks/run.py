@@ -14,11 +14,12 @@ from __future__ import annotations
 import argparse
 import importlib
 
-WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve"]
+WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit"]
 QUICK = {"propagate": ["--sizes", "512", "1024"],
          "psf": ["--sizes", "512", "--depths", "8", "--no-memory"],
          "retrieval": ["--sizes", "512", "--repeats", "2"],
-         "deconvolve": ["--quick"]}
+         "deconvolve": ["--quick"],
+         "stack_fit": ["--quick"]}
 
 
 def main(argv=None):

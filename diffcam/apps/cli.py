@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from diffcam.apps.fit_cli import _add_fit
 from diffcam.core.errors import DiffcamError
+from diffcam.io import atomic_output
 from diffcam.core.units import parse_length, parse_length_range
 
 
@@ -32,25 +31,6 @@ def _length(name):
 
 def _lengths(name):
     return _units(parse_length_range, name)
-
-
-@contextlib.contextmanager
-def atomic_output(path):
-    """Yield a temporary path beside ``path``; move it into place only on success.
-
-    Nothing half-written is left behind on an error or Ctrl-C.
-    """
-    path = Path(path)
-    if path.parent and not path.parent.exists():
-        raise DiffcamError(f"output folder {path.parent} does not exist; create it first.")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def save_image(path, image) -> None:
@@ -82,26 +62,24 @@ def _read_psfs(path):
     """A PSF or PSF stack from an image file or a stack written by diffcam; returns
     ``(psfs, depths or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
     from diffcam.io import read_image
+    from diffcam.model.stack import load_stack
 
-    if Path(path).suffix.lower() == ".npz":
-        from diffcam.model.stack import load_stack
-
+    suffix = Path(path).suffix.lower()
+    if suffix in (".npz", ".npy") or (suffix in (".tif", ".tiff") and _has_stack_meta(path)):
         stack, meta = load_stack(path)
         return np.asarray(stack), np.asarray(meta.depths)
-    if Path(path).suffix.lower() in (".tif", ".tiff"):
-        import tifffile
-
-        try:
-            with tifffile.TiffFile(path) as tif:
-                has_meta = "Info" in (tif.imagej_metadata or {})
-        except Exception:
-            has_meta = False
-        if has_meta:
-            from diffcam.model.stack import load_stack
-
-            stack, meta = load_stack(path)
-            return np.asarray(stack), np.asarray(meta.depths)
     return read_image(path).image, None
+
+
+def _has_stack_meta(path) -> bool:
+    """Whether a TIFF carries diffcam's stack metadata (else it is read as an image)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            return "Info" in (tif.imagej_metadata or {})
+    except Exception:  # not a readable TIFF: read_image will say what is wrong
+        return False
 
 
 def _camera_for(phase_file, z2, crop):
@@ -117,7 +95,7 @@ def _camera_for(phase_file, z2, crop):
 
 def _cmd_psf(args) -> int:
     from diffcam.calibrate.phase_io import load_phase
-    from diffcam.model.stack import StackMeta, camera_record, psf_stack, save_stack
+    from diffcam.model.stack import psf_stack
 
     phase_file = load_phase(args.phase)
     camera = _camera_for(phase_file, args.z2, args.crop)
@@ -125,12 +103,9 @@ def _cmd_psf(args) -> int:
     suffix = Path(args.out).suffix.lower()
     if suffix not in (".npz", ".tif", ".tiff"):
         raise DiffcamError(f"{args.out}: write the stack as .npz or .tif, not {suffix!r}.")
-    stack = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 1)
-    meta = StackMeta(depths=np.asarray(depths), positions=None, pitch=float(camera.dx),
-                     wavelengths=np.array([float(camera.wavelength)]), weights=np.array([1.0]),
-                     camera=camera_record(camera))
-    with atomic_output(args.out) as tmp:
-        save_stack(tmp, stack, meta)
+    # streamed to the file chunk by chunk: memory does not grow with the number of depths
+    stack = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 1,
+                      out=args.out)
     print(f"diffcam psf: {len(depths)} PSFs of {stack.shape[-2]}×{stack.shape[-1]} "
           f"(z1 {depths[0] * 1e3:g}–{depths[-1] * 1e3:g} mm, z2 {args.z2 * 1e3:g} mm) → {args.out}")
     return 0
@@ -446,7 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_demo, _add_plan, _add_reconstruct, _add_calibrate, _add_psf, _add_compare):
+    for add in (_add_demo, _add_plan, _add_reconstruct, _add_calibrate, _add_psf, _add_compare,
+                _add_fit):
         add(sub)
     return parser
 

@@ -48,3 +48,10 @@ __all__ = [
     "normalise_min_max", "centroid", "centre_on_axis", "resample_capture",
     "resample_far_field",
 ]
+
+from diffcam.calibrate.stack_fit import (StackFit, StackFitOptions, StackFitWarning,  # noqa: E402
+                                         StackModel, fit_stack, load_stack_fit,
+                                         prepare_planes)
+
+__all__ += ["StackModel", "StackFitOptions", "StackFit", "StackFitWarning", "fit_stack",
+            "load_stack_fit", "prepare_planes"]

@@ -12,3 +12,8 @@ from diffcam.evaluate.metrics import (mse, pearson, phase_scores, psf_fidelity, 
 
 __all__ = ["magnify_psf", "relative_magnification", "mse", "pearson", "phase_scores",
            "psf_fidelity", "psnr", "ssim"]
+
+from diffcam.evaluate.registration import (Registration, magnify_about,  # noqa: E402
+                                           register_magnification, scaling_baseline)
+
+__all__ += ["Registration", "register_magnification", "scaling_baseline", "magnify_about"]

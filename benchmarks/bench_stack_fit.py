@@ -1,0 +1,156 @@
+"""Benchmark: fit the stack wave model to two planes of the built-in DiffuserCam stack,
+predict the other 42, and compare with the scaling baseline.
+
+Usage: python -m benchmarks.bench_stack_fit [--pairs 6] [--seed 12] [--crop 0.8] [--quick]
+
+Pairs (i, j) with 10 ≤ j − i ≤ 30 are drawn from ``--seed``; each is run on the original
+stack and on a transformed copy (one rotation/flip drawn from the same seed, then a
+random crop keeping ``--crop`` of the area, the same for every plane), so nothing can
+rely on the frame centre or orientation. Per case:
+
+- ``model``: :func:`diffcam.calibrate.fit_stack` with default options (κ fitted), its
+  held-out planes predicted with :meth:`StackFit.predict`;
+- ``baseline``: :func:`diffcam.evaluate.scaling_baseline` from the same two planes and
+  the fit's registration;
+- ``frozen``: the frozen-distance ablation (a second fit with ``frozen=True``: ζ the
+  same at every plane).
+
+Scores are Pearson over the full (transformed) frame against the measured plane,
+prepared by :func:`diffcam.calibrate.prepare_planes` (border-median dark level, unit
+mean), mean and worst over the 42 held-out planes. Fit seconds include registration,
+the GS start, compilation and all steps (default time budget 60 s); predict seconds
+include compilation. The machine is shared: timings are noisy, and a fit cut by its time
+budget says so in ``stop_reason``. Results go to ``benchmarks/results/stack_fit.json``
+(with per-plane scores) and a Markdown table is printed. ``--quick`` runs one pair.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+import warnings
+
+import numpy as np
+
+from benchmarks.harness import markdown_table, write_json
+from diffcam.calibrate.stack_fit import StackFitWarning, fit_stack, prepare_planes
+from diffcam.data import load_psf_stack_3d
+from diffcam.evaluate.registration import image_pearson, scaling_baseline
+
+TRANSFORMS = ["rot90", "rot180", "rot270", "flipud", "fliplr", "transpose"]
+
+
+def transform_stack(stack: np.ndarray, kind: str, crop: float, rng) -> np.ndarray:
+    """The same rotation/flip and a random crop (keeping ``crop`` of the area, √crop of
+    each side) applied to every plane of ``stack`` (n, ny, nx)."""
+    ops = {"none": lambda a: a,
+           "rot90": lambda a: np.rot90(a, 1, axes=(1, 2)),
+           "rot180": lambda a: np.rot90(a, 2, axes=(1, 2)),
+           "rot270": lambda a: np.rot90(a, 3, axes=(1, 2)),
+           "flipud": lambda a: a[:, ::-1, :],
+           "fliplr": lambda a: a[:, :, ::-1],
+           "transpose": lambda a: np.swapaxes(a, 1, 2)}
+    a = np.ascontiguousarray(ops[kind](stack))
+    if crop >= 1.0:
+        return a
+    h, w = a.shape[1:]
+    ch, cw = int(round(h * np.sqrt(crop))), int(round(w * np.sqrt(crop)))
+    y0, x0 = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+    return np.ascontiguousarray(a[:, y0:y0 + ch, x0:x0 + cw])
+
+
+def draw_cases(n_pairs: int, seed: int, n_planes: int):
+    """[(i, j, transform, crop seed)]: gaps 10–30, one transform per pair."""
+    rng = np.random.default_rng(seed)
+    cases = []
+    for _ in range(n_pairs):
+        gap = int(rng.integers(10, 31))
+        i = int(rng.integers(0, n_planes - gap))
+        cases.append((i, i + gap, str(rng.choice(TRANSFORMS)), int(rng.integers(0, 2**31))))
+    return cases
+
+
+def run_case(raw: np.ndarray, i: int, j: int, label: str) -> dict:
+    """Model, baseline and frozen ablation for one stack and pair: one JSON-able row."""
+    n = raw.shape[0]
+    measured = prepare_planes(raw)
+    held = [t for t in range(n) if t not in (i, j)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StackFitWarning)
+        t0 = time.perf_counter()
+        fit = fit_stack(raw, [i, j], progress=False)
+        fit_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        pred = fit.predict(held)
+        predict_s = time.perf_counter() - t0
+        frozen_fit = fit_stack(raw, [i, j], progress=False, frozen=True,
+                               registration=fit.registration)
+        frozen = frozen_fit.predict(held)
+    base = scaling_baseline({i: measured[i], j: measured[j]}, held,
+                            registration=fit.registration)
+    r_model = np.array([image_pearson(p, measured[t]) for p, t in zip(pred, held)])
+    r_base = np.array([image_pearson(b, measured[t]) for b, t in zip(base, held)])
+    r_frozen = np.array([image_pearson(p, measured[t]) for p, t in zip(frozen, held)])
+    worst = int(np.argmin(r_model))
+    return {
+        "pair": f"({i}, {j})", "transform": label, "shape": list(raw.shape[1:]),
+        "model_mean": float(r_model.mean()), "worst_plane": held[worst],
+        "worst_r": float(r_model[worst]), "baseline_mean": float(r_base.mean()),
+        "frozen_mean": float(r_frozen.mean()),
+        "above_baseline": f"{int((r_model > r_base).sum())}/{len(held)}",
+        "fit_s": fit_s, "predict_s": predict_s,
+        "steps": f"{fit.best_step}/{fit.steps}", "stop_reason": fit.stop_reason,
+        "frozen_stop_reason": frozen_fit.stop_reason,
+        "validation": fit.validation_score, "baseline_validation": fit.baseline_validation,
+        "summary": fit.summary(), "held": held, "per_plane_model": r_model.tolist(),
+        "per_plane_baseline": r_base.tolist(), "per_plane_frozen": r_frozen.tolist(),
+        "load": os.getloadavg()[0],
+    }
+
+
+COLUMNS = ["pair", "transform", "model_mean", "worst_plane", "worst_r", "baseline_mean",
+           "frozen_mean", "above_baseline", "fit_s", "predict_s", "steps", "load"]
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", type=int, default=6)
+    parser.add_argument("--seed", type=int, default=12)
+    parser.add_argument("--crop", type=float, default=0.8, help="area kept by the crop")
+    parser.add_argument("--quick", action="store_true", help="one pair")
+    args = parser.parse_args(argv)
+    raw = load_psf_stack_3d()
+    cases = draw_cases(1 if args.quick else args.pairs, args.seed, raw.shape[0])
+    rows = []
+    for i, j, kind, crop_seed in cases:
+        for label in ("original", f"{kind}+crop{args.crop:g}"):
+            stack = raw if label == "original" else transform_stack(
+                raw, kind, args.crop, np.random.default_rng(crop_seed))
+            row = run_case(stack, i, j, label)
+            rows.append(row)
+            print(f"({i}, {j}) {label}: model {row['model_mean']:.4f}, baseline "
+                  f"{row['baseline_mean']:.4f}, frozen {row['frozen_mean']:.4f}, "
+                  f"{row['above_baseline']} above, fit {row['fit_s']:.1f} s "
+                  f"({row['stop_reason']})", flush=True)
+            write_json("stack_fit", rows, {"seed": args.seed, "pairs": len(cases),
+                                           "crop": args.crop, "options": "defaults"})
+    table = [{k: r[k] for k in COLUMNS} for r in rows]
+    if rows:
+        table.append({"pair": "**all**",
+                      "model_mean": float(np.mean([r["model_mean"] for r in rows])),
+                      "baseline_mean": float(np.mean([r["baseline_mean"] for r in rows])),
+                      "frozen_mean": float(np.mean([r["frozen_mean"] for r in rows]))})
+    def fmt(key, v):
+        if not isinstance(v, float):
+            return v
+        return f"{v:.1f}" if key in ("fit_s", "predict_s", "load") else f"{v:.4f}"
+
+    table = [{k: fmt(k, v) for k, v in r.items()} for r in table]
+    print(markdown_table(table, COLUMNS))
+    print("wrote", write_json("stack_fit", rows, {"seed": args.seed, "pairs": len(cases),
+                                                  "crop": args.crop, "options": "defaults"}))
+
+
+if __name__ == "__main__":
+    main()

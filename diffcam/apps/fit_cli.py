@@ -1,0 +1,309 @@
+"""``diffcam fit``, ``diffcam predict`` and ``diffcam compare-stack``: a wave model of a
+PSF stack fitted to a few of its planes (:func:`diffcam.calibrate.fit_stack`).
+
+    diffcam fit psfs.tif --planes 5,25 -o model.npz
+    diffcam predict model.npz --planes 0:43 -o predicted.tif
+    diffcam compare-stack psfs.tif --model model.npz -o compare.png --json compare.json
+
+A STACK is a multi-page TIFF, a 3-D ``.npy``, an ``.npz`` holding one 3-D array (or
+``--key NAME``), a MATLAB ``.mat`` stack, a folder of single-plane images (sorted by
+name) or a quoted glob of them (``'psf/*.png'``). Planes are indices into it: ``5,25``,
+``0:43`` (both ends included) or a mix (``0:10,20``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob as _glob
+import json
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from diffcam.core.errors import DiffcamError
+
+_IMAGES = (".png", ".tif", ".tiff", ".npy")
+
+
+def parse_planes(text: str) -> list[int]:
+    """``"5,25"`` → [5, 25]; ``"0:43"`` → 0 … 43 (both ends included); ``"0:10:2,30"``
+    (a step) and mixes of both."""
+    out: list[int] = []
+    for item in str(text).split(","):
+        item = item.strip()
+        if not item:
+            continue
+        try:
+            if ":" in item:
+                parts = [int(p) for p in item.split(":")]
+                if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] <= 0):
+                    raise ValueError
+                a, b = parts[0], parts[1]
+                step = parts[2] if len(parts) == 3 else 1
+                if b < a:
+                    raise ValueError
+                out.extend(range(a, b + 1, step))
+            else:
+                out.append(int(item))
+        except ValueError:
+            raise DiffcamError(f"planes {text!r}: give indices as 5,25 or a range 0:43 "
+                               f"(both ends included, a ≤ b).") from None
+    if not out:
+        raise DiffcamError(f"planes {text!r}: no plane index given.")
+    return out
+
+
+def _planes_arg(text):
+    try:
+        return parse_planes(text)
+    except DiffcamError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float | None]:
+    """A PSF stack from a file, folder or glob → (float32 (n, ny, nx), saturation level
+    in the stack's units or ``None`` for float data)."""
+    from diffcam.io import read_image, read_mat_stack, read_npz, read_psf_stack
+
+    path = Path(source)
+    full_scale = None
+    if any(c in source for c in "*?[") and not path.exists():
+        files = sorted(_glob.glob(source))
+        if not files:
+            raise DiffcamError(f"{source}: no files match this pattern.")
+        stack = read_psf_stack(files)
+        full_scale = read_image(files[0]).full_scale
+    elif path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGES)
+        if not files:
+            raise DiffcamError(f"{path}: the folder holds no {', '.join(_IMAGES)} images.")
+        stack = read_psf_stack(files)
+        full_scale = read_image(files[0]).full_scale
+    elif path.suffix.lower() == ".npz":
+        if not path.is_file():
+            raise DiffcamError(f"{path}: no such file.")
+        try:
+            with zipfile.ZipFile(path) as z:
+                names = [n[:-4] for n in z.namelist() if n.endswith(".npy")]
+        except (zipfile.BadZipFile, OSError) as err:
+            raise DiffcamError(f"{path}: not an .npz archive ({err}).") from None
+        if key is None:
+            arrays = read_npz(path, names, what="a PSF stack (.npz)") if len(names) <= 16 \
+                else {}
+            three = [n for n, a in arrays.items() if a.ndim == 3]
+            if len(three) != 1:
+                raise DiffcamError(f"{path}: holds arrays {names}; say which one is the "
+                                   f"stack with --key NAME.")
+            key = three[0]
+        data = read_npz(path, [key], what="a PSF stack (.npz)")[key]
+        if data.ndim != 3:
+            raise DiffcamError(f"{path}: array {key!r} has shape {data.shape}; a stack is "
+                               f"(n_planes, ny, nx).")
+        if np.issubdtype(data.dtype, np.integer):
+            full_scale = float(np.iinfo(data.dtype).max)
+        stack = data
+    elif path.suffix.lower() == ".mat":
+        stack = read_mat_stack(path, key)
+    else:
+        capture = read_image(path)
+        stack, full_scale = capture.image, capture.full_scale
+    if np.ndim(stack) != 3:
+        raise DiffcamError(f"{source}: expected a stack of planes (n, ny, nx), got shape "
+                           f"{np.shape(stack)}.")
+    return np.asarray(stack), None if full_scale is None else 0.999 * full_scale
+
+
+def _cmd_fit(args) -> int:
+    from diffcam.calibrate.stack_fit import fit_stack
+    from diffcam.io import check_output_path
+
+    check_output_path(args.out, suffixes=(".npz",))
+    stack, level = read_stack(args.stack, args.key)
+    if args.saturation is not None:
+        level = None if args.saturation.lower() == "none" else float(args.saturation)
+    overrides = {k: v for k, v in (("max_steps", args.max_steps),
+                                   ("time_budget", args.time_budget),
+                                   ("patience", args.patience), ("seed", args.seed))
+                 if v is not None}
+    if args.frozen:
+        overrides["frozen"] = True
+    print(f"diffcam fit: {stack.shape[0]} planes of {stack.shape[1]}×{stack.shape[2]}, "
+          f"fitting planes {args.planes} ...", flush=True)
+    fit = fit_stack(stack, args.planes, saturation=level, progress=not args.no_progress,
+                    pixel_pitch=args.pixel, wavelength=args.wavelength, z2=args.z2,
+                    **overrides)
+    fit.save(args.out)
+    worse = "  (WORSE than the baseline: prefer it)" if fit.worse_than_baseline else ""
+    print(f"diffcam fit: stopped: {fit.stop_reason}; best step {fit.best_step} of "
+          f"{fit.steps}\n"
+          f"  validation Pearson: model {fit.validation_score:.4f}, scaling baseline "
+          f"{fit.baseline_validation:.4f}{worse}\n"
+          f"  ζ_ref {fit.model.zeta_pixels:.3g} px² (λ·z_eff/pixel²), κ "
+          f"{float(fit.model.kappa):.3f}, magnification {fit.registration.magnification:.5f}"
+          f" about ({fit.registration.centre[0]:.1f}, {fit.registration.centre[1]:.1f}) px\n"
+          f"  {fit.seconds:.1f} s → {args.out}")
+    return 0
+
+
+def _cmd_predict(args) -> int:
+    from diffcam.apps.cli import save_image
+    from diffcam.calibrate.stack_fit import load_stack_fit
+    from diffcam.io import check_output_path
+
+    check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
+    fit = load_stack_fit(args.model)
+    t0 = time.perf_counter()
+    planes = args.planes
+    if planes is None:
+        if fit.n_planes is None:
+            raise DiffcamError(f"{args.model} does not record the stack's plane count; "
+                               f"give --planes.")
+        planes = list(range(fit.n_planes))
+    pred = fit.predict(planes, kappa=args.kappa)
+    save_image(args.out, pred)
+    print(f"diffcam predict: {len(planes)} planes of {pred.shape[1]}×{pred.shape[2]} "
+          f"({time.perf_counter() - t0:.1f} s) → {args.out}")
+    return 0
+
+
+def compare_stack(stack, fit) -> dict:
+    """Per-plane Pearson of the model, the scaling baseline and the frozen-distance
+    rendering (κ = 0) against a measured stack (prepared like the fit's planes)."""
+    from diffcam.calibrate.stack_fit import prepare_planes
+    from diffcam.evaluate.registration import image_pearson, scaling_baseline
+
+    if tuple(stack.shape[1:]) != tuple(fit.model.frame):
+        raise DiffcamError(f"the stack's frames {tuple(stack.shape[1:])} differ from the "
+                           f"model's {tuple(fit.model.frame)}: compare on the frame it "
+                           f"was fitted on.")
+    bad = [t for t in fit.planes if t >= stack.shape[0]]
+    if bad:
+        raise DiffcamError(f"the model was fitted to plane(s) {bad}, beyond this stack's "
+                           f"{stack.shape[0]} planes.")
+    ring = int(fit.options.get("dark_ring", 6))
+    measured = prepare_planes(stack, ring)
+    n = stack.shape[0]
+    model = fit.predict(n)
+    frozen = fit.predict(n, kappa=0.0)
+    base = scaling_baseline({t: measured[t] for t in fit.planes}, n,
+                            registration=fit.registration)
+    rows = []
+    for t in range(n):
+        rows.append({"plane": t, "given": t in fit.planes,
+                     "model": image_pearson(model[t], measured[t]),
+                     "baseline": image_pearson(base[t], measured[t]),
+                     "frozen": image_pearson(frozen[t], measured[t])})
+    held = [r for r in rows if not r["given"]]
+    summary = {k: float(np.mean([r[k] for r in held])) if held else float("nan")
+               for k in ("model", "baseline", "frozen")}
+    summary["above_baseline"] = int(sum(r["model"] > r["baseline"] for r in held))
+    summary["held_out"] = len(held)
+    return {"planes": list(fit.planes), "per_plane": rows, "mean_held_out": summary}
+
+
+def _cmd_compare_stack(args) -> int:
+    from diffcam.calibrate.stack_fit import load_stack_fit
+    from diffcam.io import atomic_output, check_output_path
+
+    if args.out:
+        check_output_path(args.out, suffixes=(".png", ".pdf", ".svg"))
+    if args.json:
+        check_output_path(args.json, suffixes=(".json",))
+    fit = load_stack_fit(args.model)
+    stack, _ = read_stack(args.stack, args.key)
+    result = compare_stack(stack, fit)
+    lines = ["| plane | model | scaling baseline | frozen distance (κ=0) |", "|---|---|---|---|"]
+    for r in result["per_plane"]:
+        mark = " (given)" if r["given"] else ""
+        lines.append(f"| {r['plane']}{mark} | {r['model']:.4f} | {r['baseline']:.4f} | "
+                     f"{r['frozen']:.4f} |")
+    s = result["mean_held_out"]
+    lines.append(f"| **held-out mean** | **{s['model']:.4f}** | {s['baseline']:.4f} | "
+                 f"{s['frozen']:.4f} |")
+    print("\n".join(lines))
+    print(f"diffcam compare-stack: model above the baseline at {s['above_baseline']}/"
+          f"{s['held_out']} held-out planes")
+    if args.json:
+        with atomic_output(args.json) as tmp:
+            Path(tmp).write_text(json.dumps(result, indent=1))
+    if args.out:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        t = [r["plane"] for r in result["per_plane"]]
+        fig, ax = plt.subplots(figsize=(7, 4))
+        ax.plot(t, [r["model"] for r in result["per_plane"]], "o-", ms=3,
+                label=f"wave model (held-out mean {s['model']:.4f})")
+        ax.plot(t, [r["baseline"] for r in result["per_plane"]], "s--", ms=3,
+                label=f"scaling baseline ({s['baseline']:.4f})")
+        ax.plot(t, [r["frozen"] for r in result["per_plane"]], ":", lw=1,
+                label=f"frozen distance κ=0 ({s['frozen']:.4f})")
+        for g in result["planes"]:
+            ax.axvline(g, color="0.7", lw=0.8)
+        ax.set_xlabel("plane")
+        ax.set_ylabel("Pearson with the measured plane")
+        ax.set_title(f"fitted to planes {result['planes']} (grey lines)")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        with atomic_output(args.out) as tmp:
+            fig.savefig(tmp, dpi=110)
+        plt.close(fig)
+        print(f"diffcam compare-stack: → {args.out}")
+    return 0
+
+
+def _add_fit(sub) -> None:
+    """Add ``fit``, ``predict`` and ``compare-stack`` to the ``diffcam`` subcommands."""
+    from diffcam.apps.cli import _length
+
+    fit = sub.add_parser("fit", help="fit a wave model to a few planes of a PSF stack",
+                         description="Fit the stack wave model to the given planes of a "
+                                     "PSF stack (the others never enter) and write it as "
+                                     "one .npz; prints the stop reason and the validation "
+                                     "scores of the model and the scaling baseline.")
+    fit.add_argument("stack", help="multi-page TIFF, .npy, .npz (one 3-D array or --key), "
+                                   ".mat, a folder or a quoted glob of single-plane images")
+    fit.add_argument("--planes", type=_planes_arg, required=True,
+                     help="given planes, e.g. 5,25 (the first is the reference)")
+    fit.add_argument("--key", help="array name inside an .npz or .mat stack")
+    fit.add_argument("--max-steps", type=int, help="Adam steps at most (400)")
+    fit.add_argument("--time-budget", type=float, help="seconds for the whole fit (60)")
+    fit.add_argument("--patience", type=int, help="steps without validation gain (40)")
+    fit.add_argument("--seed", type=int, help="seed of the validation split (0)")
+    fit.add_argument("--frozen", action="store_true",
+                     help="frozen-distance ablation: ζ the same at every plane")
+    fit.add_argument("--saturation", help="pixel value counted as saturated, or 'none' "
+                                          "(default: 0.999 × full scale of integer data)")
+    fit.add_argument("--pixel", type=_length("pixel"), help="pixel pitch (only reported)")
+    fit.add_argument("--wavelength", type=_length("wavelength"), help="(only reported)")
+    fit.add_argument("--z2", type=_length("z2"), help="diffuser to sensor (only reported)")
+    fit.add_argument("--no-progress", action="store_true", help="no progress bar")
+    fit.add_argument("-o", "--out", required=True, help="model file (.npz)")
+    fit.set_defaults(func=_cmd_fit)
+
+    pred = sub.add_parser("predict", help="render planes from a fitted stack model",
+                          description="Render planes of a stack model from `diffcam fit` "
+                                      "(each normalised to unit mean).")
+    pred.add_argument("model", help="model file from `diffcam fit`")
+    pred.add_argument("--planes", type=_planes_arg,
+                      help="planes, e.g. 0:43 (ends included) or 0,5,9 (default: all)")
+    pred.add_argument("--kappa", type=float, help="render with this depth-law exponent "
+                                                  "(0: frozen distance)")
+    pred.add_argument("-o", "--out", required=True, help="output .tif (multi-page) or .npy")
+    pred.set_defaults(func=_cmd_predict)
+
+    cmp_ = sub.add_parser("compare-stack", help="model vs scaling baseline per plane",
+                          description="Pearson of the fitted model, the scaling baseline "
+                                      "(from the same given planes) and the frozen-distance "
+                                      "rendering (κ = 0) against every plane of a measured "
+                                      "stack; prints a table, writes a figure and JSON.")
+    cmp_.add_argument("stack", help="the measured stack (as for `diffcam fit`)")
+    cmp_.add_argument("--model", required=True, help="model file from `diffcam fit`")
+    cmp_.add_argument("--key", help="array name inside an .npz or .mat stack")
+    cmp_.add_argument("-o", "--out", help="figure (.png)")
+    cmp_.add_argument("--json", help="per-plane scores (.json)")
+    cmp_.set_defaults(func=_cmd_compare_stack)

@@ -1,0 +1,240 @@
+"""Magnification registration between PSF planes, and the scaling baseline built on it.
+
+Between two planes of a diffuser camera's PSF stack the caustic mostly *scales* about a
+fixed point (Fresnel scaling theorem: a source at z1 magnifies the diffuser's pattern by
+M = (z1 + z2)/z1 about the point the optical axis meets the sensor). That point is not
+the frame centre in real data (a cropped or shifted sensor), so it is fitted.
+
+- :func:`register_magnification` — fixed point and relative magnification between two
+  planes (Pearson maximised over both, cubic splines);
+- :func:`scaling_baseline` — every plane as the nearest given plane magnified by
+  M(t)/M(k) about that point, M linear in the plane index t. This is the baseline every
+  stack prediction (:func:`diffcam.calibrate.fit_stack`) is compared with.
+
+Everything here is in **pixel units** (pixel k's centre at coordinate k, (y, x) order)
+and plane indices; NumPy/SciPy, outside ``jit``. Planes equally spaced in 1/z1 (the
+usual DiffuserCam stack) have M = (z1 + z2)/z1 = 1 + z2/z1 linear in the index, which is
+the law used here (verified on the built-in stack to 3·10⁻⁴ in relative magnification
+over 43 planes).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Mapping, Sequence
+
+import numpy as np
+import scipy.ndimage as ndi
+import scipy.optimize as sopt
+
+from diffcam.core.errors import DiffcamError, ShapeError
+
+__all__ = ["Registration", "register_magnification", "magnify_about", "magnification_slope",
+           "relative_magnification_at", "scaling_baseline", "image_pearson"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Registration:
+    """The magnification relating plane ``b`` to plane ``a``: ``b ≈ a`` magnified by
+    ``magnification`` about ``centre``.
+
+    Attributes:
+        magnification: M(b)/M(a), dimensionless (> 1: ``b`` is larger).
+        centre: the fixed point (y, x), pixels (pixel k's centre at k; may lie outside
+            the frame).
+        pearson: Pearson correlation of ``b`` and the magnified ``a`` at the optimum.
+        seconds: wall time of the registration, s.
+    """
+
+    magnification: float
+    centre: tuple[float, float]
+    pearson: float
+    seconds: float = 0.0
+
+
+def image_pearson(a, b, mask=None) -> float:
+    """Pearson correlation of two images (float64, over ``mask`` if given)."""
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    if mask is not None:
+        a, b = a[mask], b[mask]
+    a = a - a.mean()
+    b = b - b.mean()
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / den) if den > 0 else 0.0
+
+
+def magnify_about(image, magnification: float, centre, *, prefiltered: bool = False
+                  ) -> np.ndarray:
+    """``out(p) = image(centre + (p − centre)/magnification)``: ``image`` magnified about
+    ``centre`` by cubic B-splines, zero outside the frame.
+
+    Args:
+        image: (ny, nx) float image.
+        magnification: dimensionless (> 0).
+        centre: (y, x), pixels.
+        prefiltered: ``image`` is already ``scipy.ndimage.spline_filter(.., order=3)``
+            (saves the prefilter when one image is magnified many times).
+    """
+    h, w = np.shape(image)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    cy, cx = float(centre[0]), float(centre[1])
+    coords = np.stack([cy + (yy - cy) / magnification, cx + (xx - cx) / magnification])
+    return ndi.map_coordinates(np.asarray(image, np.float64), coords, order=3,
+                               mode="constant", cval=0.0, prefilter=not prefiltered)
+
+
+def _moments(img):
+    w = np.clip(img, 0, None)
+    m = w.sum()
+    if m <= 0:
+        return None, None
+    yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    cy, cx = (w * yy).sum() / m, (w * xx).sum() / m
+    rg = np.sqrt((w * ((yy - cy) ** 2 + (xx - cx) ** 2)).sum() / m)
+    return np.array([cy, cx]), rg
+
+
+def _check_plane(image, name):
+    a = np.asarray(image)
+    if a.ndim != 2 or 0 in a.shape:
+        raise ShapeError(f"{name} must be a non-empty 2-D image (ny, nx), got shape "
+                         f"{a.shape}.")
+    if not np.isfinite(a).all():
+        raise DiffcamError(f"{name} holds {int((~np.isfinite(a)).sum())} NaN/Inf pixel(s); "
+                           f"clean or crop them first.")
+    if float(np.ptp(a)) == 0:
+        raise DiffcamError(f"{name} is constant ({float(a.flat[0]):g} everywhere): an "
+                           f"empty or dark plane has no pattern to register.")
+    return a.astype(np.float64)
+
+
+def register_magnification(a, b) -> Registration:
+    """Fit ``b ≈ gain·magnify_about(a, M, centre) + offset`` by maximising Pearson.
+
+    The start comes from intensity moments: under a magnification about p both the
+    centroid and the radius of gyration scale about p, so M₀ = r_b/r_a and
+    p₀ = (c_b − M₀c_a)/(1 − M₀) (the centroid of ``b`` when M₀ ≈ 1). Nelder–Mead then
+    refines (log M, p) on the images blurred by 2 px, and again on the raw images, with
+    cubic splines throughout. Nothing assumes the frame centre. About 3 s for 270×320.
+
+    Args:
+        a, b: (ny, nx) images of the same shape, background-subtracted (any gain).
+
+    Returns:
+        :class:`Registration` (M(b)/M(a), fixed point in pixels, Pearson).
+
+    Raises:
+        ShapeError: not two 2-D images of one shape.
+        DiffcamError: NaN/Inf or a constant image.
+    """
+    t0 = time.perf_counter()
+    a = _check_plane(a, "image a")
+    b = _check_plane(b, "image b")
+    if a.shape != b.shape:
+        raise ShapeError(f"images to register differ in shape: {a.shape} and {b.shape}.")
+    ca, ra = _moments(a)
+    cb, rb = _moments(b)
+    if ca is None or cb is None or ra == 0:
+        s0, p0 = 1.0, np.array(a.shape, np.float64) / 2
+    else:
+        s0 = rb / ra
+        p0 = (cb - s0 * ca) / (1 - s0) if abs(1 - s0) > 0.01 else cb
+    h, w = a.shape
+    p0 = np.clip(p0, [-h, -w], [2 * h, 2 * w])
+    x = np.array([np.log(s0), p0[0], p0[1]])
+    step = 0.05 * max(h, w)
+    res = None
+    for sigma in (2.0, 0.0):
+        fa = ndi.gaussian_filter(a, sigma) if sigma else a
+        fb = ndi.gaussian_filter(b, sigma) if sigma else b
+        fa = ndi.spline_filter(fa, order=3)
+
+        def cost(p, fa=fa, fb=fb):
+            return -image_pearson(magnify_about(fa, np.exp(p[0]), (p[1], p[2]),
+                                                prefiltered=True), fb)
+
+        simplex = np.array([x, x + [0.01, 0, 0], x + [0, step, 0], x + [0, 0, step]])
+        res = sopt.minimize(cost, x, method="Nelder-Mead",
+                            options=dict(initial_simplex=simplex, xatol=1e-4, fatol=1e-7,
+                                         maxiter=600))
+        x = res.x
+    return Registration(float(np.exp(x[0])), (float(x[1]), float(x[2])), float(-res.fun),
+                        time.perf_counter() - t0)
+
+
+def magnification_slope(magnification: float, plane_a: int, plane_b: int) -> float:
+    """Slope c of the law M(t) ∝ 1 + c·t (t a plane index) through M(b)/M(a) =
+    ``magnification``: c = (M − 1)/(b − M·a), per plane."""
+    den = plane_b - magnification * plane_a
+    if plane_a == plane_b or den == 0:
+        raise DiffcamError(f"cannot fix a magnification law from planes {plane_a} and "
+                           f"{plane_b} with ratio {magnification:g}.")
+    return (magnification - 1.0) / den
+
+
+def relative_magnification_at(t, magnification, plane_a: int, plane_b: int):
+    """M(t)/M(plane_a) under the linear law through M(b)/M(a) = ``magnification``
+    (dimensionless; ``t`` a plane index or an array of them; NumPy or JAX)."""
+    c = (magnification - 1.0) / (plane_b - magnification * plane_a)
+    return (1.0 + c * t) / (1.0 + c * plane_a)
+
+
+def _plane_list(planes, name="planes") -> list[int]:
+    if isinstance(planes, (int, np.integer)):
+        if planes < 1:
+            raise DiffcamError(f"{name}: the number of planes must be ≥ 1, got {planes}.")
+        return list(range(int(planes)))
+    out = []
+    for t in planes:
+        if isinstance(t, bool) or not isinstance(t, (int, np.integer)):
+            raise DiffcamError(f"{name} must be integer plane indices, got {t!r}.")
+        out.append(int(t))
+    if not out:
+        raise DiffcamError(f"{name} is empty; give at least one plane index.")
+    return out
+
+
+def scaling_baseline(given: Mapping[int, np.ndarray], planes: int | Sequence[int], *,
+                     registration: Registration | None = None) -> np.ndarray:
+    """The scaling baseline: plane t as the nearest given plane k magnified about the
+    fixed point by M(t)/M(k), M linear in the plane index.
+
+    The law comes from the two given planes farthest apart (the first and the last
+    index), registered with :func:`register_magnification` unless ``registration``
+    (of the last given plane relative to the first) is passed. Cubic B-splines, zero
+    outside the frame; ties go to the lower given plane. Gain and offset are those of
+    the given plane (compare by Pearson).
+
+    Args:
+        given: ``{plane index: (ny, nx) image}``, at least two planes.
+        planes: the planes to predict: a count n (planes 0 … n−1) or a sequence of
+            plane indices.
+        registration: M(last)/M(first) and the fixed point (pixels), if already known.
+
+    Returns:
+        float64 array (len(planes), ny, nx).
+    """
+    if len(given) < 2:
+        raise DiffcamError(f"the scaling baseline needs at least two given planes to fix "
+                           f"the magnification law, got {len(given)}.")
+    keys = sorted(int(k) for k in given)
+    imgs = {k: np.asarray(given[k], np.float64) for k in keys}
+    shapes = {v.shape for v in imgs.values()}
+    if len(shapes) != 1:
+        raise ShapeError(f"given planes differ in shape: {sorted(shapes)}.")
+    first, last = keys[0], keys[-1]
+    if registration is None:
+        registration = register_magnification(imgs[first], imgs[last])
+    ts = _plane_list(planes)
+    filt = {k: ndi.spline_filter(imgs[k], order=3) for k in keys}
+    out = np.empty((len(ts),) + imgs[first].shape)
+    m = registration.magnification
+    for n, t in enumerate(ts):
+        k = min(keys, key=lambda q: (abs(t - q), q))
+        s = relative_magnification_at(t, m, first, last) / \
+            relative_magnification_at(k, m, first, last)
+        out[n] = imgs[k] if t == k else magnify_about(filt[k], s, registration.centre,
+                                                      prefiltered=True)
+    return out

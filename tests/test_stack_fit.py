@@ -1,0 +1,227 @@
+"""Stack fitting (diffcam.calibrate.stack_fit), registration and the scaling baseline
+(diffcam.evaluate.registration), and the `diffcam fit/predict/compare-stack` commands."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import scipy.ndimage as ndi
+
+from diffcam.apps.cli import main
+from diffcam.calibrate.stack_fit import (StackFitOptions, StackFitWarning, fit_stack,
+                                         load_stack_fit, prepare_planes)
+from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.evaluate.registration import (Registration, image_pearson, magnify_about,
+                                           register_magnification, scaling_baseline)
+
+GIVEN = [2, 9]
+
+
+@pytest.fixture(scope="module")
+def synthetic_stack():
+    """A 12-plane stack from diffcam's own PSF model, NOT the stack model: a 768² grid
+    at 1 µm (a random 30 µm diffuser, 1.5° deflection, aperture radius 154 µm), three
+    wavelengths (515/532/549 nm), z2 = 0.6 mm, z1 from 2 to 10 mm equally spaced in 1/z1,
+    binned 4×4 to 4 µm pixels (96×96), Poisson noise at a peak of 150 photons."""
+    import jax
+
+    from diffcam.model import Camera
+    from diffcam.model.camera import random_diffuser
+    from diffcam.model.sensor import bin_pixels
+    from diffcam.model.stack import psf_stack
+
+    n, dx = 768, 1e-6
+    camera = Camera(wavelength=532e-9, z2=0.6e-3, dx=dx, aperture_radius=0.2 * n * dx,
+                    shape=(n, n), pad=26, crop=(n // 2, n // 2))
+    phase = random_diffuser(jax.random.key(3), (n, n), dx, 532e-9, feature_size=30e-6,
+                            deflection=np.deg2rad(1.5))
+    z1 = 1e-3 / np.linspace(1 / 2, 1 / 10, 12)
+    spectrum = (np.array([515e-9, 532e-9, 549e-9]), np.array([0.5, 1.0, 0.5]))
+    stack = psf_stack(phase, camera, z1, spectrum=spectrum, progress=False)
+    pixels = np.asarray(bin_pixels(stack, dx, 4 * dx))
+    pixels = pixels / pixels.max() * 150
+    return np.random.default_rng(0).poisson(pixels).astype(np.float32) + 5
+
+
+@pytest.fixture(scope="module")
+def synthetic_fit(synthetic_stack):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StackFitWarning)
+        return fit_stack(synthetic_stack, GIVEN, progress=False, kappa=1.0, zetas=(64.0,),
+                         max_steps=100, time_budget=math.inf)
+
+
+def test_fit_beats_scaling_baseline_on_held_out_planes(synthetic_stack, synthetic_fit):
+    """On planes it never saw, the fitted model correlates better with the measured
+    (noisy) planes than the scaling baseline does, on average over the held-out planes."""
+    fit = synthetic_fit
+    measured = prepare_planes(synthetic_stack)
+    held = [t for t in range(len(measured)) if t not in GIVEN]
+    pred = fit.predict(held)
+    base = scaling_baseline({t: measured[t] for t in GIVEN}, held,
+                            registration=fit.registration)
+    r_model = np.array([image_pearson(p, measured[t]) for p, t in zip(pred, held)])
+    r_base = np.array([image_pearson(b, measured[t]) for b, t in zip(base, held)])
+    assert pred.shape == (len(held), 96, 96) and np.isfinite(pred).all()
+    assert r_model.mean() > r_base.mean() + 0.001, (r_model.mean(), r_base.mean())
+    assert fit.validation_score > fit.baseline_validation and not fit.worse_than_baseline
+    assert fit.stop_reason.startswith("no validation improvement")
+    assert 0 <= fit.best_step < fit.steps == len(fit.validation) == len(fit.history)
+    assert fit.planes == tuple(GIVEN) and fit.n_planes == 12
+    # the true M(9)/M(2) of the simulation: (1 + z2/z1(9)) / (1 + z2/z1(2))
+    z1 = 1e-3 / np.linspace(1 / 2, 1 / 10, 12)
+    true = (1 + 0.6e-3 / z1[9]) / (1 + 0.6e-3 / z1[2])
+    assert abs(fit.registration.magnification - true) < 0.01
+    assert "zeta_reference_px2" in fit.identifiable and "z_eff_m" not in fit.identifiable
+
+
+def test_save_load_round_trip(synthetic_fit, tmp_path):
+    """A saved fit predicts exactly what the original predicts; the file is one .npz."""
+    path = tmp_path / "fit.npz"
+    synthetic_fit.save(path)
+    assert [p.name for p in tmp_path.iterdir()] == ["fit.npz"]  # no temp file left
+    loaded = load_stack_fit(path)
+    planes = [0, 5, 11]
+    np.testing.assert_array_equal(loaded.predict(planes), synthetic_fit.predict(planes))
+    assert loaded.summary() == synthetic_fit.summary()
+    np.testing.assert_array_equal(loaded.validation, synthetic_fit.validation)
+
+
+def test_load_refuses_bad_files(tmp_path):
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a zip archive at all")
+    with pytest.raises(DiffcamError, match="not a diffcam stack-fit file"):
+        load_stack_fit(garbage)
+    other = tmp_path / "other.npz"
+    np.savez(other, stack=np.zeros((2, 3, 3)))
+    with pytest.raises(DiffcamError, match="no array"):
+        load_stack_fit(other)
+    with pytest.raises(DiffcamError, match="no such file"):
+        load_stack_fit(tmp_path / "missing.npz")
+
+
+def _blobs(shape=(96, 128), seed=1):
+    rng = np.random.default_rng(seed)
+    img = ndi.gaussian_filter(rng.random(shape), 2.0) ** 4
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    return img * np.exp(-((yy - 50) ** 2 + (xx - 60) ** 2) / (2 * 35.0 ** 2))
+
+
+def test_registration_recovers_magnification_and_fixed_point():
+    """A pair made by magnifying an image by 1.07 about an off-centre point (40.3, 70.8):
+    the registration recovers both (the frame centre is (47.5, 63.5))."""
+    a = _blobs()
+    b = magnify_about(a, 1.07, (40.3, 70.8))
+    reg = register_magnification(a, b)
+    assert abs(reg.magnification - 1.07) < 1e-3
+    assert np.hypot(reg.centre[0] - 40.3, reg.centre[1] - 70.8) < 0.3
+    assert reg.pearson > 0.999
+
+
+def test_scaling_baseline_law_and_given_planes():
+    """Given planes come back unchanged; a plane between them is the nearest given plane
+    magnified by M(t)/M(k) with M linear in the plane index."""
+    a = _blobs()
+    reg = Registration(1.10, (45.0, 60.0), 1.0)
+    b = magnify_about(a, 1.10, reg.centre)
+    out = scaling_baseline({0: a, 10: b}, [0, 3, 10], registration=reg)
+    np.testing.assert_allclose(out[0], a)
+    np.testing.assert_allclose(out[2], b)
+    c = (1.10 - 1) / 10  # M(t) ∝ 1 + c·t
+    np.testing.assert_allclose(out[1], magnify_about(a, 1 + 3 * c, reg.centre), atol=1e-12)
+    with pytest.raises(DiffcamError, match="at least two"):
+        scaling_baseline({0: a}, 5)
+
+
+def _stack(n=6, shape=(32, 40), dtype=np.float32):
+    rng = np.random.default_rng(0)
+    return (rng.random((n,) + shape) * 100 + 10).astype(dtype)
+
+
+@pytest.mark.parametrize("planes, error, match", [
+    ([0, 6], DiffcamError, "out of range"),
+    ([-1, 3], DiffcamError, "out of range"),
+    ([3], DiffcamError, "at least 2"),
+    ([2, 2], DiffcamError, "more than once"),
+    ([1.5, 3], DiffcamError, "integers"),
+])
+def test_bad_planes(planes, error, match):
+    with pytest.raises(error, match=match):
+        fit_stack(_stack(), planes, progress=False)
+
+
+def test_bad_frames():
+    frames = [np.ones((32, 40)) + np.eye(32, 40), np.ones((32, 48)) + np.eye(32, 48)]
+    with pytest.raises(ShapeError, match="differ in shape"):
+        fit_stack(frames, [0, 1], progress=False)
+    with pytest.raises(ShapeError, match="differ in shape"):
+        fit_stack({0: frames[0], 4: frames[1]}, [0, 4], progress=False)
+    stack = _stack()
+    stack[3, 5, 7] = np.nan
+    stack[3, 6, 7] = np.inf
+    with pytest.raises(DiffcamError, match="plane 3 holds 2 NaN/Inf"):
+        fit_stack(stack, [1, 3], progress=False)
+    stack = _stack()
+    stack[4] = 0.0
+    with pytest.raises(DiffcamError, match="plane 4 is constant"):
+        fit_stack(stack, [1, 4], progress=False)
+    with pytest.raises(ShapeError, match=r"\(n_planes, ny, nx\)"):
+        fit_stack(_stack()[0], [0, 1], progress=False)
+
+
+def test_saturated_pixels_are_counted():
+    stack = _stack(dtype=np.uint16)
+    stack[2, :3, :2] = 65535
+    with pytest.raises(DiffcamError, match=r"6 saturated pixel\(s\).*plane 2: 6"):
+        fit_stack(stack, [2, 5], progress=False)
+    with pytest.raises(DiffcamError, match="saturated"):
+        fit_stack(_stack(), [2, 5], saturation=100.0, progress=False)
+
+
+def test_options_validate():
+    with pytest.raises(DiffcamError, match="unknown stack-fit option"):
+        StackFitOptions.of(steps=3)
+    with pytest.raises(DiffcamError, match="validation_fraction"):
+        StackFitOptions(validation_fraction=0.7)
+    with pytest.raises(DiffcamError, match="max_steps"):
+        StackFitOptions(max_steps=0)
+    assert StackFitOptions.of(zetas=64).zetas == (64.0,)
+
+
+@pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack_fit.StackFitWarning")
+def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
+    """`diffcam fit` on a crop of the built-in stack, then `predict` and `compare-stack`."""
+    from diffcam.data import load_psf_stack_3d
+
+    import tifffile
+
+    stack = load_psf_stack_3d()[:16, 100:164, 120:200]
+    src = tmp_path / "crop.npy"
+    np.save(src, stack)
+    model = tmp_path / "model.npz"
+    assert main(["fit", str(src), "--planes", "4,12", "--max-steps", "4", "--no-progress",
+                 "--pixel", "3.45um", "-o", str(model)]) == 0
+    out = capsys.readouterr().out
+    assert "stopped: max_steps (4)" in out and "scaling baseline" in out
+    fit = load_stack_fit(model)
+    assert fit.planes == (4, 12) and fit.steps == 4
+    assert fit.identifiable["lambda_z_eff_m2"] > 0 and "z_eff_m" not in fit.identifiable
+    pred = tmp_path / "pred.tif"
+    assert main(["predict", str(model), "--planes", "0:10", "-o", str(pred)]) == 0
+    images = tifffile.imread(pred)
+    assert images.shape == (11, 64, 80) and np.isfinite(images).all()
+    np.testing.assert_allclose(images, fit.predict(range(11)), rtol=1e-6)
+    fig, js = tmp_path / "cmp.png", tmp_path / "cmp.json"
+    assert main(["compare-stack", str(src), "--model", str(model), "-o", str(fig),
+                 "--json", str(js)]) == 0
+    result = json.loads(js.read_text())
+    assert len(result["per_plane"]) == 16 and fig.stat().st_size > 0
+    assert result["mean_held_out"]["held_out"] == 14
+    # a bad planes argument is a usage error; a plane out of range is a DiffcamError
+    assert main(["fit", str(src), "--planes", "4,40", "-o", str(model)]) == 2
+    assert "out of range" in capsys.readouterr().err
