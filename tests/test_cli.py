@@ -133,7 +133,7 @@ def calibration_files(tmp_path_factory):
     captured = psf_stack(phase, cam, depths)
     tifffile.imwrite(d / "psf22.tif", captured[1])
     save_stack(d / "captured.tif", captured,
-               StackMeta(depths=depths, positions=None, pitch=dx, wavelengths=np.array([lam]),
+               StackMeta(depths=depths, offsets=None, pitch=dx, wavelengths=np.array([lam]),
                          weights=np.array([1.0]), camera=camera_record(cam)))
     return d, f"{geometry.focal_length * 1e3:.4f}mm"
 
