@@ -27,6 +27,7 @@ with ``os.replace``, so an existing file is either untouched or wholly replaced.
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 import secrets
 import signal
@@ -507,6 +508,11 @@ class _TermGuard:
         return guard
 
     def _handle(self, signum, frame) -> None:
+        if not self.deferring and _in_gc_callback(frame):
+            # an exception raised inside a garbage-collector callback (JAX has one) is
+            # printed and dropped: deliver the signal again once the callback is done
+            threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
+            return
         first = not self.received
         self.received = True
         if first and not self.deferring:
@@ -517,6 +523,16 @@ class _TermGuard:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         if self.received:
             signal.raise_signal(signal.SIGTERM)  # now with its default action: exit
+
+
+def _in_gc_callback(frame) -> bool:
+    """Whether ``frame`` (where a signal interrupted) runs one of ``gc.callbacks``."""
+    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in codes:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _create_temp(target: Path, *, probe: bool = False) -> tuple[int, Path]:

@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pytest
 
-# the paper-figure notebooks take ~50 s each even reduced: run with the slow tests
-_SLOW = {"02_fig5_fig6_psf_and_reconstruction", "03_fig9_depth_sweep"}
+# the paper-figure notebooks take 20-60 s each even reduced: run with the slow tests
+_SLOW = {"01_fig3_phase_retrieval", "02_fig5_fig6_psf_and_reconstruction",
+         "03_fig9_depth_sweep"}
 NOTEBOOKS = [pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if p.stem in _SLOW else [])
              for p in sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.py"))]
 

@@ -55,6 +55,7 @@ def test_weighted_residuals_break_the_twin_at_512():
     assert float(s["mse"]) < 0.01
 
 
+@pytest.mark.slow
 def test_z2_and_depths_are_recovered(sim, camera):
     """Three PSFs on planes uniform in 1/z1. The phase starts at the truth; z2 starts
     20 % off (depths known), then the 2-parameter depth model 5 % off (z2 known). (Both
