@@ -184,7 +184,7 @@ def test_saturated_pixels_are_counted():
 
 
 def test_options_validate():
-    with pytest.raises(DiffcamError, match="unknown stack-fit option"):
+    with pytest.raises(DiffcamError, match="unknown option.*StackFitOptions"):
         StackFitOptions.of(steps=3)
     with pytest.raises(DiffcamError, match="validation_fraction"):
         StackFitOptions(validation_fraction=0.7)

@@ -44,7 +44,6 @@ Optional regularisers on the phase inside the aperture, wrap-safe through e^{jθ
 
 from __future__ import annotations
 
-import dataclasses
 import time
 import warnings
 from typing import Sequence
@@ -62,6 +61,7 @@ from diffcam.calibrate.near_far import (CalibrationGeometry, NearFarModel, check
                                         check_far_pitch)
 from diffcam.calibrate.projections import initial_phase, retrieve_projections
 from diffcam.calibrate.result import RetrievalResult
+from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError, check_field
 from diffcam.core.grid import crop_to, pad_to
 
@@ -363,7 +363,7 @@ def _real_dtype(*arrays):
     return jnp.float64 if wide and jax.config.jax_enable_x64 else jnp.float32
 
 
-class FitOptions(eqx.Module):
+class FitOptions(Options):
     """How a least-squares fit runs (the settings shared by every fit in diffcam).
 
     Attributes:
@@ -392,14 +392,6 @@ class FitOptions(eqx.Module):
             if not (np.isfinite(float(w)) and float(w) >= 0):
                 raise DiffcamError(f"{name} must be a finite weight ≥ 0, got {w!r}.")
 
-    @classmethod
-    def of(cls, options: "FitOptions | None" = None, **overrides) -> "FitOptions":
-        """``options`` (default: the defaults) with the named fields replaced."""
-        unknown = set(overrides) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise DiffcamError(f"unknown fit option(s) {sorted(unknown)}; the options are "
-                               f"{sorted(cls.__dataclass_fields__)}.")
-        return dataclasses.replace(options or cls(), **overrides)
 
 
 def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],

@@ -31,11 +31,9 @@ field's energy (Parseval), which also absorbs any exposure difference.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from functools import partial
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -44,6 +42,7 @@ from jaxtyping import Float
 
 from diffcam.core.backend import fft2, ifft2
 
+from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError, check_finite
 from diffcam.optics.propagation import apply_transfer, transfer_function
 from diffcam.calibrate.near_far import CalibrationGeometry, check_captures, check_far_pitch
@@ -150,7 +149,7 @@ def initial_phase(init, shape, key=None, restarts: int = 1) -> Float[Array, "res
     return phase[None]
 
 
-class ProjectionOptions(eqx.Module):
+class ProjectionOptions(Options):
     """How alternating projections run.
 
     Attributes:
@@ -184,14 +183,6 @@ class ProjectionOptions(eqx.Module):
         if not 0 < float(self.beta) <= 1:
             raise DiffcamError(f"beta must be in (0, 1] (0.9 is usual), got {self.beta!r}.")
 
-    @classmethod
-    def of(cls, options: "ProjectionOptions | None" = None, **overrides):
-        """``options`` (default: the defaults) with the named fields replaced."""
-        unknown = set(overrides) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise DiffcamError(f"unknown projection option(s) {sorted(unknown)}; the options "
-                               f"are {sorted(cls.__dataclass_fields__)}.")
-        return dataclasses.replace(options or cls(), **overrides)
 
 
 def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],

@@ -57,6 +57,7 @@ import scipy.ndimage as ndi
 from jax import Array
 from jaxtyping import Float
 
+from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.evaluate.registration import (Registration, image_pearson, magnify_about,
                                            register_magnification,
@@ -252,7 +253,7 @@ def _render(model: StackModel, planes):
 
 # ----------------------------------------------------------------------------- options
 
-class StackFitOptions(eqx.Module):
+class StackFitOptions(Options):
     """How :func:`fit_stack` runs. Lengths in fine samples (1/``oversample`` pixel).
 
     Attributes:
@@ -285,7 +286,9 @@ class StackFitOptions(eqx.Module):
     time_budget: float = 60.0
     validation_fraction: float = 0.1
     seed: int = 0
-    zetas: tuple[float, ...] = (32.0, 64.0, 128.0)
+    zetas: tuple[float, ...] = eqx.field(
+        default=(32.0, 64.0, 128.0),
+        converter=lambda z: tuple(float(v) for v in np.atleast_1d(z)))
     gs_iterations: int = 30
     oversample: int = 2
     pad: int = 40
@@ -330,16 +333,6 @@ class StackFitOptions(eqx.Module):
             if f.name.startswith("step_") and not (float(getattr(self, f.name)) >= 0):
                 raise DiffcamError(f"{f.name} must be ≥ 0, got {getattr(self, f.name)!r}.")
 
-    @classmethod
-    def of(cls, options: "StackFitOptions | None" = None, **overrides) -> "StackFitOptions":
-        """``options`` (default: the defaults) with the named fields replaced."""
-        unknown = set(overrides) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise DiffcamError(f"unknown stack-fit option(s) {sorted(unknown)}; the options "
-                               f"are {sorted(cls.__dataclass_fields__)}.")
-        if "zetas" in overrides:
-            overrides["zetas"] = tuple(float(z) for z in np.atleast_1d(overrides["zetas"]))
-        return dataclasses.replace(options or cls(), **overrides)
 
     def to_dict(self) -> dict:
         return {f.name: (list(getattr(self, f.name)) if f.name == "zetas"
