@@ -36,7 +36,8 @@ import numpy as np
 from benchmarks.harness import markdown_table, write_json
 from diffcam.calibrate.stack_fit import StackFitWarning, fit_stack, prepare_planes
 from diffcam.data import load_psf_stack_3d
-from diffcam.evaluate.registration import image_pearson, scaling_baseline
+from diffcam.evaluate.metrics import pearson
+from diffcam.evaluate.registration import scaling_baseline
 
 TRANSFORMS = ["rot90", "rot180", "rot270", "flipud", "fliplr", "transpose"]
 
@@ -89,9 +90,8 @@ def run_case(raw: np.ndarray, i: int, j: int, label: str) -> dict:
         frozen = frozen_fit.predict(held)
     base = scaling_baseline({i: measured[i], j: measured[j]}, held,
                             registration=fit.registration)
-    r_model = np.array([image_pearson(p, measured[t]) for p, t in zip(pred, held)])
-    r_base = np.array([image_pearson(b, measured[t]) for b, t in zip(base, held)])
-    r_frozen = np.array([image_pearson(p, measured[t]) for p, t in zip(frozen, held)])
+    r_model, r_base, r_frozen = (np.asarray(pearson(x, measured[held]))
+                                 for x in (pred, base, frozen))
     worst = int(np.argmin(r_model))
     return {
         "pair": f"({i}, {j})", "transform": label, "shape": list(raw.shape[1:]),

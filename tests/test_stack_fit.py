@@ -14,7 +14,8 @@ from diffcam.apps.cli import main
 from diffcam.calibrate.stack_fit import (StackFitOptions, StackFitWarning, fit_stack,
                                          load_stack_fit, prepare_planes)
 from diffcam.core.errors import DiffcamError, ShapeError
-from diffcam.evaluate.registration import (Registration, image_pearson, magnify_about,
+from diffcam.evaluate.metrics import pearson
+from diffcam.evaluate.registration import (Registration, magnify_about,
                                            register_magnification, scaling_baseline)
 
 GIVEN = [2, 9]
@@ -65,8 +66,7 @@ def test_fit_beats_scaling_baseline_on_held_out_planes(synthetic_stack, syntheti
     pred = fit.predict(held)
     base = scaling_baseline({t: measured[t] for t in GIVEN}, held,
                             registration=fit.registration)
-    r_model = np.array([image_pearson(p, measured[t]) for p, t in zip(pred, held)])
-    r_base = np.array([image_pearson(b, measured[t]) for b, t in zip(base, held)])
+    r_model, r_base = (np.asarray(pearson(x, measured[held])) for x in (pred, base))
     assert pred.shape == (len(held), 96, 96) and np.isfinite(pred).all()
     assert r_model.mean() > r_base.mean() + 0.001, (r_model.mean(), r_base.mean())
     assert fit.validation_score > fit.baseline_validation and not fit.worse_than_baseline

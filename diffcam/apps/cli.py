@@ -58,6 +58,16 @@ def save_image(path, image) -> None:
             tifffile.imwrite(tmp, image, imagej=image.ndim == 3)
 
 
+def save_figure(fig, path) -> None:
+    """Lay out ``fig``, write it atomically to ``path`` (format from the suffix), close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
 def _read_psfs(path):
     """A PSF or PSF stack from an image file or a stack written by diffcam; returns
     ``(psfs, depths or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
@@ -230,10 +240,7 @@ def _cmd_compare(args) -> int:
     ax.set_xlabel("z1 (mm)")
     ax.set_ylabel("Pearson with the captured PSF")
     ax.legend()
-    fig.tight_layout()
-    with atomic_output(args.out) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    save_figure(fig, args.out)
     print(f"diffcam compare: → {args.out}")
     return 0
 

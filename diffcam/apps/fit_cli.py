@@ -172,7 +172,8 @@ def compare_stack(stack, fit) -> dict:
     """Per-plane Pearson of the model, the scaling baseline and the frozen-distance
     rendering (κ = 0) against a measured stack (prepared like the fit's planes)."""
     from diffcam.calibrate.stack_fit import prepare_planes
-    from diffcam.evaluate.registration import image_pearson, scaling_baseline
+    from diffcam.evaluate.metrics import pearson
+    from diffcam.evaluate.registration import scaling_baseline
 
     if tuple(stack.shape[1:]) != tuple(fit.model.frame):
         raise DiffcamError(f"the stack's frames {tuple(stack.shape[1:])} differ from the "
@@ -189,12 +190,10 @@ def compare_stack(stack, fit) -> dict:
     frozen = fit.predict(n, kappa=0.0)
     base = scaling_baseline({t: measured[t] for t in fit.planes}, n,
                             registration=fit.registration)
-    rows = []
-    for t in range(n):
-        rows.append({"plane": t, "given": t in fit.planes,
-                     "model": image_pearson(model[t], measured[t]),
-                     "baseline": image_pearson(base[t], measured[t]),
-                     "frozen": image_pearson(frozen[t], measured[t])})
+    scores = {k: np.asarray(pearson(v, measured))
+              for k, v in (("model", model), ("baseline", base), ("frozen", frozen))}
+    rows = [{"plane": t, "given": t in fit.planes,
+             **{k: float(v[t]) for k, v in scores.items()}} for t in range(n)]
     held = [r for r in rows if not r["given"]]
     summary = {k: float(np.mean([r[k] for r in held])) if held else float("nan")
                for k in ("model", "baseline", "frozen")}
@@ -204,6 +203,7 @@ def compare_stack(stack, fit) -> dict:
 
 
 def _cmd_compare_stack(args) -> int:
+    from diffcam.apps.cli import save_figure
     from diffcam.calibrate.stack_fit import load_stack_fit
     from diffcam.io import atomic_output, check_output_path
 
@@ -248,10 +248,7 @@ def _cmd_compare_stack(args) -> int:
         ax.set_ylabel("Pearson with the measured plane")
         ax.set_title(f"fitted to planes {result['planes']} (grey lines)")
         ax.legend(fontsize=8)
-        fig.tight_layout()
-        with atomic_output(args.out) as tmp:
-            fig.savefig(tmp, dpi=110)
-        plt.close(fig)
+        save_figure(fig, args.out)
         print(f"diffcam compare-stack: → {args.out}")
     return 0
 

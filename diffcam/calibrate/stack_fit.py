@@ -59,7 +59,10 @@ from jaxtyping import Float
 
 from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError
-from diffcam.evaluate.registration import (Registration, image_pearson, magnify_about,
+from diffcam.core.backend import fft2, ifft2, irfft2, rfft2, transfer_step
+from diffcam.evaluate.metrics import pearson
+from diffcam.optics.propagation import fresnel_tf_factors
+from diffcam.evaluate.registration import (Registration, magnify_about,
                                            register_magnification,
                                            relative_magnification_at)
 
@@ -134,16 +137,14 @@ def _gauss_blur(img, sigma, margin: int = 8):
     fy = np.fft.fftfreq(p.shape[0])[:, None]
     fx = np.fft.rfftfreq(p.shape[1])[None, :]
     f2 = jnp.asarray((fy ** 2 + fx ** 2).astype(np.float32))
-    out = jnp.fft.irfft2(jnp.fft.rfft2(p) * jnp.exp(-2 * np.pi ** 2 * sigma ** 2 * f2),
-                         s=p.shape)
+    out = irfft2(rfft2(p) * jnp.exp(-2 * np.pi ** 2 * sigma ** 2 * f2), s=p.shape)
     return out[margin:-margin, margin:-margin]
 
 
-def _masked_pearson(p, y, m):
-    n = m.sum()
-    dp = (p - (m * p).sum() / n) * m
-    dy = (y - (m * y).sum() / n) * m
-    return (dp * dy).sum() / jnp.sqrt((dp * dp).sum() * (dy * dy).sum() + 1e-30)
+def _fresnel(field, zeta):
+    """The Fresnel transfer function over ζ = λz/dx² (fine samples²) on the field grid."""
+    hy, hx = fresnel_tf_factors(field, 1.0, 1.0, zeta, 1.0)
+    return hy * hx
 
 
 # ------------------------------------------------------------------------------- model
@@ -202,7 +203,7 @@ class StackModel(eqx.Module):
 
     def spectrum(self) -> Array:
         """FFT of the field g = A·e^{jθ} (shared by all planes)."""
-        return jnp.fft.fft2(self.amplitude() * jnp.exp(1j * self.theta))
+        return fft2(self.amplitude() * jnp.exp(1j * self.theta))
 
     def _sample(self, u, s):
         """u on the field grid → the magnified fine sensor grid of a plane at s."""
@@ -221,10 +222,7 @@ class StackModel(eqx.Module):
         ``at_reference=True`` (only for t = reference, where s = 1 exactly) takes the
         fine grid by slicing instead of interpolating (the same values, cheaper)."""
         o, (h, w) = self.oversample, self.frame
-        fy = np.fft.fftfreq(self.field[0])[:, None]
-        fx = np.fft.fftfreq(self.field[1])[None, :]
-        f2 = jnp.asarray((fy ** 2 + fx ** 2).astype(np.float32))
-        u = jnp.fft.ifft2(spec * jnp.exp(-1j * jnp.pi * self.distance(t) * f2))
+        u = ifft2(spec * _fresnel(self.field, self.distance(t)))
         if at_reference:
             v = u[self.pad:self.pad + o * h, self.pad:self.pad + o * w]
         else:
@@ -403,9 +401,9 @@ def _gs(amp, mods, knowns, kernels, theta, n_iter):
     planes (only where known), the planes visited in turn."""
     def body(_, th):
         for m, k, h in zip(mods, knowns, kernels):
-            u = jnp.fft.ifft2(jnp.fft.fft2(amp * jnp.exp(1j * th)) * h)
+            u = transfer_step(amp * jnp.exp(1j * th), h)
             u = jnp.where(k, m * jnp.exp(1j * jnp.angle(u)), u)
-            th = jnp.angle(jnp.fft.ifft2(jnp.fft.fft2(u) * jnp.conj(h)))
+            th = jnp.angle(transfer_step(u, jnp.conj(h)))
         return th
     return jax.lax.fori_loop(0, n_iter, body, theta)
 
@@ -434,14 +432,10 @@ def _initial_model(imgs, planes, reg: Registration, zeta, opts: StackFitOptions
     amp = np.sqrt(np.clip(env, 0, None)) * taper
     energy = (amp ** 2).sum()
     mods = [np.sqrt(i * energy / max(i.sum(), 1e-30)) for i, _ in grids]
-    fy = np.fft.fftfreq(field[0])[:, None]
-    fx = np.fft.fftfreq(field[1])[None, :]
-    f2 = fy ** 2 + fx ** 2
-    kernels = [np.exp(-1j * np.pi * zeta * s ** (-kappa0) * f2).astype(np.complex64)
-               for s in ss]
+    kernels = [_fresnel(field, jnp.float32(zeta * s ** (-kappa0))) for s in ss]
     th0 = (0.1 * np.random.default_rng(opts.seed).standard_normal(field)).astype(np.float32)
     theta = _gs(jnp.asarray(amp, jnp.float32), [jnp.asarray(m, jnp.float32) for m in mods],
-                [jnp.asarray(k) for _, k in grids], [jnp.asarray(k) for k in kernels],
+                [jnp.asarray(k) for _, k in grids], kernels,
                 jnp.asarray(th0), int(opts.gs_iterations))
     env_c = jax.image.resize(jnp.asarray(env, jnp.float32), coarse, "linear", antialias=True)
     log_amp = 0.5 * jnp.log(jnp.clip(env_c, 1e-3 * float(env.max()) + 1e-30, None))
@@ -462,8 +456,8 @@ def _scores(model: StackModel, data: _Data):
     preds = [model.render_plane(spec, data.ts[0], at_reference=True)]
     preds += [model.render_plane(spec, data.ts[k]) for k in range(1, data.ts.shape[0])]
     pred = jnp.stack(preds)
-    r_tr = jax.vmap(_masked_pearson)(pred, data.ys, data.train)
-    r_va = jax.vmap(_masked_pearson)(pred, data.ys, data.val)
+    r_tr = pearson(pred, data.ys, mask=data.train)
+    r_va = pearson(pred, data.ys, mask=data.val)
     return r_tr, r_va
 
 
@@ -919,5 +913,5 @@ def _baseline_validation(imgs, planes, reg, val, ref, anchor) -> float:
         s = relative_magnification_at(t, reg.magnification, ref, anchor) / \
             relative_magnification_at(k, reg.magnification, ref, anchor)
         pred = magnify_about(imgs[planes.index(k)], float(s), reg.centre)
-        scores.append(image_pearson(pred, imgs[n], val[n] > 0))
+        scores.append(float(pearson(pred, imgs[n], mask=val[n] > 0)))
     return float(np.mean(scores))

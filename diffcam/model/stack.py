@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import struct
 import warnings
 import zipfile
 from functools import partial
@@ -264,8 +265,10 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             Default: about 2**20 field samples per chunk (one depth from 1024², or
             from fewer samples with several wavelengths or direct-path positions).
         out: stream the stack to this file instead of memory: ``.npy`` (a memory-mapped
-            array; metadata in ``<out>.json``) or ``.tif``/``.tiff`` (ImageJ hyperstack
-            written page by page, metadata inside). ``None`` keeps it in memory. The
+            array; metadata in ``<out>.json``), ``.npz`` (uncompressed, ``stack`` and
+            ``meta`` members, as :func:`save_stack` writes) or ``.tif``/``.tiff``
+            (ImageJ hyperstack written page by page, metadata inside). ``None`` keeps it
+            in memory. The
             path is checked before anything is computed
             (:func:`diffcam.io.check_output_path`), and the file is written atomically
             (:func:`diffcam.io.atomic_output`): an existing file is replaced only once
@@ -318,7 +321,7 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
         if path.endswith(".npz"):
             with atomic_output(path) as temp:
                 _write_npz(temp, pages(), shape, meta)
-            return load_stack(path)[0]
+            return _memmap_npz_stack(path)
         with atomic_output(path) as temp:
             _write_tiff(temp, (page for block in pages() for page in block), shape, meta)
         return tifffile.memmap(path, mode="r")
@@ -378,6 +381,21 @@ def _write_npz(path, blocks, shape, meta: StackMeta):
                 member.write(np.ascontiguousarray(block, np.float32).tobytes())
         with archive.open("meta.npy", "w") as member:
             np.lib.format.write_array(member, np.array(meta.to_json()))
+
+
+def _memmap_npz_stack(path) -> np.memmap:
+    """A read-only memory map of the ``stack`` member :func:`_write_npz` stored
+    uncompressed: the array starts after the zip entry's local header and its .npy
+    header (format 2.0), so nothing is read into memory."""
+    with zipfile.ZipFile(path) as archive:
+        start = archive.getinfo("stack.npy").header_offset
+    with open(path, "rb") as f:
+        f.seek(start + 26)  # the local file header: name and extra-field lengths at 26
+        name_len, extra_len = struct.unpack("<HH", f.read(4))
+        f.seek(start + 30 + name_len + extra_len)
+        np.lib.format.read_magic(f)
+        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        return np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape)
 
 
 def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:

@@ -50,6 +50,7 @@ from diffcam.core.backend import fft2, fft_size, ifft2, transfer_step, vector
 
 __all__ = [
     "fresnel_tf",
+    "fresnel_tf_factors",
     "fresnel_ir",
     "angular_spectrum",
     "fourier_lens",
@@ -151,9 +152,11 @@ def spherical_chirp(n: int, dx, wavelength, z, centre=0.0):
     return vector(chirp, n)
 
 
-def _fresnel_tf_kernel(shape, dy, dx, wavelength, z):
-    """exp(−jπλz(fy² + fx²)) as its two 1-D factors, FFT order, ``(ny, 1)`` and
-    ``(1, nx)`` (each computed on its own: :func:`diffcam.core.backend.vector`)."""
+def fresnel_tf_factors(shape, dy, dx, wavelength, z):
+    """The Fresnel transfer function exp(−jπλz(fy² + fx²)), piston left out, as its two
+    1-D factors in FFT order, ``(ny, 1)`` and ``(1, nx)`` (each computed on its own:
+    :func:`diffcam.core.backend.vector`). In sample units (``dy = dx = 1``) ``λz`` is
+    the Fresnel number ζ = λz/dx², the one distance a sampled field can identify."""
     def factor(n, d):
         return vector(lambda i: jnp.exp(-1j * jnp.pi * wavelength * z
                                         * fft_freq_at(i, n, d) ** 2), n)
@@ -216,7 +219,7 @@ def _kernel(shape, dy, dx, wavelength, z, p, method, band_limit):
     two 1-D factors, which fuses into the multiply that consumes it."""
     if method == "angular_spectrum":
         return p * _angular_spectrum_kernel(shape, dy, dx, wavelength, z, band_limit)
-    kernel = _fresnel_tf_kernel if method == "fresnel_tf" else _fresnel_ir_kernel
+    kernel = fresnel_tf_factors if method == "fresnel_tf" else _fresnel_ir_kernel
     hy, hx = kernel(shape, dy, dx, wavelength, z)
     return (p * hy) * hx
 
