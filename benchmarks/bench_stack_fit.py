@@ -9,11 +9,15 @@ random crop keeping ``--crop`` of the area, the same for every plane), so nothin
 rely on the frame centre or orientation. Per case:
 
 - ``model``: :func:`diffcam.calibrate.fit_stack` with default options (κ fitted), its
-  held-out planes predicted with :meth:`StackFit.predict`;
+  held-out planes predicted with :meth:`StackFit.predict` (rendered model plus the
+  carried residuals of the two measured planes);
 - ``baseline``: :func:`diffcam.evaluate.scaling_baseline` from the same two planes and
-  the fit's registration;
+  the fit's registration — what a user would do without the model;
 - ``frozen``: the frozen-distance ablation (a second fit with ``frozen=True``: ζ the
-  same at every plane).
+  same at every plane; predicted the same way);
+- ``rendered``: the model's rendering alone (``residual=False``: no measured detail);
+- ``blend``: the baseline with the two measured planes mixed by the weights the model
+  uses for its residuals (``scaling_baseline(blend=True)``: no model at all).
 
 Scores are Pearson over the full (transformed) frame against the measured plane,
 prepared by :func:`diffcam.calibrate.prepare_planes` (border-median dark level, unit
@@ -21,7 +25,8 @@ mean), mean and worst over the 42 held-out planes. Fit seconds include registrat
 the GS start, compilation and all steps (default time budget 60 s); predict seconds
 include compilation. The machine is shared: timings are noisy, and a fit cut by its time
 budget says so in ``stop_reason``. Results go to ``benchmarks/results/stack_fit.json``
-(with per-plane scores) and a Markdown table is printed. ``--quick`` runs one pair.
+(with per-plane scores) and a Markdown table is printed, its last row the means (fit
+and predict seconds: the maximum; worst_r: the minimum). ``--quick`` runs one pair.
 """
 
 from __future__ import annotations
@@ -88,29 +93,35 @@ def run_case(raw: np.ndarray, i: int, j: int, label: str) -> dict:
         frozen_fit = fit_stack(raw, [i, j], progress=False, frozen=True,
                                registration=fit.registration)
         frozen = frozen_fit.predict(held)
-    base = scaling_baseline({i: measured[i], j: measured[j]}, held,
-                            registration=fit.registration)
-    r_model, r_base, r_frozen = (np.asarray(pearson(x, measured[held]))
-                                 for x in (pred, base, frozen))
+        rendered = fit.predict(held, residual=False)
+    given = {i: measured[i], j: measured[j]}
+    base = scaling_baseline(given, held, registration=fit.registration)
+    blend = scaling_baseline(given, held, registration=fit.registration, blend=True)
+    r_model, r_base, r_frozen, r_rendered, r_blend = (
+        np.asarray(pearson(x, measured[held])) for x in (pred, base, frozen, rendered, blend))
     worst = int(np.argmin(r_model))
     return {
         "pair": f"({i}, {j})", "transform": label, "shape": list(raw.shape[1:]),
         "model_mean": float(r_model.mean()), "worst_plane": held[worst],
         "worst_r": float(r_model[worst]), "baseline_mean": float(r_base.mean()),
-        "frozen_mean": float(r_frozen.mean()),
+        "frozen_mean": float(r_frozen.mean()), "rendered_mean": float(r_rendered.mean()),
+        "blend_mean": float(r_blend.mean()),
         "above_baseline": f"{int((r_model > r_base).sum())}/{len(held)}",
+        "all_above": bool((r_model > r_base).all()),
         "fit_s": fit_s, "predict_s": predict_s,
         "steps": f"{fit.best_step}/{fit.steps}", "stop_reason": fit.stop_reason,
         "frozen_stop_reason": frozen_fit.stop_reason,
         "validation": fit.validation_score, "baseline_validation": fit.baseline_validation,
         "summary": fit.summary(), "held": held, "per_plane_model": r_model.tolist(),
         "per_plane_baseline": r_base.tolist(), "per_plane_frozen": r_frozen.tolist(),
+        "per_plane_rendered": r_rendered.tolist(), "per_plane_blend": r_blend.tolist(),
         "load": os.getloadavg()[0],
     }
 
 
 COLUMNS = ["pair", "transform", "model_mean", "worst_plane", "worst_r", "baseline_mean",
-           "frozen_mean", "above_baseline", "fit_s", "predict_s", "steps", "load"]
+           "frozen_mean", "rendered_mean", "blend_mean", "above_baseline", "fit_s",
+           "predict_s", "steps", "load"]
 
 
 def main(argv=None) -> None:
@@ -131,6 +142,7 @@ def main(argv=None) -> None:
             rows.append(row)
             print(f"({i}, {j}) {label}: model {row['model_mean']:.4f}, baseline "
                   f"{row['baseline_mean']:.4f}, frozen {row['frozen_mean']:.4f}, "
+                  f"rendered {row['rendered_mean']:.4f}, blend {row['blend_mean']:.4f}, "
                   f"{row['above_baseline']} above, fit {row['fit_s']:.1f} s "
                   f"({row['stop_reason']})", flush=True)
             write_json("stack_fit", rows, {"seed": args.seed, "pairs": len(cases),
@@ -140,7 +152,13 @@ def main(argv=None) -> None:
         table.append({"pair": "**all**",
                       "model_mean": float(np.mean([r["model_mean"] for r in rows])),
                       "baseline_mean": float(np.mean([r["baseline_mean"] for r in rows])),
-                      "frozen_mean": float(np.mean([r["frozen_mean"] for r in rows]))})
+                      **{k: float(np.mean([r[k] for r in rows]))
+                         for k in ("frozen_mean", "rendered_mean", "blend_mean")},
+                      "worst_r": float(min(r["worst_r"] for r in rows)),
+                      "above_baseline": f"{sum(r['all_above'] for r in rows)}/{len(rows)} "
+                                        f"cases all",
+                      "fit_s": float(max(r["fit_s"] for r in rows)),
+                      "predict_s": float(max(r["predict_s"] for r in rows))})
     def fmt(key, v):
         if not isinstance(v, float):
             return v

@@ -14,12 +14,13 @@ from __future__ import annotations
 import argparse
 import importlib
 
-WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit"]
+WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit", "cli_memory"]
 QUICK = {"propagate": ["--sizes", "512", "1024"],
          "psf": ["--sizes", "512", "--depths", "8", "--no-memory"],
          "retrieval": ["--sizes", "512", "--repeats", "2"],
          "deconvolve": ["--quick"],
-         "stack_fit": ["--quick"]}
+         "stack_fit": ["--quick"],
+         "cli_memory": ["--quick"]}
 
 
 def main(argv=None):

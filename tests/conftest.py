@@ -1,4 +1,4 @@
-"""Shared test fixtures: float64 mode, finite-difference gradient checks."""
+"""Shared test fixtures: float64 mode, NaN checking, finite-difference gradient checks."""
 
 import jax
 import numpy as np
@@ -10,6 +10,19 @@ def x64():
     """Run a test with JAX float64 enabled (closed-form comparisons, gradient checks)."""
     with jax.enable_x64(True):
         yield
+
+
+@pytest.fixture
+def debug_nans():
+    """Run a test with ``jax_debug_nans`` on (any NaN a JAX op produces raises
+    FloatingPointError), restored after: the gradient tests use it through
+    ``@pytest.mark.usefixtures("debug_nans")``, so a NaN in a derivative fails loudly."""
+    before = jax.config.jax_debug_nans
+    jax.config.update("jax_debug_nans", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_debug_nans", before)
 
 
 def fd_gradient(f, x, rel_step=1e-6):

@@ -42,6 +42,7 @@ def test_transfer_step_is_the_plain_step(shape):
     np.testing.assert_allclose(np.asarray(field), np.asarray(transfer_step(u, h)), atol=1e-6)
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_transfer_step_vmaps_and_differentiates():
     """Under vmap and grad it is the plain step too (gradient with respect to H)."""
     rng = np.random.default_rng(1)
@@ -53,6 +54,7 @@ def test_transfer_step_vmaps_and_differentiates():
     np.testing.assert_allclose(jax.grad(loss)(h, True), jax.grad(loss)(h, False), rtol=1e-4)
 
 
+@pytest.mark.usefixtures("debug_nans")
 @pytest.mark.parametrize("n", [1, 511, 512, 513, 2000])
 def test_vector_equals_the_elementwise_function(n):
     """Any length, whole blocks or not: a complex chirp exp(j·z·k²), k = i − n//2, with a
@@ -68,6 +70,7 @@ def test_vector_equals_the_elementwise_function(n):
     np.testing.assert_allclose(float(grad), np.sum(k2 * np.cos(z * k2)), rtol=1e-5)
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_materialise_and_staged_are_the_identity_and_the_composition():
     x = jnp.arange(12.0).reshape(3, 4)
     token = jnp.float32(5e-6)

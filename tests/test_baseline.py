@@ -56,6 +56,7 @@ def test_relative_magnification_and_identity():
     np.testing.assert_allclose(out.sum(axis=(-2, -1)), ref.sum(), rtol=1e-5)
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_scale_psf_jit_grad_vmap(x64):
     """magnify_psf is differentiable in z1 (vs central difference of relative step 1e-6,
     rtol 1e-4) and vmaps over depths."""
@@ -86,6 +87,7 @@ def test_registration_matches_skimage(shift):
     np.testing.assert_allclose(ours, -np.asarray(shift), atol=0.05 + 1e-6)
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_psf_fidelity_per_depth_and_transforms():
     """psf_fidelity registers, min–max normalises and scores each leading index: a
     shifted, rescaled copy scores Pearson and SSIM > 0.999; an unrelated PSF scores

@@ -271,6 +271,7 @@ def test_jit_vmap_and_no_recompile_for_new_numbers():
                                psf(phase, cam, 30e-3), rtol=1e-4, atol=1e-7)
 
 
+@pytest.mark.usefixtures("debug_nans")
 @pytest.mark.parametrize("method", ["scaling", "direct"])
 def test_gradients_match_finite_differences(method, x64):
     """d/dz1, d/dz2 and a directional derivative in the phase of Σ w·PSF agree with
@@ -297,6 +298,7 @@ def test_gradients_match_finite_differences(method, x64):
     assert np.isfinite(np.asarray(g_ph)).all()
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_gradient_in_aperture_radius_with_soft_edge():
     """edge='soft' makes the PSF differentiable in the aperture radius (finite, nonzero)."""
     n = 64

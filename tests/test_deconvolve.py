@@ -224,6 +224,7 @@ def test_batched_psfs_and_vmap_agree():
     assert _rel(mapped, batched.image) < 1e-5
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_jit_wrapping_and_gradient(x64):
     """Works under a caller's jit, and grad through the scan matches finite differences."""
     image, psf = _problem(shape=(10, 12), psf_shape=(3, 3), seed=9)

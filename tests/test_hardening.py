@@ -714,17 +714,6 @@ def test_wiener_does_not_depend_on_the_psf_scale(x64):
 
 # ------------------------------------------------------------------ soft aperture
 
-@pytest.fixture
-def debug_nans():
-    """jax_debug_nans on for one test, restored after (it is process-wide)."""
-    before = jax.config.jax_debug_nans
-    jax.config.update("jax_debug_nans", True)
-    try:
-        yield
-    finally:
-        jax.config.update("jax_debug_nans", before)
-
-
 @pytest.mark.parametrize("shape", [(9, 9), (8, 12)])
 def test_soft_aperture_gradients_are_finite_at_the_centre_sample(debug_nans, x64, shape):
     """The centre sample has r = 0, where d sqrt(r²) is infinite: the gradients with

@@ -48,6 +48,7 @@ def test_mse_psnr_and_alignment(x64):
     assert np.allclose(align_to(distorted, A), A)
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_metric_gradients(x64):
     """Pearson and SSIM are differentiable (check_grads, reverse and forward mode)."""
     a, b = jnp.asarray(A[:16, :16]), jnp.asarray(B[:16, :16])

@@ -32,6 +32,7 @@ def test_rectangular_aperture_counts_samples():
     assert float(a.sum()) == 21 * 41
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_soft_aperture_radius_gradient(x64):
     """The soft edge makes the transmitted area differentiable in the radius: d(area)/dR
     averaged over a pixel's worth of radii is 2πR/dx² (the circumference) within 1 %,
@@ -94,6 +95,7 @@ def test_optics_bad_input():
         circular_aperture((64, 64), 1e-6, 10e-6, edge="fuzzy")
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_element_gradients_match_finite_differences(x64):
     """Point-source field w.r.t. z1 and x1, thin lens w.r.t. f, phase screen w.r.t. θ:
     reverse-mode derivatives equal relative-step central differences (float64)."""

@@ -300,6 +300,7 @@ def test_batched_vmap_and_jit_agree():
 
 # ---------------------------------------------------------------------- gradients
 
+@pytest.mark.usefixtures("debug_nans")
 @pytest.mark.parametrize("method", ["fresnel_tf", "fresnel_ir", "angular_spectrum"])
 def test_gradients_match_finite_differences(x64, method):
     """Reverse and forward derivatives with respect to the field (check_grads) and to z,
@@ -321,6 +322,7 @@ def test_gradients_match_finite_differences(x64, method):
     assert_grad_matches_fd(lambda p_: loss(pitch=p_), dx)
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_fourier_lens_gradients(x64):
     """Fourier lens derivatives w.r.t. the field (check_grads) and focal length (relative
     central difference), float64."""
@@ -332,6 +334,7 @@ def test_fourier_lens_gradients(x64):
     assert_grad_matches_fd(loss, 0.05, rel_step=1e-9, rtol=1e-4)  # e^{jkf} turns fast
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_gradient_is_finite_through_evanescent_cut(x64):
     """The angular spectrum's square root is guarded: gradients w.r.t. z and λ stay finite
     when the grid holds evanescent frequencies (dx < λ/2)."""

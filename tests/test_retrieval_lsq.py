@@ -100,6 +100,7 @@ def test_coarse_phase_grid_and_regularisers(sim):
     assert r.phase.shape == sim.phase.shape
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_residuals_have_finite_gradients(sim, x64):
     """Gradient of each loss against finite differences, including where the prediction
     or the measurement is zero (the safe sqrt / log)."""
@@ -111,6 +112,7 @@ def test_residuals_have_finite_gradients(sim, x64):
         assert np.all(np.isfinite(np.asarray(g)))
 
 
+@pytest.mark.usefixtures("debug_nans")
 @pytest.mark.parametrize("fit_background", [True, False])
 def test_weighted_loss_needs_no_derivative_through_scale_and_background(x64, fit_background):
     """Variable projection: (s, b) minimise the weighted loss Σ(s·p + b − y)²/(y + 1), so
@@ -131,6 +133,7 @@ def test_weighted_loss_needs_no_derivative_through_scale_and_background(x64, fit
     np.testing.assert_allclose(jax.grad(projected)(p, True), exact, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_model_is_jittable_and_vmappable(sim):
     model = near_far_model(sim.aperture, sim.geometry)
     batch = jnp.stack([sim.phase, 0.5 * sim.phase])

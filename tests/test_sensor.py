@@ -48,6 +48,7 @@ def test_resample_identity_and_magnified_gaussian(kind):
     np.testing.assert_allclose(big.sum(), g.sum(), rtol=1e-4)
 
 
+@pytest.mark.usefixtures("debug_nans")
 def test_resample_jit_grad_vmap(x64):
     """resample is differentiable in the magnification (vs a central difference of step
     1e-5 in float64, rtol 1e-4) and maps over a batch of magnifications."""

@@ -92,6 +92,63 @@ def test_save_load_round_trip(synthetic_fit, tmp_path):
     np.testing.assert_array_equal(loaded.validation, synthetic_fit.validation)
 
 
+def test_prediction_reproduces_given_planes_and_carries_residuals(synthetic_stack,
+                                                                 synthetic_fit):
+    """At a given plane the prediction is that measured plane (up to gain and offset);
+    halfway between the given planes it is the rendered model plus both residuals
+    magnified by the model's law, each with weight ½ — computed here independently with
+    scipy (the module's law, not its code)."""
+    fit = synthetic_fit
+    measured = prepare_planes(synthetic_stack)
+    for t in GIVEN:
+        assert float(pearson(fit.predict([t])[0], measured[t])) > 0.99999
+    m = fit.model
+    s = lambda t: float(np.asarray(m.magnification(t)))  # noqa: E731
+    t_mid = 5.5
+    planes = GIVEN + [t_mid]
+    raw = np.asarray(m.render(np.asarray(planes)), np.float64)
+    expect = 0.0
+    for n, k in enumerate(GIVEN):
+        a, b = np.polyfit(raw[n].ravel(), measured[k].ravel(), 1)
+        res = measured[k] - a * raw[n] - b
+        yy, xx = np.mgrid[0:96, 0:96].astype(float)
+        c = np.asarray(m.centre, float)
+        q = s(t_mid) / s(k)
+        moved = ndi.map_coordinates(res, [c[0] + (yy - c[0]) / q, c[1] + (xx - c[1]) / q],
+                                    order=3, mode="constant")
+        expect = expect + 0.5 * (a * raw[2] + moved)
+    # weights at 5.5: (9 − 5.5)/7 = (5.5 − 2)/7 = ½
+    got = fit._with_residuals(m, [t_mid])[0]
+    np.testing.assert_allclose(got, expect, rtol=0, atol=2e-3 * np.abs(expect).max())
+    # rendering alone differs from the carried prediction (the residual is not empty)
+    alone = fit.predict([6], residual=False)[0]
+    assert float(pearson(alone, fit.predict([6])[0])) < 0.9999
+
+
+def test_blend_baseline_mixes_bracketing_planes():
+    """``blend=True``: at a given plane that plane; between two given planes the weighted
+    mean of both magnified to t; outside the given range the nearest plane alone."""
+    from diffcam.evaluate.registration import bracket_weights
+
+    assert bracket_weights(3, [2, 9]) == pytest.approx({2: 6 / 7, 9: 1 / 7})
+    assert bracket_weights(2, [9, 2]) == {2: 1.0}
+    assert bracket_weights(0, [2, 9]) == {2: 1.0} and bracket_weights(20, [2, 9]) == {9: 1.0}
+    assert bracket_weights(6, [2, 5, 9]) == pytest.approx({5: 0.75, 9: 0.25})
+    a, b = _blobs(seed=1), _blobs(seed=2)
+    reg = Registration(1.10, (45.0, 60.0), 1.0)
+    blend = scaling_baseline({0: a, 10: b}, [0, 4, 10, 12], registration=reg, blend=True)
+    near = scaling_baseline({0: a, 10: b}, [4, 12], registration=reg)
+    np.testing.assert_array_equal(blend[0], a)
+    np.testing.assert_array_equal(blend[2], b)
+    np.testing.assert_allclose(blend[3], near[1])
+    only_b = scaling_baseline({0: np.zeros_like(a), 10: b}, [4], registration=reg,
+                              blend=True)[0]
+    only_a = scaling_baseline({0: a, 10: np.zeros_like(b)}, [4], registration=reg,
+                              blend=True)[0]
+    np.testing.assert_allclose(blend[1], only_a + only_b, atol=1e-12)
+    np.testing.assert_allclose(only_a, 0.6 * near[0], atol=1e-12)
+
+
 def test_load_refuses_bad_files(tmp_path):
     garbage = tmp_path / "garbage.npz"
     garbage.write_bytes(b"not a zip archive at all")

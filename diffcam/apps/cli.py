@@ -59,10 +59,12 @@ def save_image(path, image) -> None:
 
 
 def save_figure(fig, path) -> None:
-    """Lay out ``fig``, write it atomically to ``path`` (format from the suffix), close it."""
+    """Lay out ``fig`` (unless it has a layout engine, e.g. ``layout="constrained"``),
+    write it atomically to ``path`` (format from the suffix), close it."""
     import matplotlib.pyplot as plt
 
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:
+        fig.tight_layout()
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)

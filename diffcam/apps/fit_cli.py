@@ -161,7 +161,7 @@ def _cmd_predict(args) -> int:
             raise DiffcamError(f"{args.model} does not record the stack's plane count; "
                                f"give --planes.")
         planes = list(range(fit.n_planes))
-    pred = fit.predict(planes, kappa=args.kappa)
+    pred = fit.predict(planes, kappa=args.kappa, residual=not args.rendered_only)
     save_image(args.out, pred)
     print(f"diffcam predict: {len(planes)} planes of {pred.shape[1]}×{pred.shape[2]} "
           f"({time.perf_counter() - t0:.1f} s) → {args.out}")
@@ -169,8 +169,9 @@ def _cmd_predict(args) -> int:
 
 
 def compare_stack(stack, fit) -> dict:
-    """Per-plane Pearson of the model, the scaling baseline and the frozen-distance
-    rendering (κ = 0) against a measured stack (prepared like the fit's planes)."""
+    """Per-plane Pearson of the model's prediction, its rendering alone (no carried
+    residual), the scaling baseline and the frozen-distance prediction (κ = 0) against a
+    measured stack (prepared like the fit's planes)."""
     from diffcam.calibrate.stack_fit import prepare_planes
     from diffcam.evaluate.metrics import pearson
     from diffcam.evaluate.registration import scaling_baseline
@@ -188,15 +189,17 @@ def compare_stack(stack, fit) -> dict:
     n = stack.shape[0]
     model = fit.predict(n)
     frozen = fit.predict(n, kappa=0.0)
+    rendered = fit.predict(n, residual=False)
     base = scaling_baseline({t: measured[t] for t in fit.planes}, n,
                             registration=fit.registration)
     scores = {k: np.asarray(pearson(v, measured))
-              for k, v in (("model", model), ("baseline", base), ("frozen", frozen))}
+              for k, v in (("model", model), ("baseline", base), ("frozen", frozen),
+                           ("rendered", rendered))}
     rows = [{"plane": t, "given": t in fit.planes,
              **{k: float(v[t]) for k, v in scores.items()}} for t in range(n)]
     held = [r for r in rows if not r["given"]]
     summary = {k: float(np.mean([r[k] for r in held])) if held else float("nan")
-               for k in ("model", "baseline", "frozen")}
+               for k in ("model", "baseline", "frozen", "rendered")}
     summary["above_baseline"] = int(sum(r["model"] > r["baseline"] for r in held))
     summary["held_out"] = len(held)
     return {"planes": list(fit.planes), "per_plane": rows, "mean_held_out": summary}
@@ -214,14 +217,15 @@ def _cmd_compare_stack(args) -> int:
     fit = load_stack_fit(args.model)
     stack, _ = read_stack(args.stack, args.key)
     result = compare_stack(stack, fit)
-    lines = ["| plane | model | scaling baseline | frozen distance (κ=0) |", "|---|---|---|---|"]
+    lines = ["| plane | model | scaling baseline | frozen distance (κ=0) | rendering alone |",
+             "|---|---|---|---|---|"]
     for r in result["per_plane"]:
         mark = " (given)" if r["given"] else ""
         lines.append(f"| {r['plane']}{mark} | {r['model']:.4f} | {r['baseline']:.4f} | "
-                     f"{r['frozen']:.4f} |")
+                     f"{r['frozen']:.4f} | {r['rendered']:.4f} |")
     s = result["mean_held_out"]
     lines.append(f"| **held-out mean** | **{s['model']:.4f}** | {s['baseline']:.4f} | "
-                 f"{s['frozen']:.4f} |")
+                 f"{s['frozen']:.4f} | {s['rendered']:.4f} |")
     print("\n".join(lines))
     print(f"diffcam compare-stack: model above the baseline at {s['above_baseline']}/"
           f"{s['held_out']} held-out planes")
@@ -242,6 +246,8 @@ def _cmd_compare_stack(args) -> int:
                 label=f"scaling baseline ({s['baseline']:.4f})")
         ax.plot(t, [r["frozen"] for r in result["per_plane"]], ":", lw=1,
                 label=f"frozen distance κ=0 ({s['frozen']:.4f})")
+        ax.plot(t, [r["rendered"] for r in result["per_plane"]], "-.", lw=1,
+                label=f"rendering alone ({s['rendered']:.4f})")
         for g in result["planes"]:
             ax.axvline(g, color="0.7", lw=0.8)
         ax.set_xlabel("plane")
@@ -268,7 +274,7 @@ def _add_fit(sub) -> None:
                      help="given planes, e.g. 5,25 (the first is the reference)")
     fit.add_argument("--key", help="array name inside an .npz or .mat stack")
     fit.add_argument("--max-steps", type=int, help="Adam steps at most (400)")
-    fit.add_argument("--time-budget", type=float, help="seconds for the whole fit (60)")
+    fit.add_argument("--time-budget", type=float, help="seconds for the whole fit (55)")
     fit.add_argument("--patience", type=int, help="steps without validation gain (40)")
     fit.add_argument("--seed", type=int, help="seed of the validation split (0)")
     fit.add_argument("--frozen", action="store_true",
@@ -290,6 +296,9 @@ def _add_fit(sub) -> None:
                       help="planes, e.g. 0:43 (ends included) or 0,5,9 (default: all)")
     pred.add_argument("--kappa", type=float, help="render with this depth-law exponent "
                                                   "(0: frozen distance)")
+    pred.add_argument("--rendered-only", action="store_true",
+                      help="the model's rendering alone, without the measured planes' "
+                           "carried residuals")
     pred.add_argument("-o", "--out", required=True, help="output .tif (multi-page) or .npy")
     pred.set_defaults(func=_cmd_predict)
 

@@ -33,8 +33,8 @@ from jaxtyping import Float
 from diffcam.core.errors import DiffcamError, check_field, check_positive
 from diffcam.io import subtract_background
 from diffcam.model.sensor import bin_pixels, quantise, resample, saturate, shot_noise
-from diffcam.calibrate.near_far import calibration_intensities
-from diffcam.calibrate.near_far import CalibrationGeometry
+from diffcam.calibrate.near_far import (CalibrationGeometry, calibration_intensities,
+                                        check_far_speckle)
 
 __all__ = ["normalise_min_max", "merge_exposures", "centroid", "centre_on_axis", "resample_capture",
            "resample_far_field", "prepare_captures", "PreparedCaptures",
@@ -82,7 +82,10 @@ def resample_capture(image: Float[Array, "my mx"], sensor_pitch: float, pitch, s
     the retrieval models point samples, and averaging over the new, coarser pixels would
     blur speckle that the sensor resolved (at the Fourier-lens pitch of a 2× padded grid
     a speckle spans about two samples, and area-averaging sensor pixels onto it drops the
-    RAAR figure from 1.0 to 0.84 on the paper's Fig. 3 problem).
+    RAAR figure from 1.0 to 0.84 on the paper's Fig. 3 problem). Outside its frame the
+    capture is zero: the frame is zero-extended before the (FFT, periodic) spline
+    prefilter, as :func:`diffcam.evaluate.magnify_psf` does, so light at one edge never
+    leaks into the opposite one and the same pitch and shape return the capture.
     """
     check_field(image, "capture")
     check_positive("sensor_pitch", sensor_pitch, "m")
@@ -90,8 +93,8 @@ def resample_capture(image: Float[Array, "my mx"], sensor_pitch: float, pitch, s
     if abs(py - px) > 1e-9 * px:
         raise DiffcamError("resample_capture needs square output pixels; resample each axis "
                            "separately for a non-square grid.")
-    out = resample(jnp.asarray(image, jnp.float32), sensor_pitch, px, tuple(shape[-2:]),
-                   kind="cubic")
+    out = resample(jnp.asarray(image, jnp.float32), sensor_pitch, px,
+                   tuple(shape[-2:]), kind="cubic")
     # power per pixel → irradiance; the spline's ringing below zero is clipped
     return jnp.maximum(out * (sensor_pitch / px) ** 2, 0.0)
 
@@ -193,6 +196,11 @@ def prepare_captures(near_raw, far_raw, geometry: CalibrationGeometry, shape, *,
         saturation: raw count at or above which a pixel is saturated (e.g. 4095 for a
             12-bit sensor); ``None`` skips the check.
         centre: move the far capture's centroid onto the optical axis first.
+
+    Warns (:class:`~diffcam.core.errors.GeometryWarning`) when the far capture's speckle
+    is ≳ 2× finer or coarser than the near capture predicts at the Fourier-lens pitch
+    (:func:`~diffcam.calibrate.near_far.check_far_speckle`): f, λ or ``sensor_pitch``
+    is wrong, and the retrieval would return a confident wrong phase.
     """
     near, near_ok = _clean(near_raw, "near", background[0], exposure[0], saturation)
     far, far_ok = _clean(far_raw, "far", background[1], exposure[1], saturation)
@@ -201,6 +209,7 @@ def prepare_captures(near_raw, far_raw, geometry: CalibrationGeometry, shape, *,
         far_ok = np.roll(far_ok, shift, axis=(-2, -1))
     near_g = resample_capture(near, sensor_pitch, geometry.dx, shape)
     far_g = resample_far_field(far, sensor_pitch, geometry, shape)
+    check_far_speckle(near_g, far_g, geometry, sensor_pitch=sensor_pitch, stacklevel=3)
     near_m = resample_capture(near_ok, sensor_pitch, geometry.dx, shape)
     far_m = resample_far_field(far_ok, sensor_pitch, geometry, shape)
     # interpolating the masks leaves values between 0 and 1 beside saturated pixels

@@ -18,20 +18,24 @@ space by ``near_distance`` with the angular spectrum and (far) the Fourier lens 
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_positive, fmt_length
+from diffcam.core.errors import (DiffcamError, GeometryWarning, ShapeError, check_field,
+                                 check_positive, fmt_length)
 from diffcam.core.backend import transfer_step
 from diffcam.core.grid import fft2c, pitch_yx
 from diffcam.optics.elements import apply_phase
 from diffcam.optics.propagation import transfer_function
 
 __all__ = ["CalibrationGeometry", "NearFarModel", "calibration_intensities",
-           "glass_equivalent_distance", "check_captures", "check_far_pitch"]
+           "glass_equivalent_distance", "check_captures", "check_far_pitch",
+           "far_speckle_ratio", "check_far_speckle"]
 
 
 def glass_equivalent_distance(thickness: float, refractive_index: float = 1.5) -> float:
@@ -135,6 +139,94 @@ def check_far_pitch(far_pitch, geometry: CalibrationGeometry, shape, rtol: float
                 f"pitch {fmt_length(geometry.dx)} puts it at λf/(N·dx) = {fmt_length(need)}; "
                 f"resample the capture with diffcam.calibrate.resample_far_field (or check "
                 f"f, λ, dx and the sensor pitch).")
+
+
+# far_speckle_ratio on simulated captures at the right pitch: 0.80–1.04 (cameraman and
+# random diffusers, weak to strongly scattering, 100 to 10⁴ photons at the peak, near
+# capture at 0 or 0.33 mm, 128²); with the far pitch 2× too large 1.42–1.49, 2× too small
+# 0.38–0.56, 10× too large 1.40–1.58 (the grid caps it), 10× too small 0.09–0.11. Its
+# median at the right pitch:
+SPECKLE_RATIO_TYPICAL = 0.9
+SPECKLE_RATIO_RANGE = (0.5, 1.25)   # outside: GeometryWarning
+_DISC_R90 = 0.745   # 90 % radius of a disc's autocorrelation (lag 0 left out) / diameter
+
+
+def _radius_quantile(power: np.ndarray, q: float) -> float:
+    """Radius (samples) of the centred disc holding the fraction ``q`` of ``power`` (FFT
+    order, lag 0 left out), on whole-sample rings."""
+    ny, nx = power.shape
+    ly, lx = np.meshgrid(np.fft.fftfreq(ny) * ny, np.fft.fftfreq(nx) * nx, indexing="ij")
+    rings = np.rint(np.hypot(ly, lx)).astype(np.intp).ravel()
+    p = np.asarray(power, np.float64).ravel().copy()
+    p[0] = 0.0
+    total = np.cumsum(np.bincount(rings, p))
+    return max(float(np.searchsorted(total, q * total[-1])), 0.5)
+
+
+def _speckle_radii(near, far) -> tuple[float, float]:
+    """Lag radii (samples of dx) holding 90 % of |DFT(far·Hann window)|² and of the near
+    intensity's autocorrelation, lag 0 left out (see :func:`far_speckle_ratio`). A uniform
+    stray-light level is taken off both: the far capture's window-weighted mean, the near
+    capture's median (the grid is mostly outside the aperture)."""
+    near = np.asarray(near, np.float64)
+    far = np.asarray(far, np.float64)
+    window = np.outer(*(np.hanning(n + 1)[:n] for n in far.shape))  # no frame-edge leakage
+    far = (far - np.sum(far * window) / np.sum(window)) * window
+    near = np.maximum(near - np.median(near), 0.0)
+    measured = np.abs(np.fft.fft2(far)) ** 2
+    predicted = np.abs(np.fft.ifft2(np.abs(np.fft.fft2(near)) ** 2))
+    return _radius_quantile(measured, 0.9), _radius_quantile(predicted, 0.9)
+
+
+def far_speckle_ratio(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]) -> float:
+    """How wide the far capture's speckle says the lit diffuser is, over how wide the near
+    capture shows it (dimensionless; ≈ :data:`SPECKLE_RATIO_TYPICAL` at the right pitch).
+
+    The DFT of the far intensity is the autocorrelation of the diffuser field, which
+    vanishes at lags beyond the lit width D of the diffuser: speckle grain λf/D. The near
+    intensity shows D. Compared: the lag radii (samples of dx) holding 90 % of
+    |DFT(far·Hann window)|² and of the near intensity's autocorrelation, lag 0 left out.
+    The ratio scales as (far pitch assumed)/(far pitch of the data); dx cancels.
+    """
+    measured, predicted = _speckle_radii(near, far)
+    return measured / predicted
+
+
+def check_far_speckle(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
+                      geometry: CalibrationGeometry, *, sensor_pitch: float | None = None,
+                      stacklevel: int = 2) -> float:
+    """Warn (:class:`~diffcam.core.errors.GeometryWarning`) if the far capture's speckle is
+    ≳ 2× finer or coarser than the near capture predicts (:func:`far_speckle_ratio`
+    outside :data:`SPECKLE_RATIO_RANGE`): the far pitch λf/(N·dx), hence f, λ or the
+    sensor pitch (m), is wrong. Returns the ratio."""
+    check_captures(near, far)
+    measured, predicted = _speckle_radii(near, far)
+    ratio = measured / predicted
+    if not SPECKLE_RATIO_RANGE[0] <= ratio <= SPECKLE_RATIO_RANGE[1]:
+        warnings.warn(_speckle_message(ratio, predicted, geometry, np.shape(far), sensor_pitch),
+                      GeometryWarning, stacklevel=stacklevel)
+    return ratio
+
+
+def _speckle_message(ratio, predicted, geometry, shape, sensor_pitch) -> str:
+    """The GeometryWarning of :func:`check_far_speckle`: measured and expected grain (m and
+    samples of the far grid) and what to check."""
+    pitch = geometry.far_pitch(shape)[1]
+    factor = ratio / SPECKLE_RATIO_TYPICAL   # ≈ (pitch assumed)/(pitch of the data)
+    lit = predicted / _DISC_R90 * float(geometry.dx)   # D, the lit diffuser width
+    expected = float(geometry.wavelength) * float(geometry.focal_length) / lit
+    # speckle finer than a sample does not show: the grid caps the ratio, hence "at most"
+    big, small, most = ("large", "small", "at most ") if factor > 1 else ("small", "large", "")
+    sensor = "" if sensor_pitch is None else f" = {fmt_length(sensor_pitch)}"
+    return (f"the far capture does not match the geometry: its speckle grain is {most}"
+            f"{fmt_length(expected / factor)} ({expected / factor / pitch:.2g} samples) where "
+            f"λf/D = {fmt_length(expected)} ({expected / pitch:.2g} samples) is expected for "
+            f"the D ≈ {fmt_length(lit)} of diffuser the near capture shows lit. The far pitch "
+            f"λf/(N·dx) = {fmt_length(pitch)} looks {max(factor, 1 / factor):.2g}× "
+            f"{'or more ' if most else ''}too {big}: check the focal length "
+            f"(f = {fmt_length(geometry.focal_length)}), the wavelength "
+            f"(λ = {fmt_length(geometry.wavelength)}) and the sensor pixel pitch{sensor} "
+            f"(f or λ too {big}, or the sensor pitch too {small}).")
 
 
 def check_captures(near, far, *, near_name="near", far_name="far") -> None:

@@ -29,7 +29,8 @@ from diffcam.optics.propagation import effective_distance, magnification
 
 __all__ = ["DefocusedPlane", "psf_plane", "check_planes"]
 
-_EDGE = 2  # samples next to a capture's border left out (the spline wraps there)
+_EDGE = 2  # samples next to a capture's border left out (the spline reads the zeros
+#            beyond the frame there)
 
 
 class DefocusedPlane(NamedTuple):
@@ -59,8 +60,9 @@ def psf_plane(psf: Float[Array, "cy cx"], camera: Camera, z1: float) -> Defocuse
 
     Returns:
         The plane z_eff = z1·z2/(z1 + z2) behind the diffuser on ``camera.shape``: the PSF
-        demagnified by M = (z1 + z2)/z1 (:func:`diffcam.model.sensor.resample`, cubic),
-        masked to the part of the grid the capture covers.
+        demagnified by M = (z1 + z2)/z1 (:func:`diffcam.model.sensor.resample`, cubic,
+        the PSF zero outside its frame, so no light wraps across it), masked to the part of
+        the grid the capture covers.
     """
     check_field(psf, "psf")
     check_positive("z1", z1, "m")

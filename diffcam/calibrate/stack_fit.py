@@ -10,7 +10,9 @@ The model (:class:`StackModel`; all lengths in **pixels** and plane indices, sin
 real stack rarely records its pitch or depths):
 
 * one complex diffuser-side field g = A·e^{jθ} on a grid ``oversample`` (2) times finer
-  than the sensor pixel: θ free per sample, A = exp(cubic upsampling of a coarse
+  than the sensor pixel of a virtual plane between the given ones (magnification
+  m0 = √(s_min·s_max) relative to the reference), so every given plane is rendered
+  through the same resampling: θ free per sample, A = exp(cubic upsampling of a coarse
   log-amplitude grid) times a fixed raised-cosine taper at the grid edge (no energy
   can wrap around the FFT);
 * plane t sees g propagated (Fresnel transfer function) by ζ(t) = ζ_ref·s(t)^(−κ) and
@@ -22,8 +24,20 @@ real stack rarely records its pitch or depths):
 
 Forward, per plane: G = FFT(g) once; u_t = IFFT(G·e^{−jπζ(t)(fx² + fy²)}) (f in cycles
 per fine sample, so ζ is in fine samples²: ζ = λ·z_eff/dx_fine²); u_t sampled at the
-magnified fine sensor grid by separable Keys cubic convolution (zero outside); |·|²;
-blur (FFT, zero-padded); bin.
+fine sensor grid magnified by s(t)/m0 by separable Keys cubic convolution (zero
+outside); |·|²; blur (FFT, zero-padded); bin.
+
+Prediction (:meth:`StackFit.predict`) is the rendered plane plus the part of the
+measured planes the model does not reproduce, carried along by the model's own
+magnification law. For each given plane k, least squares gives raw_k = a_k·render(k) +
+b_k + R_k; plane t is predicted as (Σ_k w_k a_k)·render(t) + Σ_k w_k·T_{k→t}(R_k), T
+the magnification by s(t)/s(k) about the fitted centre (cubic B-splines, zero outside),
+w_k linear in t between the two given planes that bracket t (1 at its own plane), and
+the nearest given plane's weight 1 outside the given range
+(:func:`diffcam.evaluate.registration.bracket_weights`). At a given plane this is the
+measurement; elsewhere the model supplies the change between planes, the residual the
+sub-pixel detail the per-sample phase cannot interpolate at unseen pixels.
+``residual=False`` renders the model alone.
 
 The fit (:func:`fit_stack`): register the reference plane (the first given one) with
 the given plane farthest from it; for each candidate ζ_ref run Gerchberg–Saxton between
@@ -47,7 +61,7 @@ import os
 import time
 import warnings
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import equinox as eqx
 import jax
@@ -62,7 +76,7 @@ from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.core.backend import fft2, ifft2, irfft2, rfft2, transfer_step
 from diffcam.evaluate.metrics import pearson
 from diffcam.optics.propagation import fresnel_tf_factors
-from diffcam.evaluate.registration import (Registration, magnify_about,
+from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
                                            register_magnification,
                                            relative_magnification_at)
 
@@ -70,7 +84,7 @@ __all__ = ["StackModel", "StackFitOptions", "StackFit", "StackFitWarning", "fit_
            "load_stack_fit", "prepare_planes", "FORMAT", "FORMAT_VERSION"]
 
 FORMAT = "diffcam-stack-fit"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _ARRAYS = ("theta", "log_amplitude", "log_zeta", "log_s", "centre", "log_sigma", "kappa")
 
 
@@ -162,10 +176,12 @@ class StackModel(eqx.Module):
     fine samples added before the frame on each axis, ``field`` (ny, nx) the field grid,
     ``stride``, ``reference`` and ``anchor`` plane indices (the magnification law runs
     through them), ``oversample`` fine samples per pixel, ``frozen`` (κ ≡ 0: the
-    frozen-distance ablation).
+    frozen-distance ablation), ``grid_magnification`` m0: the field grid is the fine
+    sensor grid of a virtual plane at s = m0.
 
-    Field sample n ↔ pixel coordinate (n − pad − (o − 1)/2)/o of the reference plane,
-    o = ``oversample`` (pixel k's centre at k).
+    Field sample n ↔ pixel coordinate (n − pad − (o − 1)/2)/o of that virtual plane,
+    o = ``oversample`` (pixel k's centre at k); plane t sees it magnified by s(t)/m0
+    about ``centre``.
     """
 
     theta: Float[Array, "ny nx"]
@@ -183,6 +199,7 @@ class StackModel(eqx.Module):
     anchor: int = eqx.field(static=True)
     oversample: int = eqx.field(static=True, default=2)
     frozen: bool = eqx.field(static=True, default=False)
+    grid_magnification: float = eqx.field(static=True, default=1.0)
 
     # -- geometry
     def magnification(self, t) -> Array:
@@ -206,27 +223,23 @@ class StackModel(eqx.Module):
         return fft2(self.amplitude() * jnp.exp(1j * self.theta))
 
     def _sample(self, u, s):
-        """u on the field grid → the magnified fine sensor grid of a plane at s."""
+        """u on the field grid → the fine sensor grid of a plane at s (magnified by
+        s/m0 relative to the field grid)."""
         o, (h, w) = self.oversample, self.frame
         half = (o - 1) / 2.0
         ay = (jnp.arange(o * h) - half) / o
         ax = (jnp.arange(o * w) - half) / o
         cy, cx = self.centre[0], self.centre[1]
+        s = s / self.grid_magnification
         qy = o * (cy + (ay - cy) / s) + half + self.pad
         qx = o * (cx + (ax - cx) / s) + half + self.pad
         return _interp_rows(_interp_rows(u, qy).T, qx).T
 
-    def render_plane(self, spec, t, *, at_reference: bool = False) -> Float[Array, "h w"]:
-        """Pixel image of plane ``t`` (arbitrary gain) from ``spec`` = :meth:`spectrum`.
-
-        ``at_reference=True`` (only for t = reference, where s = 1 exactly) takes the
-        fine grid by slicing instead of interpolating (the same values, cheaper)."""
+    def render_plane(self, spec, t) -> Float[Array, "h w"]:
+        """Pixel image of plane ``t`` (arbitrary gain) from ``spec`` = :meth:`spectrum`."""
         o, (h, w) = self.oversample, self.frame
         u = ifft2(spec * _fresnel(self.field, self.distance(t)))
-        if at_reference:
-            v = u[self.pad:self.pad + o * h, self.pad:self.pad + o * w]
-        else:
-            v = self._sample(u, self.magnification(t))
+        v = self._sample(u, self.magnification(t))
         inten = jnp.real(v) ** 2 + jnp.imag(v) ** 2
         inten = _gauss_blur(inten, jnp.exp(self.log_sigma))
         return inten.reshape(h, o, w, o).mean(axis=(1, 3))
@@ -244,9 +257,23 @@ class StackModel(eqx.Module):
         return float(np.exp(float(self.log_zeta))) / self.oversample ** 2
 
 
+CHUNK = 4     # planes per call of the compiled renderer
+
+
 @eqx.filter_jit
-def _render(model: StackModel, planes):
+def _render_chunk(model: StackModel, planes):
     return model.render(planes)
+
+
+def _render(model: StackModel, planes) -> np.ndarray:
+    """Rendered ``planes`` (float64, arbitrary gain), ``CHUNK`` planes per call: one
+    compiled function per model geometry (compiled inside the fit) serves every
+    prediction."""
+    ts = np.asarray(planes, np.float32).reshape(-1)
+    padded = np.concatenate([ts, np.full((-len(ts)) % CHUNK, ts[-1], np.float32)])
+    out = [np.asarray(_render_chunk(model, jnp.asarray(padded[k:k + CHUNK])), np.float64)
+           for k in range(0, len(padded), CHUNK)]
+    return np.concatenate(out)[:len(ts)]
 
 
 # ----------------------------------------------------------------------------- options
@@ -258,10 +285,13 @@ class StackFitOptions(Options):
         max_steps: Adam steps at most.
         patience: stop after this many steps without a better validation Pearson.
         time_budget: wall-clock limit of the fit, s (registration, initialisation,
-            compilation and steps); ``math.inf`` for none.
+            compilation and steps; checked after every step, so a fit may end about one
+            step later); ``math.inf`` for none.
         validation_fraction: share of each given plane's pixels held out (0 < f < 0.5).
         seed: the validation split's and the GS start's seed.
-        zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²).
+        zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²);
+            the best start by training Pearson is kept (64 won in every case of the
+            real-stack benchmark when 32/64/128 were scanned).
         gs_iterations: Gerchberg–Saxton sweeps per candidate.
         oversample: fine samples per pixel (2: the prototype's).
         pad: fine samples of field grid beyond the frame on each side.
@@ -281,11 +311,11 @@ class StackFitOptions(Options):
 
     max_steps: int = 400
     patience: int = 40
-    time_budget: float = 60.0
+    time_budget: float = 55.0
     validation_fraction: float = 0.1
     seed: int = 0
     zetas: tuple[float, ...] = eqx.field(
-        default=(32.0, 64.0, 128.0),
+        default=(64.0,),
         converter=lambda z: tuple(float(v) for v in np.atleast_1d(z)))
     gs_iterations: int = 30
     oversample: int = 2
@@ -382,8 +412,9 @@ def prepare_planes(images, ring: int = 6, *, labels: Sequence[int] | None = None
 
 def _to_field_grid(img, s, centre, model: StackModel):
     """A measured plane at magnification ``s`` (relative to the reference) resampled
-    onto the field grid: (intensity ≥ 0, where-measured mask)."""
+    onto the field grid (at s = m0): (intensity ≥ 0, where-measured mask)."""
     o, (h, w) = model.oversample, model.frame
+    s = s / model.grid_magnification
     half = (o - 1) / 2.0
     py = (np.arange(model.field[0]) - model.pad - half) / o
     px = (np.arange(model.field[1]) - model.pad - half) / o
@@ -418,15 +449,16 @@ def _initial_model(imgs, planes, reg: Registration, zeta, opts: StackFitOptions
     coarse = (-(-field[0] // stride) + 1, -(-field[1] // stride) + 1)
     ref, anchor = planes[0], max(planes[1:], key=lambda t: abs(t - planes[0]))
     kappa0 = 0.0 if opts.frozen else float(opts.kappa)
+    ss = [float(relative_magnification_at(t, reg.magnification, ref, anchor)) for t in planes]
     shell = StackModel(
         theta=jnp.zeros(field, jnp.float32),
         log_amplitude=jnp.zeros(coarse, jnp.float32),
         log_zeta=jnp.float32(np.log(zeta)), log_s=jnp.float32(np.log(reg.magnification)),
         centre=jnp.asarray(reg.centre, jnp.float32), log_sigma=jnp.float32(np.log(opts.sigma)),
         kappa=jnp.float32(kappa0), frame=(h, w), pad=pad, field=field, stride=stride,
-        reference=ref, anchor=anchor, oversample=o, frozen=bool(opts.frozen))
+        reference=ref, anchor=anchor, oversample=o, frozen=bool(opts.frozen),
+        grid_magnification=float(np.sqrt(min(ss) * max(ss))))
     taper = np.outer(_taper(field[0], pad), _taper(field[1], pad))
-    ss = [float(relative_magnification_at(t, reg.magnification, ref, anchor)) for t in planes]
     grids = [_to_field_grid(img, s, reg.centre, shell) for img, s in zip(imgs, ss)]
     env = np.where(grids[0][1], ndi.gaussian_filter(grids[0][0], opts.amplitude_blur), 0.0)
     amp = np.sqrt(np.clip(env, 0, None)) * taper
@@ -453,9 +485,7 @@ class _Data(eqx.Module):
 
 def _scores(model: StackModel, data: _Data):
     spec = model.spectrum()
-    preds = [model.render_plane(spec, data.ts[0], at_reference=True)]
-    preds += [model.render_plane(spec, data.ts[k]) for k in range(1, data.ts.shape[0])]
-    pred = jnp.stack(preds)
+    pred = jnp.stack([model.render_plane(spec, data.ts[k]) for k in range(data.ts.shape[0])])
     r_tr = pearson(pred, data.ys, mask=data.train)
     r_va = pearson(pred, data.ys, mask=data.val)
     return r_tr, r_va
@@ -525,6 +555,9 @@ class StackFit:
         physical: the physical inputs given (pixel pitch, wavelength, z2; m or None).
         options: the :class:`StackFitOptions` as a dict.
         seconds: wall time of the fit, s.
+        measured: the given planes as fitted (:func:`prepare_planes`), in ``planes``
+            order, float32 (P, H, W): the residuals :meth:`predict` carries come from
+            them (``None`` in files of format 1: rendering only).
     """
 
     model: StackModel
@@ -543,12 +576,14 @@ class StackFit:
     physical: dict
     options: dict
     seconds: float
+    measured: np.ndarray | None = None
 
     @property
     def steps(self) -> int:
         return int(len(self.history))
 
-    def predict(self, planes=None, *, kappa: float | None = None) -> np.ndarray:
+    def predict(self, planes=None, *, kappa: float | None = None, residual: bool = True
+                ) -> np.ndarray:
         """Predicted planes, each normalised to unit mean (like :func:`prepare_planes`).
 
         Args:
@@ -556,10 +591,26 @@ class StackFit:
                 n (planes 0 … n−1), or ``None`` for every plane of the fitted stack.
             kappa: render with this depth-law exponent instead of the fitted one
                 (``kappa=0``: the frozen-distance ablation of the same field).
+            residual: carry the measured planes' residuals (the module docstring);
+                ``False`` renders the model alone.
 
         Returns:
             float32 array (k, H, W).
         """
+        ts = self._plane_list(planes)
+        model = self.model
+        if kappa is not None:
+            model = eqx.tree_at(lambda m: m.kappa, model, jnp.float32(kappa))
+            if model.frozen and kappa != 0:
+                model = dataclasses.replace(model, frozen=False)
+        if residual and self.measured is not None:
+            out = self._with_residuals(model, ts)
+        else:
+            out = _render(model, ts)
+        out /= out.mean(axis=(-2, -1), keepdims=True)
+        return out.astype(np.float32)
+
+    def _plane_list(self, planes) -> list[int]:
         if planes is None:
             if self.n_planes is None:
                 raise DiffcamError("this fit does not know the stack's plane count; pass "
@@ -569,14 +620,28 @@ class StackFit:
             [int(t) for t in planes]
         if not ts:
             raise DiffcamError("no planes to predict.")
-        model = self.model
-        if kappa is not None:
-            model = eqx.tree_at(lambda m: m.kappa, model, jnp.float32(kappa))
-            if model.frozen and kappa != 0:
-                model = dataclasses.replace(model, frozen=False)
-        out = np.asarray(_render(model, jnp.asarray(ts, jnp.float32)), np.float64)
-        out /= out.mean(axis=(-2, -1), keepdims=True)
-        return out.astype(np.float32)
+        return ts
+
+    def _with_residuals(self, model: StackModel, ts: list[int]) -> np.ndarray:
+        """(Σ w_k a_k)·render(t) + Σ w_k T_{k→t}(R_k) for every t (module docstring)."""
+        rendered = _render(model, list(self.planes) + ts)
+        given, rendered = rendered[:len(self.planes)], rendered[len(self.planes):]
+        gain, coef = {}, {}
+        for k, y, p in zip(self.planes, self.measured.astype(np.float64), given):
+            a, b = np.polyfit(p.ravel(), y.ravel(), 1)
+            gain[k] = a
+            coef[k] = ndi.spline_filter(y - a * p - b, order=3)
+        s = {t: float(relative_magnification_at(t, np.exp(float(model.log_s)),
+                                                model.reference, model.anchor))
+             for t in set(ts) | set(self.planes)}
+        centre = tuple(float(c) for c in np.asarray(model.centre))
+        out = np.empty_like(rendered)
+        for n, t in enumerate(ts):
+            weights = bracket_weights(t, self.planes)
+            out[n] = sum(w * gain[k] for k, w in weights.items()) * rendered[n]
+            for k, w in weights.items():
+                out[n] += w * magnify_about(coef[k], s[t] / s[k], centre, prefiltered=True)
+        return out
 
     def summary(self) -> dict:
         """The scalar facts of the fit, JSON-able."""
@@ -588,6 +653,7 @@ class StackFit:
                 "worse_than_baseline": self.worse_than_baseline,
                 "zeta_reference_px2": m.zeta_pixels, "kappa": float(m.kappa),
                 "frozen": m.frozen, "magnification": float(np.exp(float(m.log_s))),
+                "grid_magnification": m.grid_magnification,
                 "centre": [float(c) for c in np.asarray(m.centre)],
                 "blur_sigma_fine": float(np.exp(float(m.log_sigma))),
                 "seconds": self.seconds}
@@ -604,7 +670,8 @@ class StackFit:
             "format": FORMAT, "version": FORMAT_VERSION,
             "geometry": {"frame": list(m.frame), "pad": m.pad, "field": list(m.field),
                          "stride": m.stride, "reference": m.reference, "anchor": m.anchor,
-                         "oversample": m.oversample, "frozen": m.frozen},
+                         "oversample": m.oversample, "frozen": m.frozen,
+                         "grid_magnification": m.grid_magnification},
             "planes": list(self.planes), "n_planes": self.n_planes,
             "registration": dataclasses.asdict(self.registration),
             "stop_reason": self.stop_reason, "best_step": self.best_step,
@@ -616,6 +683,8 @@ class StackFit:
             "options": self.options, "seconds": self.seconds,
         }
         arrays = {k: np.asarray(getattr(m, k)) for k in _ARRAYS}
+        if self.measured is not None:
+            arrays["measured"] = np.asarray(self.measured, np.float32)
         with atomic_output(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, metadata=np.array(json.dumps(meta)),
@@ -625,7 +694,8 @@ class StackFit:
 
 
 def load_stack_fit(path: str | os.PathLike) -> StackFit:
-    """Read a :class:`StackFit` written by :meth:`StackFit.save`.
+    """Read a :class:`StackFit` written by :meth:`StackFit.save` (format 1 files, which
+    hold no measured planes, predict by rendering alone).
 
     Raises:
         DiffcamError: missing, corrupt or truncated file, not a stack-fit file, a newer
@@ -643,28 +713,15 @@ def load_stack_fit(path: str | os.PathLike) -> StackFit:
         if not isinstance(version, int) or version > FORMAT_VERSION:
             raise DiffcamError(f"{path}: stack-fit format version {version!r}; this diffcam "
                                f"reads versions ≤ {FORMAT_VERSION}: upgrade diffcam.")
-        g = meta["geometry"]
-        model = StackModel(
-            **{k: jnp.asarray(data[k], jnp.float32) for k in _ARRAYS},
-            frame=tuple(int(v) for v in g["frame"]), pad=int(g["pad"]),
-            field=tuple(int(v) for v in g["field"]), stride=int(g["stride"]),
-            reference=int(g["reference"]), anchor=int(g["anchor"]),
-            oversample=int(g["oversample"]), frozen=bool(g["frozen"]))
-        coarse = (-(-model.field[0] // model.stride) + 1, -(-model.field[1] // model.stride) + 1)
-        if model.theta.shape != model.field or model.log_amplitude.shape != coarse \
-                or model.centre.shape != (2,):
-            raise DiffcamError(f"{path}: arrays do not match the recorded geometry (θ "
-                               f"{model.theta.shape}, field {model.field}); the file is "
-                               f"damaged.")
-        if not all(np.isfinite(np.asarray(data[k])).all() for k in _ARRAYS):
-            raise DiffcamError(f"{path}: the model holds NaN/Inf values; the file is damaged.")
+        model = _model_from(data, meta["geometry"], path)
+        measured = _measured_from(path, meta, model) if version >= 2 else None
+        reg = meta["registration"]
         return StackFit(
             model=model, planes=tuple(int(t) for t in meta["planes"]),
             n_planes=None if meta["n_planes"] is None else int(meta["n_planes"]),
-            registration=Registration(float(meta["registration"]["magnification"]),
-                                      tuple(float(c) for c in meta["registration"]["centre"]),
-                                      float(meta["registration"]["pearson"]),
-                                      float(meta["registration"].get("seconds", 0.0))),
+            registration=Registration(float(reg["magnification"]),
+                                      tuple(float(c) for c in reg["centre"]),
+                                      float(reg["pearson"]), float(reg.get("seconds", 0.0))),
             history=np.asarray(data["history"]), validation=np.asarray(data["validation"]),
             stop_reason=str(meta["stop_reason"]), best_step=int(meta["best_step"]),
             validation_score=float(meta["validation_score"]),
@@ -672,12 +729,50 @@ def load_stack_fit(path: str | os.PathLike) -> StackFit:
             worse_than_baseline=bool(meta["worse_than_baseline"]),
             zeta_scan={float(k): v for k, v in meta["zeta_scan"].items()},
             identifiable=dict(meta["identifiable"]), physical=dict(meta["physical"]),
-            options=dict(meta["options"]), seconds=float(meta["seconds"]))
+            options=dict(meta["options"]), seconds=float(meta["seconds"]),
+            measured=measured)
     except DiffcamError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise DiffcamError(f"{path}: not a readable {what} ({type(err).__name__}: {err}); "
                            f"the metadata are missing or damaged.") from None
+
+
+def _model_from(data, g: dict, path) -> StackModel:
+    """The :class:`StackModel` of a fit file, its arrays checked against its geometry."""
+    model = StackModel(
+        **{k: jnp.asarray(data[k], jnp.float32) for k in _ARRAYS},
+        frame=tuple(int(v) for v in g["frame"]), pad=int(g["pad"]),
+        field=tuple(int(v) for v in g["field"]), stride=int(g["stride"]),
+        reference=int(g["reference"]), anchor=int(g["anchor"]),
+        oversample=int(g["oversample"]), frozen=bool(g["frozen"]),
+        grid_magnification=float(g.get("grid_magnification", 1.0)))
+    coarse = (-(-model.field[0] // model.stride) + 1, -(-model.field[1] // model.stride) + 1)
+    if model.theta.shape != model.field or model.log_amplitude.shape != coarse \
+            or model.centre.shape != (2,):
+        raise DiffcamError(f"{path}: arrays do not match the recorded geometry (θ "
+                           f"{model.theta.shape}, field {model.field}); the file is "
+                           f"damaged.")
+    if not all(np.isfinite(np.asarray(data[k])).all() for k in _ARRAYS):
+        raise DiffcamError(f"{path}: the model holds NaN/Inf values; the file is damaged.")
+    if not model.grid_magnification > 0:
+        raise DiffcamError(f"{path}: grid magnification {model.grid_magnification!r} is "
+                           f"not positive; the file is damaged.")
+    return model
+
+
+def _measured_from(path, meta: dict, model: StackModel) -> np.ndarray:
+    """The prepared given planes stored by format ≥ 2, checked against the geometry."""
+    from diffcam.io import read_npz
+
+    measured = read_npz(path, ("measured",), what="a diffcam stack-fit file")["measured"]
+    measured = np.asarray(measured, np.float32)
+    if measured.shape != (len(meta["planes"]),) + model.frame or \
+            not np.isfinite(measured).all():
+        raise DiffcamError(f"{path}: the measured planes ({measured.shape}) do not match "
+                           f"the recorded planes and frame or hold NaN/Inf; the file is "
+                           f"damaged.")
+    return measured
 
 
 # ------------------------------------------------------------------------ input checks
@@ -795,8 +890,7 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     Args:
         stack: (n_planes, ny, nx) array (any gain and dark level: each given plane is
             prepared by :func:`prepare_planes`), or ``{plane index: (ny, nx) image}``.
-        planes: two or more distinct plane indices; the first is the reference (its
-            fine grid is the field grid).
+        planes: two or more distinct plane indices; the first is the reference.
         options: :class:`StackFitOptions`; keywords named after its fields replace them.
         progress: show a tqdm bar over the steps.
         saturation: pixel value at or above which a pixel is saturated (input units):
@@ -819,17 +913,8 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     """
     opts = StackFitOptions.of(options, **overrides)
     frames, planes, n_planes, dtype = _given_planes(stack, planes)
-    if isinstance(saturation, str):
-        if saturation != "auto":
-            raise DiffcamError(f"saturation must be a level, 'auto' or None, got "
-                               f"{saturation!r}.")
-        saturation = 0.999 * float(np.iinfo(dtype).max) \
-            if np.issubdtype(dtype, np.integer) else None
-    _check_saturation(frames, planes, saturation)
-    for name, v in (("pixel_pitch", pixel_pitch), ("wavelength", wavelength), ("z2", z2)):
-        if v is not None:
-            from diffcam.core.errors import check_positive
-            check_positive(name, v, "m")
+    _check_saturation(frames, planes, _saturation_level(saturation, dtype))
+    _physical(pixel_pitch, wavelength, z2, 1.0)     # checks the inputs before compute
     t0 = time.perf_counter()
     imgs = [p.astype(np.float32) for p in prepare_planes(np.stack(frames), opts.dark_ring,
                                                           labels=planes)]
@@ -837,12 +922,44 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     anchor = max(planes[1:], key=lambda t: abs(t - ref))
     if registration is None:
         registration = register_magnification(imgs[0], imgs[planes.index(anchor)])
-    h, w = imgs[0].shape
-    train, val = _validation_masks((h, w), len(planes), opts.validation_fraction, opts.seed)
+    train, val = _validation_masks(imgs[0].shape, len(planes), opts.validation_fraction,
+                                   opts.seed)
     data = _Data(jnp.asarray(np.stack(imgs)), jnp.asarray(train), jnp.asarray(val),
                  jnp.asarray(planes, jnp.float32))
+    model, scan = _start(imgs, planes, registration, data, opts)
+    run = _descend(model, data, opts, t0, progress)
+    _render(run.model, planes[:1])      # compiles the predictor inside the fit
+    base = _baseline_validation(imgs, planes, registration, val, ref, anchor)
+    phys, ident = _physical(pixel_pitch, wavelength, z2, run.model.zeta_pixels)
+    fit = StackFit(model=run.model, planes=tuple(planes), n_planes=n_planes,
+                   registration=registration, history=np.asarray(run.train),
+                   validation=np.asarray(run.validation), stop_reason=run.reason,
+                   best_step=run.best_step, validation_score=run.best_validation,
+                   baseline_validation=float(base),
+                   worse_than_baseline=bool(run.best_validation < base), zeta_scan=scan,
+                   identifiable=ident, physical=phys, options=opts.to_dict(),
+                   seconds=time.perf_counter() - t0, measured=np.stack(imgs))
+    if fit.worse_than_baseline:
+        warnings.warn(f"the stack fit ends worse than the scaling baseline on its own "
+                      f"validation pixels (Pearson {run.best_validation:.4f} < {base:.4f}): "
+                      f"prefer the baseline for these planes, or fit more planes.",
+                      StackFitWarning, stacklevel=2)
+    return fit
 
-    # the start: GS for every candidate ζ_ref, best training Pearson wins
+
+def _saturation_level(saturation, dtype) -> float | None:
+    if isinstance(saturation, str):
+        if saturation != "auto":
+            raise DiffcamError(f"saturation must be a level, 'auto' or None, got "
+                               f"{saturation!r}.")
+        return 0.999 * float(np.iinfo(dtype).max) \
+            if np.issubdtype(dtype, np.integer) else None
+    return saturation
+
+
+def _start(imgs, planes, registration, data, opts: StackFitOptions):
+    """The GS start for every candidate ζ_ref; the best training Pearson wins.
+    Returns (model, {ζ: training Pearson})."""
     scan, best = {}, None
     for zeta in opts.zetas:
         model = _initial_model(imgs, planes, registration, float(zeta), opts)
@@ -850,7 +967,23 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
         scan[float(zeta)] = float(r_tr)
         if best is None or float(r_tr) > best[0]:
             best = (float(r_tr), model)
-    model = best[1]
+    return best[1], scan
+
+
+class _Run(NamedTuple):
+    model: StackModel        # the model of the best validation step
+    best_step: int
+    best_validation: float
+    train: list              # mean training Pearson per step
+    validation: list         # mean validation Pearson per step
+    reason: str              # why it stopped
+
+
+def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float,
+             progress: bool) -> _Run:
+    """Adam from ``model`` until validation stalls, ``max_steps`` or the time budget
+    (counted from ``t0``, perf_counter seconds)."""
+    from tqdm.auto import tqdm
 
     lr = _step_sizes(model, opts)
     zeros = jax.tree.map(jnp.zeros_like, eqx.filter(model, eqx.is_array))
@@ -858,10 +991,8 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
     reason = f"max_steps ({opts.max_steps})"
-    from tqdm.auto import tqdm
-    bar = tqdm(total=opts.max_steps, disable=not progress, desc="stack fit", unit="step",
-               leave=False)
-    try:
+    with tqdm(total=opts.max_steps, disable=not progress, desc="stack fit", unit="step",
+              leave=False) as bar:
         for k in range(opts.max_steps):
             new_model, state, r_tr, r_va = _adam_step(model, state, data, lr)
             r_va = float(r_va)
@@ -881,25 +1012,7 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
             if time.perf_counter() - t0 > opts.time_budget:
                 reason = f"time budget ({opts.time_budget:g} s)"
                 break
-    finally:
-        bar.close()
-
-    base = _baseline_validation(imgs, planes, registration, val, ref, anchor)
-    worse = bool(best_val < base)
-    phys, ident = _physical(pixel_pitch, wavelength, z2, best_model.zeta_pixels)
-    fit = StackFit(model=best_model, planes=tuple(planes), n_planes=n_planes,
-                   registration=registration, history=np.asarray(train_hist),
-                   validation=np.asarray(val_hist), stop_reason=reason, best_step=best_step,
-                   validation_score=float(best_val), baseline_validation=float(base),
-                   worse_than_baseline=worse, zeta_scan=scan, identifiable=ident,
-                   physical=phys, options=opts.to_dict(),
-                   seconds=time.perf_counter() - t0)
-    if worse:
-        warnings.warn(f"the stack fit ends worse than the scaling baseline on its own "
-                      f"validation pixels (Pearson {best_val:.4f} < {base:.4f}): prefer the "
-                      f"baseline for these planes, or fit more planes.", StackFitWarning,
-                      stacklevel=2)
-    return fit
+    return _Run(best_model, best_step, float(best_val), train_hist, val_hist, reason)
 
 
 def _baseline_validation(imgs, planes, reg, val, ref, anchor) -> float:

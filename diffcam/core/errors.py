@@ -20,6 +20,7 @@ __all__ = [
     "SamplingError",
     "ShapeError",
     "UndersamplingWarning",
+    "GeometryWarning",
     "is_concrete",
     "check_positive",
     "check_finite",
@@ -42,6 +43,11 @@ class SamplingError(DiffcamError):
 
 class UndersamplingWarning(UserWarning):
     """Undersampling the caller accepted explicitly (``accept_undersampling=True``)."""
+
+
+class GeometryWarning(UserWarning):
+    """The captures disagree with the geometry they were resampled with: a pitch, a focal
+    length or a wavelength is probably wrong (the result would be a confident wrong phase)."""
 
 
 def is_concrete(*values: Any) -> bool:

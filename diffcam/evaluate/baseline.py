@@ -24,7 +24,6 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from diffcam.core.backend import fft_size
 from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
                                  check_positive, is_concrete)
 from diffcam.model.sensor import resample
@@ -43,10 +42,10 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
                 kind: str = "cubic") -> Float[Array, "... ny nx"]:
     """Predict PSFs at depths ``z1`` from ``psf_ref`` measured at ``z1_ref``.
 
-    **Outside its frame the reference is taken to be zero.** For ``kind="cubic"`` the
-    frame is zero-padded by at least :data:`_SPLINE_PAD` samples per side before the
-    spline prefilter, which works by FFT and is therefore periodic: unpadded, light at
-    one edge would leak into the opposite edge. With the padding, m = 1 returns the
+    **Outside its frame the reference is taken to be zero.** For ``kind="cubic"``
+    :func:`diffcam.model.sensor.resample` zero-pads the frame before its periodic (FFT)
+    spline prefilter: unpadded, light at one edge would leak into the opposite edge.
+    With the padding, m = 1 returns the
     reference unchanged even when it has signal at the frame edge, a shrunk PSF (m < 1)
     has zeros where the frame ends, and a magnified one loses what leaves the frame.
 
@@ -106,29 +105,11 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
 @partial(jax.jit, static_argnames=("kind", "max_width"))
 def _magnify(ref, dx, m, centre, *, kind, max_width):
     shape = ref.shape[-2:]
-    padded = _zero_extend(ref) if kind == "cubic" else ref
-
     def one(mi):
-        out = resample(padded, dx, dx, shape, mi, centre, kind=kind, max_width=max_width)
+        out = resample(ref, dx, dx, shape, mi, centre, kind=kind, max_width=max_width)
         return out * (jnp.sum(ref) / jnp.sum(out))
 
     return jax.vmap(one)(m.reshape(-1)).reshape(m.shape + shape)
-
-
-_SPLINE_PAD = 16
-"""Zeros added on each side before the periodic cubic-spline prefilter: its impulse
-response decays as (2 − √3)^k, so light wrapped across 2·16 zeros is below 1e-18."""
-
-
-def _zero_extend(ref):
-    """``ref`` centred in a zero frame at least :data:`_SPLINE_PAD` wider on every side,
-    on an FFT-friendly length; index n//2 stays the centre, so does every coordinate."""
-    widths = []
-    for n in ref.shape[-2:]:
-        size = fft_size(n + 2 * _SPLINE_PAD)
-        before = size // 2 - n // 2
-        widths.append((before, size - n - before))
-    return jnp.pad(ref, [(0, 0)] * (ref.ndim - 2) + widths)
 
 
 def scale_psf(*args, **kwargs):

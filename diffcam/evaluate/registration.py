@@ -20,6 +20,7 @@ over 43 planes).
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import time
 from typing import Mapping, Sequence
@@ -31,7 +32,7 @@ import scipy.optimize as sopt
 from diffcam.core.errors import DiffcamError, ShapeError
 
 __all__ = ["Registration", "register_magnification", "magnify_about", "magnification_slope",
-           "relative_magnification_at", "scaling_baseline"]
+           "relative_magnification_at", "scaling_baseline", "bracket_weights"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,10 +186,30 @@ def _plane_list(planes, name="planes") -> list[int]:
     return out
 
 
+def bracket_weights(t: float, planes: Sequence[int]) -> dict[int, float]:
+    """Weights of the given ``planes`` at plane ``t``: linear in t between the two given
+    planes that bracket it (1 at its own plane, 0 at the other), the nearest given plane
+    alone (weight 1) outside the given range. No tuned constants."""
+    ps = sorted(int(p) for p in planes)
+    if t <= ps[0]:
+        return {ps[0]: 1.0}
+    if t >= ps[-1]:
+        return {ps[-1]: 1.0}
+    k = bisect.bisect_right(ps, t)
+    a, b = ps[k - 1], ps[k]
+    f = (t - a) / (b - a)
+    return {a: 1.0 - f, b: f} if f else {a: 1.0}
+
+
 def scaling_baseline(given: Mapping[int, np.ndarray], planes: int | Sequence[int], *,
-                     registration: Registration | None = None) -> np.ndarray:
+                     registration: Registration | None = None, blend: bool = False
+                     ) -> np.ndarray:
     """The scaling baseline: plane t as the nearest given plane k magnified about the
     fixed point by M(t)/M(k), M linear in the plane index.
+
+    ``blend=True`` is an ablation for judging the stack model (not the baseline a user
+    would use): between two given planes, both are magnified to t and mixed with
+    :func:`bracket_weights`, the weights the model's prediction uses for its residuals.
 
     The law comes from the two given planes farthest apart (the first and the last
     index), registered with :func:`register_magnification` unless ``registration``
@@ -201,6 +222,7 @@ def scaling_baseline(given: Mapping[int, np.ndarray], planes: int | Sequence[int
         planes: the planes to predict: a count n (planes 0 … n−1) or a sequence of
             plane indices.
         registration: M(last)/M(first) and the fixed point (pixels), if already known.
+        blend: mix the two bracketing given planes instead of taking the nearest.
 
     Returns:
         float64 array (len(planes), ny, nx).
@@ -221,9 +243,12 @@ def scaling_baseline(given: Mapping[int, np.ndarray], planes: int | Sequence[int
     out = np.empty((len(ts),) + imgs[first].shape)
     m = registration.magnification
     for n, t in enumerate(ts):
-        k = min(keys, key=lambda q: (abs(t - q), q))
-        s = relative_magnification_at(t, m, first, last) / \
-            relative_magnification_at(k, m, first, last)
-        out[n] = imgs[k] if t == k else magnify_about(filt[k], s, registration.centre,
-                                                      prefiltered=True)
+        nearest = min(keys, key=lambda q: (abs(t - q), q))
+        weights = bracket_weights(t, keys) if blend else {nearest: 1.0}
+        out[n] = 0.0
+        for k, w in weights.items():
+            s = relative_magnification_at(t, m, first, last) / \
+                relative_magnification_at(k, m, first, last)
+            out[n] += w * (imgs[k] if t == k else magnify_about(
+                filt[k], s, registration.centre, prefiltered=True))
     return out

@@ -211,6 +211,11 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
         accept_undersampling: bool = False) -> Float[Array, "ny nx"]:
     """The camera's PSF for a point source at ``(x1, y1, z1)`` (paper Eq. 7).
 
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly (one PSF is cheap) to validate;
+    :func:`diffcam.optics.sampling.plan_sampling` checks the sampling of the geometry alone,
+    without a phase.
+
     Args:
         phase: the diffuser: its phase θd on the camera grid (radians, at
             ``camera.wavelength``), or a :class:`HeightMap`.

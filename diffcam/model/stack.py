@@ -189,7 +189,13 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     shape ``(n, npos, ny, nx)``: host numpy, or with ``to_host=False`` the device array
     (for work that stays on the device, a GPU reconstruction say). Other arguments as in
     :func:`psf_stack`; the inputs are checked when this is called, before the first
-    chunk."""
+    chunk.
+
+    It runs on the host (it loops over chunks), so it cannot be traced and its input checks
+    always run; to jit or differentiate through PSFs, ``jax.vmap``
+    :func:`~diffcam.model.point_spread.psf` over ``z1`` (its checks are skipped under
+    ``jax.jit``: call it once eagerly to validate).
+    """
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
     if depths.size == 0:
         raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
@@ -249,6 +255,11 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
               devices: Sequence | None = None, accept_undersampling: bool = False,
               positions=None) -> np.ndarray:
     """PSFs for every depth in ``z1`` and every lateral position, chunk by chunk.
+
+    It runs on the host (it loops over chunks and may write a file), so it cannot be traced
+    and its input checks always run; to jit or differentiate through PSFs, ``jax.vmap``
+    :func:`~diffcam.model.point_spread.psf` over ``z1`` (its checks are skipped under
+    ``jax.jit``: call it once eagerly to validate).
 
     Args:
         phase: the diffuser (phase in radians at ``camera.wavelength``, or a

@@ -272,6 +272,10 @@ def fresnel_tf(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
                accept_undersampling: bool = False) -> Complex[Array, "... ny nx"]:
     """Fresnel propagation by the transfer function (paraxial), paper Eq. 6.
 
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly to validate, or check the geometry alone
+    (no field) with :func:`choose_propagation` or :func:`critical_distance`.
+
     Args:
         field: complex field, last two axes space (centred grid).
         dx: sample pitch, metres per sample (scalar or ``(dy, dx)``).
@@ -294,6 +298,10 @@ def fresnel_ir(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
     Convolution with h = e^{jkz}/(jλz) e^{jk(x²+y²)/(2z)} sampled on the grid. Accurate
     for ``|z| ≥ N·dx²/λ``; not exactly invertible (the sampled kernel is not unitary).
     Arguments as in :func:`fresnel_tf`.
+
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly to validate, or check the geometry alone
+    (no field) with :func:`choose_propagation` or :func:`critical_distance`.
     """
     return _run("fresnel_ir", field, dx, wavelength, z, pad, accept_undersampling)
 
@@ -307,6 +315,9 @@ def angular_spectrum(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0
     (Matsushima & Shimobaba 2009), which removes the aliasing of the kernel at long
     distances; for short distances the limit lies beyond the grid's Nyquist and changes
     nothing. Arguments as in :func:`fresnel_tf`.
+
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly to validate.
     """
     return _run("angular_spectrum", field, dx, wavelength, z, pad, False, band_limit)
 
@@ -351,6 +362,9 @@ def fourier_lens(field: Num[Array, "... ny nx"], dx, wavelength, focal_length, *
     centred grid of pitch λf/(N·dx) per axis. Energy-preserving in physical units:
     Σ|U'|²·du_y·du_x = Σ|U|²·dy·dx.
 
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly to validate.
+
     Args:
         field: field at the front focal plane, last two axes space.
         dx: its pitch, metres (scalar or ``(dy, dx)``).
@@ -369,7 +383,11 @@ def inverse_fourier_lens(field: Num[Array, "... ny nx"], du, wavelength, focal_l
                          ) -> tuple[Complex[Array, "... ny nx"], tuple]:
     """Front-focal-plane field from the back-focal-plane field: inverse of
     :func:`fourier_lens`. ``du`` is the far-field pitch (metres); returns the field and
-    its pitch λf/(N·du)."""
+    its pitch λf/(N·du).
+
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly to validate.
+    """
     return _fourier_lens_run(field, du, wavelength, focal_length, 0, inverse=True)
 
 
@@ -510,6 +528,10 @@ def propagate(field: Num[Array, "... ny nx"], dx, wavelength, z, *, method: str 
         method, pad: as for :func:`plan_propagation`.
         accept_undersampling: warn instead of raising on an aliased kernel.
         verbose: print the choice.
+
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly to validate, or :func:`plan_propagation`
+    with the concrete arguments.
 
     Under an outer ``jit`` the automatic choices need concrete values: pass ``method``
     and an integer ``pad`` explicitly there.

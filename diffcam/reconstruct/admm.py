@@ -57,6 +57,9 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100, *,
             boundary: str = "crop", tol: float | None = None) -> Reconstruction:
     """DiffuserCam ADMM-TV reconstruction of a 2-D scene from one sensor image.
 
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly (``iterations=1`` is enough) to validate.
+
     Args:
         image: ``(..., ny, nx)`` sensor image (background subtracted; may hold small
             negatives).
@@ -84,6 +87,9 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *,
                tv_axial: bool = True, boundary: str = "crop",
                tol: float | None = None) -> Reconstruction:
     """DiffuserCam ADMM-TV reconstruction of a volume: ``b = crop(Σ_z h_z * v_z)``.
+
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly (``iterations=1`` is enough) to validate.
 
     Args:
         image: ``(..., ny, nx)`` sensor image.

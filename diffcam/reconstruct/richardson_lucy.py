@@ -68,6 +68,9 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
                     ) -> Reconstruction:
     """Richardson–Lucy deconvolution of a sensor image by one PSF (paper Eq. 15).
 
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly (``iterations=1`` is enough) to validate.
+
     Args:
         image: ``(..., ny, nx)`` sensor image, non-negative (counts, any scale;
             rounding-level negatives, ``>= -1e-5·max``, are clipped to 0).
@@ -116,6 +119,9 @@ def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int =
     by the PSF of its depth and the sensor sees the sum. The update is the one of
     :func:`richardson_lucy` with ``A`` this sum and ``Aᵀ`` back-projecting into every
     plane, so all planes are solved together.
+
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly (``iterations=1`` is enough) to validate.
 
     Args:
         image: ``(..., ny, nx)`` sensor image, non-negative.
@@ -166,6 +172,9 @@ def focus_sweep(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 50,
 
     One batched, jitted :func:`richardson_lucy` call (``options`` are passed to it)
     reconstructs the image with each PSF; :func:`sharpness` ranks the results.
+
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly (``iterations=1`` is enough) to validate.
 
     Args:
         image: ``(..., ny, nx)`` sensor image.

@@ -40,6 +40,9 @@ def wiener(image: ArrayLike, psf: ArrayLike, regularization: float = 1e-3, *,
     approximation of those models (fast, but it rings at the borders), cropped to the
     model's object grid.
 
+    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
+    (shapes are still checked) — call once eagerly to validate.
+
     Args:
         image: ``(..., ny, nx)`` sensor image, finite.
         psf: ``(..., my, mx)`` PSF, finite, non-negative, not all zero, at most the
