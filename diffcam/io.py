@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import glob
 import os
+import re
 import secrets
 import signal
 import struct
@@ -46,6 +48,10 @@ __all__ = [
     "Capture",
     "read_image",
     "read_psf_stack",
+    "image_files",
+    "natural_key",
+    "IMAGE_SUFFIXES",
+    "border_dark_level",
     "read_mat_stack",
     "dark_level",
     "subtract_background",
@@ -129,6 +135,41 @@ def read_image(path: str | os.PathLike, *, channel_order: str | None = None,
     with _file_errors(path, f"as {suffix[1:].upper()}"):
         data = read[suffix](path, limit)
     return _to_capture(data, path, suffix, channel_order)
+
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
+"""Suffixes of the single-plane images a folder or glob of PSFs may hold."""
+
+
+def natural_key(path) -> list:
+    """Sort key of a file name with its digit runs compared as numbers (9 < 10)."""
+    return [int(part) if part.isdigit() else part.lower()
+            for part in re.split(r"(\d+)", Path(path).name)]
+
+
+def image_files(source: str | os.PathLike) -> list[Path] | None:
+    """The single-plane image files (:data:`IMAGE_SUFFIXES`) of a folder or a glob
+    pattern, in natural order (``psf_9`` before ``psf_10``); ``None`` when ``source`` is
+    neither (one file).
+
+    Raises:
+        DiffcamError: an empty folder, or a pattern matching no file.
+    """
+    source = str(source)
+    path = Path(source)
+    if path.is_dir():
+        files = [p for p in path.iterdir()
+                 if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+        if not files:
+            raise DiffcamError(f"{source}: the folder holds no "
+                               f"{', '.join(IMAGE_SUFFIXES)} images.")
+    elif any(c in source for c in "*?[") and not path.exists():
+        files = [Path(p) for p in glob.glob(source) if Path(p).is_file()]
+        if not files:
+            raise DiffcamError(f"{source}: no files match this pattern.")
+    else:
+        return None
+    return sorted(files, key=natural_key)
 
 
 def read_psf_stack(paths: Sequence[str | os.PathLike], *,
@@ -258,6 +299,24 @@ def read_npz(path: str | os.PathLike, keys: Sequence[str], *, what: str = "an .n
                                    f"diffcam.io.MAX_READ_BYTES); the file may be damaged.")
         with np.load(path, allow_pickle=False) as arrays:
             return {k: np.asarray(arrays[k]) for k in keys}
+
+
+def border_dark_level(images, ring: int = 6) -> np.ndarray:
+    """Median of a ``ring``-pixel band at the frame border, per frame (input units, shape
+    ``images.shape[:-2]``): the dark level of a PSF or capture whose light rarely reaches
+    the border (the median ignores a few bright pixels there).
+
+    Raises:
+        ShapeError: a frame too small for the band (2·ring ≥ its shorter side).
+    """
+    a = np.asarray(images, np.float64)
+    h, w = a.shape[-2:]
+    if ring < 1 or 2 * ring >= min(h, w):
+        raise ShapeError(f"frame {h}×{w} is too small for a {ring}-pixel border ring (or "
+                         f"ring < 1); give the dark level in counts instead.")
+    band = np.zeros((h, w), bool)
+    band[:ring] = band[-ring:] = band[:, :ring] = band[:, -ring:] = True
+    return np.median(a[..., band], axis=-1)
 
 
 def dark_level(image: np.ndarray, region: tuple[slice, slice]) -> np.ndarray:

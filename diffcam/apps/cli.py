@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from diffcam.apps.fit_cli import _add_fit
+from diffcam.apps.reconstruct_cli import _add_reconstruct
 from diffcam.core.errors import DiffcamError
 from diffcam.io import atomic_output
 from diffcam.core.units import parse_length, parse_length_range
@@ -33,13 +34,15 @@ def _lengths(name):
     return _units(parse_length_range, name)
 
 
-def save_image(path, image) -> None:
-    """Write an image atomically: ``.png`` (16-bit, min–max scaled), ``.tif``/``.tiff``
-    (float32, multi-page for a stack), or ``.npy`` (as is)."""
+def save_image(path, image, *, bits: int = 16) -> None:
+    """Write an image atomically: ``.png`` (``bits`` 16 or 8, min–max scaled),
+    ``.tif``/``.tiff`` (float32, multi-page for a stack), or ``.npy`` (as is)."""
     image = np.asarray(image, dtype=np.float32)
     suffix = Path(path).suffix.lower()
     if suffix not in (".png", ".tif", ".tiff", ".npy"):
         raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
+    if bits not in (8, 16):
+        raise DiffcamError(f"{path}: a PNG holds 8 or 16 bits per pixel, not {bits}.")
     with atomic_output(path) as tmp:
         if suffix == ".png":
             from skimage.io import imsave
@@ -49,7 +52,8 @@ def save_image(path, image) -> None:
                                    f"{image.shape}; write .tif for a stack.")
             lo, hi = float(image.min()), float(image.max())
             scaled = (image - lo) / (hi - lo) if hi > lo else np.zeros_like(image)
-            imsave(tmp, np.round(scaled * 65535).astype(np.uint16), check_contrast=False)
+            top, dtype = (255, np.uint8) if bits == 8 else (65535, np.uint16)
+            imsave(tmp, np.round(scaled * top).astype(dtype), check_contrast=False)
         elif suffix == ".npy":
             np.save(tmp, image)
         else:
@@ -71,13 +75,17 @@ def save_figure(fig, path) -> None:
 
 
 def _read_psfs(path):
-    """A PSF or PSF stack from an image file or a stack written by diffcam; returns
-    ``(psfs, depths or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
-    from diffcam.io import read_image
+    """A PSF or PSF stack from an image file, a MATLAB ``.mat`` stack or a stack written
+    by diffcam (``.npz``, ``.npy`` with its ``.json``, ``.tif`` with stack metadata);
+    returns ``(psfs, depths in metres or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
+    from diffcam.io import read_image, read_mat_stack
     from diffcam.model.stack import load_stack
 
     suffix = Path(path).suffix.lower()
-    if suffix in (".npz", ".npy") or (suffix in (".tif", ".tiff") and _has_stack_meta(path)):
+    if suffix == ".mat":
+        return read_mat_stack(path), None
+    if suffix == ".npz" or (suffix == ".npy" and Path(str(path) + ".json").exists()) or (
+            suffix in (".tif", ".tiff") and _has_stack_meta(path)):
         stack, meta = load_stack(path)
         return np.asarray(stack), np.asarray(meta.depths)
     return read_image(path).image, None
@@ -247,49 +255,6 @@ def _cmd_compare(args) -> int:
     return 0
 
 
-def _cmd_reconstruct(args) -> int:
-    from diffcam.io import downsample, read_image, subtract_background
-    from diffcam.reconstruct import admm_tv, focus_sweep, richardson_lucy, wiener
-
-    raw = read_image(args.raw).image
-    psfs, depths = _read_psfs(args.psf)
-    if raw.ndim != 2:
-        raise DiffcamError(f"{args.raw}: expected a grayscale image, got shape {raw.shape}.")
-    if args.bias is not None:
-        raw = subtract_background(raw, args.bias)
-        psfs = subtract_background(psfs, args.bias)
-    if args.downsample > 1:
-        raw, psfs = downsample(raw, args.downsample), downsample(psfs, args.downsample)
-    if psfs.ndim == 3:
-        if args.depth is not None:
-            if depths is None:
-                raise DiffcamError("--depth needs a PSF stack with depths (.npz from "
-                                   "`diffcam psf`); use --plane for an image stack.")
-            plane = int(np.argmin(np.abs(depths - args.depth)))
-        elif args.plane is not None:
-            plane = args.plane
-        else:
-            sweep = focus_sweep(raw, psfs, iterations=min(args.iterations, 30))
-            plane = int(sweep.best)
-            print(f"diffcam reconstruct: sharpest plane {plane} of {len(psfs)}")
-        if not 0 <= plane < len(psfs):
-            raise DiffcamError(f"--plane {plane} is outside the stack of {len(psfs)} PSFs.")
-        psfs = psfs[plane]
-    if psfs.shape[0] > raw.shape[0] or psfs.shape[1] > raw.shape[1]:
-        raise DiffcamError(f"PSF {psfs.shape} is larger than the image {raw.shape}; crop "
-                           f"the PSF or use the same downsampling for both.")
-    if args.method == "rl":
-        rec = richardson_lucy(raw, psfs, args.iterations)
-    elif args.method == "admm":
-        rec = admm_tv(raw / np.linalg.norm(raw), psfs / np.linalg.norm(psfs), args.iterations)
-    else:
-        rec = wiener(raw, psfs)
-    save_image(args.out, rec.image)
-    print(f"diffcam reconstruct: {args.method}, {int(np.max(rec.iterations))} iterations, "
-          f"residual {float(np.nanmin(rec.residual)):.3g} → {args.out}")
-    return 0
-
-
 def _cmd_demo(args) -> int:
     from diffcam.apps.demo import run_demo
     from diffcam.apps.paper import Settings
@@ -342,24 +307,6 @@ def _add_plan(sub) -> None:
     plan.add_argument("--max-offset", type=_length("max-offset"), default=0.0,
                       help="largest lateral source offset")
     plan.set_defaults(func=_cmd_plan)
-
-
-def _add_reconstruct(sub) -> None:
-    rec = sub.add_parser("reconstruct", help="deconvolve a sensor image with a PSF",
-                         description="Reconstruct a scene from a raw capture and the PSF of "
-                                     "its depth. With a PSF stack, pick the plane by --depth, "
-                                     "--plane, or else the sharpest reconstruction.")
-    rec.add_argument("raw", help="raw capture (.png, .tif, .npy)")
-    rec.add_argument("--psf", required=True,
-                     help="PSF image, multi-page TIFF stack, or .npz from `diffcam psf`")
-    rec.add_argument("--depth", type=_length("depth"), help="source depth z1 to use")
-    rec.add_argument("--plane", type=int, help="index of the PSF plane to use")
-    rec.add_argument("--method", choices=["rl", "admm", "wiener"], default="rl")
-    rec.add_argument("--iterations", type=int, default=150)
-    rec.add_argument("--bias", type=float, help="sensor bias (counts) subtracted from both")
-    rec.add_argument("--downsample", type=int, default=1, help="box-average factor")
-    rec.add_argument("-o", "--out", required=True, help="output .png, .tif or .npy")
-    rec.set_defaults(func=_cmd_reconstruct)
 
 
 def _add_calibrate(sub) -> None:

@@ -14,7 +14,6 @@ name) or a quoted glob of them (``'psf/*.png'``). Planes are indices into it: ``
 from __future__ import annotations
 
 import argparse
-import glob as _glob
 import json
 import time
 import zipfile
@@ -24,7 +23,6 @@ import numpy as np
 
 from diffcam.core.errors import DiffcamError
 
-_IMAGES = (".png", ".tif", ".tiff", ".npy")
 
 
 def parse_planes(text: str) -> list[int]:
@@ -65,20 +63,12 @@ def _planes_arg(text):
 def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float | None]:
     """A PSF stack from a file, folder or glob → (float32 (n, ny, nx), saturation level
     in the stack's units or ``None`` for float data)."""
-    from diffcam.io import read_image, read_mat_stack, read_npz, read_psf_stack
+    from diffcam.io import image_files, read_image, read_mat_stack, read_npz, read_psf_stack
 
     path = Path(source)
     full_scale = None
-    if any(c in source for c in "*?[") and not path.exists():
-        files = sorted(_glob.glob(source))
-        if not files:
-            raise DiffcamError(f"{source}: no files match this pattern.")
-        stack = read_psf_stack(files)
-        full_scale = read_image(files[0]).full_scale
-    elif path.is_dir():
-        files = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGES)
-        if not files:
-            raise DiffcamError(f"{path}: the folder holds no {', '.join(_IMAGES)} images.")
+    files = image_files(source)
+    if files is not None:
         stack = read_psf_stack(files)
         full_scale = read_image(files[0]).full_scale
     elif path.suffix.lower() == ".npz":

@@ -386,18 +386,15 @@ def prepare_planes(images, ring: int = 6, *, labels: Sequence[int] | None = None
     Returns:
         float64 array of the same shape.
     """
+    from diffcam.io import border_dark_level
+
     a = np.asarray(images, np.float64)
     h, w = a.shape[-2:]
-    if ring and 2 * ring >= min(h, w):
-        raise ShapeError(f"frame {h}×{w} is too small for a {ring}-pixel dark ring.")
+    if ring:
+        a = a - border_dark_level(a, ring)[..., None, None]
     out = np.empty_like(a)
     flat_in, flat_out = a.reshape(-1, h, w), out.reshape(-1, h, w)
-    band = np.zeros((h, w), bool)
-    if ring:
-        band[:ring] = band[-ring:] = True
-        band[:, :ring] = band[:, -ring:] = True
     for k, f in enumerate(flat_in):
-        f = f - np.median(f[band]) if ring else f
         mean = f.mean()
         if not mean > 0:
             name = k if labels is None else labels[k]

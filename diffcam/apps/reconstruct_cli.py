@@ -1,0 +1,421 @@
+"""``diffcam reconstruct``: a scene (one plane) or, with ``--3d``, a volume from a raw
+capture and the PSFs of its depths.
+
+    diffcam reconstruct raw.png --psf psfs.tif --depth 25mm -o scene.png
+    diffcam reconstruct raw.png --psf psfs/ --3d -o volume.tif
+    diffcam reconstruct raw.png --psf 'psfs/*.png' --3d --dark-raw auto --dark-psf auto -o volume.tif
+    diffcam reconstruct raw.png --psf model.npz --planes 0:43:2 --3d -o volume.tif
+
+A PSF SOURCE is a PSF image or stack file (PNG/TIFF/``.npy`` image, multi-page TIFF,
+``.npz``/``.tif`` from ``diffcam psf``, MATLAB ``.mat``), a folder of single-plane
+images (natural name order: ``psf9`` before ``psf10``), a quoted glob of them, or a
+stack-fit model from ``diffcam fit`` (its planes rendered by ``StackFit.predict``).
+See ``docs/cli_reconstruct.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from diffcam.core.errors import DiffcamError
+from diffcam.io import image_files
+
+DARK_RING = 6        # pixels: width of the frame-border band whose median is the dark level
+MASK_FRACTION = 0.1  # depth map: pixels below this fraction of the max projection's peak
+
+
+class PsfSource(NamedTuple):
+    """PSFs read from a source.
+
+    Attributes:
+        psfs: float32 ``(my, mx)`` (one PSF) or ``(nz, my, mx)``, in the source's units.
+        depths: source depth z1 of each plane, metres, or ``None`` if unknown.
+        planes: plane number of each plane (index in the stack or the model).
+        names: file of each plane (folder/glob sources), else ``None``.
+    """
+
+    psfs: np.ndarray
+    depths: np.ndarray | None
+    planes: list[int]
+    names: list[str] | None
+
+    def labels(self) -> list[str]:
+        """One label per plane: the depth when known, else the plane number (and file)."""
+        if self.depths is not None:
+            return [f"z1 {d * 1e3:.4g} mm" for d in self.depths]
+        files = self.names or [None] * len(self.planes)
+        return [f"plane {t}" + (f" ({f})" if f else "") for t, f in zip(self.planes, files)]
+
+
+def is_stack_fit(path) -> bool:
+    """Whether ``path`` is an ``.npz`` whose ``metadata`` says ``diffcam-stack-fit``."""
+    import json
+    import zipfile
+
+    from diffcam.calibrate.stack_fit import FORMAT
+    from diffcam.io import read_npz
+
+    path = Path(path)
+    if path.suffix.lower() != ".npz" or not zipfile.is_zipfile(path):
+        return False
+    with zipfile.ZipFile(path) as archive:
+        if "metadata.npy" not in archive.namelist():
+            return False
+    meta = read_npz(path, ["metadata"], what="a diffcam stack-fit file")["metadata"]
+    try:
+        return json.loads(str(meta[()])).get("format") == FORMAT
+    except (ValueError, AttributeError, IndexError):
+        return False
+
+
+def _read_model(path, planes) -> PsfSource:
+    """The planes (default all) a stack-fit model renders, clipped at 0."""
+    from diffcam.calibrate.stack_fit import load_stack_fit
+
+    fit = load_stack_fit(path)
+    if planes is None:
+        if fit.n_planes is None:
+            raise DiffcamError(f"{path}: the model does not record its stack's plane "
+                               f"count; choose planes with --planes (e.g. 0:43).")
+        planes = list(range(fit.n_planes))
+    if min(planes) < 0:
+        raise DiffcamError(f"--planes {planes}: plane numbers start at 0.")
+    # unit mean per plane, dark-free; the carried residuals can dip below 0: clip them
+    return PsfSource(np.clip(fit.predict(planes), 0, None), None, list(planes), None)
+
+
+def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:
+    """PSFs from a file, folder, glob or stack-fit model (module docstring); ``planes``
+    selects planes of the stack (default all; for a model, the planes to render)."""
+    from diffcam.apps.cli import _read_psfs
+    from diffcam.io import read_psf_stack
+
+    files = image_files(source)
+    if files is None and is_stack_fit(source):
+        return _read_model(source, planes)
+    if files is not None:
+        try:
+            psfs, depths = read_psf_stack(files), None
+        except DiffcamError as err:
+            raise DiffcamError(f"{source}: {err}") from None
+    else:
+        psfs, depths = _read_psfs(source)
+    psfs = np.asarray(psfs, np.float32)
+    if psfs.ndim == 2:
+        if planes is not None:
+            raise DiffcamError(f"{source}: holds one PSF; --planes selects planes of a stack.")
+        return PsfSource(psfs, None, [0], None)
+    names = None if files is None else [f.name for f in files]
+    selected = list(range(len(psfs))) if planes is None else list(planes)
+    bad = [t for t in selected if not 0 <= t < len(psfs)]
+    if bad:
+        raise DiffcamError(f"--planes: plane(s) {bad} outside the stack of {len(psfs)} "
+                           f"planes (0 … {len(psfs) - 1}) in {source}.")
+    return PsfSource(psfs[selected], None if depths is None else np.asarray(depths)[selected],
+                     selected, None if names is None else [names[t] for t in selected])
+
+
+def _dark_arg(text: str):
+    """``auto`` or a level in counts (argparse type)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"give a dark level in counts or 'auto', not "
+                                         f"{text!r}") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"the dark level must be finite, not {text!r}")
+    return value
+
+
+def _subtract_dark(images, level, what: str, say=print):
+    """``images`` minus ``level`` (counts, or ``"auto"``: the border median,
+    :func:`diffcam.io.border_dark_level`); clipping noise below 0 is reported through
+    ``say`` as one line."""
+    import warnings
+
+    from diffcam.io import BackgroundWarning, border_dark_level, subtract_background
+
+    if level is None:
+        return images
+    background = border_dark_level(images, DARK_RING) if level == "auto" else level
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", BackgroundWarning)
+        try:
+            out = subtract_background(images, background)
+        except DiffcamError as err:
+            raise DiffcamError(f"{what}: {err}") from None
+    for w in caught:
+        say(f"{what}: {w.message}")
+    return out
+
+
+def dark_levels(args) -> tuple:
+    """(raw level, PSF level) from ``--bias`` or ``--dark-raw``/``--dark-psf``."""
+    if args.bias is not None:
+        if args.dark_raw is not None or args.dark_psf is not None:
+            raise DiffcamError("--bias subtracts one level from both the raw and the PSFs; "
+                               "use either it or --dark-raw/--dark-psf, not both.")
+        return args.bias, args.bias
+    return args.dark_raw, args.dark_psf
+
+
+def read_inputs(args, say) -> tuple[np.ndarray, PsfSource]:
+    """The raw capture and the PSFs, dark-subtracted and downsampled alike; checks that
+    the PSF fits in the raw image. ``say`` reports progress notes."""
+    from diffcam.io import downsample, read_image
+
+    raw_level, psf_level = dark_levels(args)
+    if args.downsample < 1:
+        raise DiffcamError(f"--downsample {args.downsample}: give a factor of 1 or more.")
+    raw = read_image(args.raw).image
+    if raw.ndim != 2:
+        raise DiffcamError(f"{args.raw}: expected a grayscale image, got shape {raw.shape}.")
+    source = read_psf_source(args.psf, args.planes)
+    raw = _subtract_dark(raw, raw_level, f"{args.raw} (raw dark level)", say)
+    psfs = _subtract_dark(source.psfs, psf_level, f"{args.psf} (PSF dark level)", say)
+    if args.downsample > 1:
+        raw, psfs = downsample(raw, args.downsample), downsample(psfs, args.downsample)
+    if psfs.shape[-2] > raw.shape[0] or psfs.shape[-1] > raw.shape[1]:
+        raise DiffcamError(f"PSF {psfs.shape[-2:]} is larger than the image {raw.shape}"
+                           f"{' after --downsample' if args.downsample > 1 else ''}; crop "
+                           f"the PSF or use the same downsampling for both.")
+    return raw, source._replace(psfs=np.asarray(psfs, np.float32))
+
+
+def _reporter(quiet: bool):
+    """A function printing one progress line to stderr (nothing with ``--quiet``)."""
+    def say(text: str) -> None:
+        if not quiet:
+            print(f"diffcam reconstruct: {text}", file=sys.stderr, flush=True)
+    return say
+
+
+def _pick_plane(raw, source: PsfSource, args, say) -> np.ndarray:
+    """The one PSF of a 2-D reconstruction: by --depth, --plane or the sharpest."""
+    from diffcam.reconstruct import focus_sweep
+
+    psfs = source.psfs
+    if psfs.ndim == 2:
+        return psfs
+    if args.depth is not None:
+        if source.depths is None:
+            raise DiffcamError("--depth needs a PSF stack with depths (.npz or .tif from "
+                               "`diffcam psf`); use --plane for an image stack.")
+        plane = int(np.argmin(np.abs(source.depths - args.depth)))
+    elif args.plane is not None:
+        plane = args.plane
+    else:
+        say(f"focus sweep over {len(psfs)} planes ({min(args.iterations, 30)} iterations)")
+        plane = int(focus_sweep(raw, psfs, iterations=min(args.iterations, 30)).best)
+        print(f"diffcam reconstruct: sharpest plane {plane} of {len(psfs)}")
+    if not 0 <= plane < len(psfs):
+        raise DiffcamError(f"--plane {plane} is outside the stack of {len(psfs)} PSFs.")
+    return psfs[plane]
+
+
+def _run_2d(args, say) -> int:
+    from diffcam.apps.cli import save_image
+    from diffcam.io import check_output_path
+    from diffcam.reconstruct import admm_tv, richardson_lucy, wiener
+
+    check_output_path(args.out, suffixes=(".png", ".tif", ".tiff", ".npy"))
+    say(f"reading {args.raw} and {args.psf}")
+    raw, source = read_inputs(args, say)
+    psf = _pick_plane(raw, source, args, say)
+    say(f"reconstructing {raw.shape[0]}×{raw.shape[1]}: {args.method}"
+        + ("" if args.method == "wiener" else f", {args.iterations} iterations"))
+    if args.method == "rl":
+        rec = richardson_lucy(raw, psf, args.iterations)
+    elif args.method == "admm":
+        rec = admm_tv(raw / np.linalg.norm(raw), psf / np.linalg.norm(psf), args.iterations)
+    else:
+        rec = wiener(raw, psf)
+    say(f"writing {args.out}")
+    save_image(args.out, rec.image)
+    print(f"diffcam reconstruct: {args.method}, {int(np.max(rec.iterations))} iterations, "
+          f"residual {float(np.nanmin(rec.residual)):.3g} → {args.out}")
+    return 0
+
+
+def volume_paths(out) -> tuple[Path, Path, Path]:
+    """``OUT.tif`` and its companions ``OUT_max.png``, ``OUT_depth.png``, each checked
+    writable (:func:`diffcam.io.check_output_path`) before any work."""
+    from diffcam.io import check_output_path
+
+    out = check_output_path(out, suffixes=(".tif", ".tiff"))
+    paths = (out, out.with_name(out.stem + "_max.png"), out.with_name(out.stem + "_depth.png"))
+    for p in paths[1:]:
+        check_output_path(p)
+    return paths
+
+
+def _solve_3d(raw, psfs, args):
+    from diffcam.reconstruct import admm_tv_3d, richardson_lucy_3d
+
+    if args.method == "rl":
+        return richardson_lucy_3d(raw, psfs, args.iterations)
+    return admm_tv_3d(raw, psfs, args.iterations)
+
+
+def _run_3d(args, say) -> int:
+    from diffcam.core.grid import crop_to
+
+    if args.plane is not None or args.depth is not None:
+        raise DiffcamError("--3d reconstructs every plane of the stack; --plane and --depth "
+                           "choose one plane for a 2-D reconstruction (use --planes to "
+                           "choose the planes of the volume).")
+    if args.method == "wiener":
+        raise DiffcamError("--3d solves with --method rl or admm; wiener is 2-D only.")
+    paths = volume_paths(args.out)
+    say(f"reading {args.raw} and {args.psf}")
+    raw, source = read_inputs(args, say)
+    if source.psfs.ndim != 3:
+        raise DiffcamError(f"{args.psf}: --3d needs a PSF stack (one PSF per depth), got one "
+                           f"PSF of shape {source.psfs.shape}.")
+    nz, my, mx = source.psfs.shape
+    say(f"reconstructing {nz} planes from a {raw.shape[0]}×{raw.shape[1]} image ({my}×{mx} "
+        f"PSFs): {args.method}, {args.iterations} iterations")
+    t0 = time.perf_counter()
+    rec = _solve_3d(raw, source.psfs, args)
+    volume = np.asarray(rec.image if args.full_field else crop_to(rec.image, raw.shape),
+                        np.float32)
+    if not np.isfinite(volume).all():
+        raise DiffcamError("the reconstruction holds NaN/Inf values; check the dark levels "
+                           "and try fewer --iterations.")
+    seconds = time.perf_counter() - t0
+    say(f"writing {paths[0]}, {paths[1].name}, {paths[2].name}")
+    write_volume(paths, volume, source)
+    print(f"diffcam reconstruct: {args.method} 3-D, {nz} planes, "
+          f"{int(np.max(rec.iterations))} iterations ({seconds:.1f} s), residual "
+          f"{float(np.nanmin(rec.residual)):.3g} → {paths[0]}")
+    return 0
+
+
+def _cmd_reconstruct(args) -> int:
+    say = _reporter(args.quiet)
+    return _run_3d(args, say) if args.three_d else _run_2d(args, say)
+
+
+def depth_index(volume, fraction: float = MASK_FRACTION) -> np.ma.MaskedArray:
+    """Index of the brightest plane per pixel, masked where the max projection is below
+    ``fraction`` of its peak (no object there)."""
+    volume = np.asarray(volume)
+    mip = volume.max(axis=0)
+    return np.ma.masked_array(volume.argmax(axis=0), mip < fraction * mip.max())
+
+
+def depth_map_figure(volume, source: PsfSource):
+    """The depth map (:func:`depth_index`) coloured by plane, with a colour bar labelled
+    by depth (mm) or plane number."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    nz, ny, nx = np.shape(volume)
+    width = 6.0
+    fig, ax = plt.subplots(figsize=(width, max(2.5, width * ny / nx * 0.85)),
+                           layout="constrained")
+    ax.set_facecolor("0.8")  # masked pixels
+    image = ax.imshow(depth_index(volume), cmap=plt.get_cmap("turbo", nz), vmin=-0.5,
+                      vmax=nz - 0.5, interpolation="nearest")
+    ticks = np.unique(np.linspace(0, nz - 1, min(nz, 9)).round().astype(int))
+    bar = fig.colorbar(image, ax=ax, ticks=ticks)
+    if source.depths is not None:
+        bar.ax.set_yticklabels([f"{source.depths[t] * 1e3:.4g}" for t in ticks])
+        bar.set_label("source depth z1 (mm)")
+    else:
+        bar.ax.set_yticklabels([str(source.planes[t]) for t in ticks])
+        bar.set_label("plane")
+    ax.set_title(f"brightest plane per pixel (grey: < {MASK_FRACTION:.0%} of the peak)",
+                 fontsize=9)
+    ax.set_xlabel("x (pixels)")
+    ax.set_ylabel("y (pixels)")
+    return fig
+
+
+def write_volume(paths, volume, source: PsfSource) -> None:
+    """Write the volume TIFF (ImageJ, axes ZYX, a label per plane), its max projection
+    (8-bit PNG) and depth map (PNG) together: all three are replaced or none."""
+    import matplotlib.pyplot as plt
+    import tifffile
+
+    from diffcam.apps.cli import save_figure, save_image
+    from diffcam.io import atomic_output
+
+    volume = np.asarray(volume, np.float32)
+    fig = depth_map_figure(volume, source)
+    try:
+        with atomic_output(*paths) as (tmp_volume, tmp_max, tmp_depth):
+            tifffile.imwrite(tmp_volume, volume, imagej=True,
+                             metadata={"axes": "ZYX", "Labels": source.labels()})
+            save_image(tmp_max, volume.max(axis=0), bits=8)
+            save_figure(fig, tmp_depth)
+    finally:
+        plt.close(fig)
+
+
+class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows ``(default: X)`` only where there is a default to show (not None/off)."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False or action.required:
+            return action.help
+        return super()._get_help_string(action)
+
+
+def _add_reconstruct(sub) -> None:
+    """Add ``reconstruct`` to the ``diffcam`` subcommands."""
+    from diffcam.apps.cli import _length
+    from diffcam.apps.fit_cli import _planes_arg
+
+    rec = sub.add_parser(
+        "reconstruct", help="deconvolve a sensor image with a PSF (or a volume with --3d)",
+        formatter_class=_DefaultsFormatter,
+        description="Reconstruct a scene from a raw capture and the PSF of its depth. With "
+                    "a PSF stack, pick the plane by --depth, --plane, or else the sharpest "
+                    "reconstruction; with --3d, reconstruct every plane as a volume "
+                    "(OUT.tif, OUT_max.png, OUT_depth.png). See docs/cli_reconstruct.md.")
+    rec.add_argument("raw", help="raw capture, grayscale (.png, .tif, .npy)")
+    rec.add_argument("--psf", required=True, metavar="SOURCE",
+                     help="PSF image or stack (.png/.tif/.npy, multi-page TIFF, .npz or .tif "
+                          "from `diffcam psf`, .mat), a folder or a quoted glob "
+                          "('psfs/*.png') of single-plane images (natural name order), or "
+                          "a model .npz from `diffcam fit`")
+    rec.add_argument("--planes", type=_planes_arg, metavar="PLANES",
+                     help="planes of the stack or model to use, e.g. 0:43 (ends included), "
+                          "0:43:2 or 3,7,12 (default: all)")
+    rec.add_argument("--3d", dest="three_d", action="store_true",
+                     help="reconstruct a volume over all the (selected) planes; -o OUT.tif")
+    rec.add_argument("--depth", type=_length("depth"), metavar="Z1",
+                     help="2-D: source depth z1 to use, with a unit (25mm)")
+    rec.add_argument("--plane", type=int, metavar="INDEX", help="2-D: index of the PSF plane to use")
+    rec.add_argument("--method", choices=["rl", "admm", "wiener"], default="rl",
+                     help="Richardson–Lucy, ADMM-TV, or Wiener (2-D only)")
+    rec.add_argument("--iterations", type=int, default=150, metavar="N", help="solver iterations")
+    rec.add_argument("--bias", type=float, metavar="COUNTS",
+                     help="sensor bias, counts: the same level subtracted from both the raw "
+                          "and the PSFs (not with --dark-raw/--dark-psf)")
+    rec.add_argument("--dark-raw", type=_dark_arg, metavar="COUNTS|auto",
+                     help="dark level of the raw, counts, or 'auto': the median of a "
+                          f"{DARK_RING}-pixel ring at the frame border")
+    rec.add_argument("--dark-psf", type=_dark_arg, metavar="COUNTS|auto",
+                     help="dark level of the PSFs, counts, or 'auto': per plane, the "
+                          f"median of a {DARK_RING}-pixel ring at the frame border")
+    rec.add_argument("--downsample", type=int, default=1, metavar="FACTOR",
+                     help="box-average factor, pixels per side (raw and PSFs alike)")
+    rec.add_argument("--full-field", action="store_true",
+                     help="--3d: keep the solver's padded object grid instead of cropping "
+                          "the volume to the sensor's frame")
+    rec.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    rec.add_argument("-o", "--out", required=True,
+                     help="output .png, .tif or .npy (2-D); .tif volume (--3d)")
+    rec.set_defaults(func=_cmd_reconstruct)
