@@ -23,28 +23,12 @@ GIVEN = [2, 9]
 
 @pytest.fixture(scope="module")
 def synthetic_stack():
-    """A 12-plane stack from diffcam's own PSF model, NOT the stack model: a 768² grid
-    at 1 µm (a random 30 µm diffuser, 1.5° deflection, aperture radius 154 µm), three
-    wavelengths (515/532/549 nm), z2 = 0.6 mm, z1 from 2 to 10 mm equally spaced in 1/z1,
-    binned 4×4 to 4 µm pixels (96×96), Poisson noise at a peak of 150 photons."""
-    import jax
+    """A 12-plane stack from diffcam's own PSF model, NOT the stack model
+    (:func:`diffcam.calibrate.simulation.measured_stack_simulation`: 768² at 1 µm, three
+    wavelengths, 4×4 binning to 96×96 pixels, Poisson noise)."""
+    from diffcam.calibrate.simulation import measured_stack_simulation
 
-    from diffcam.model import Camera
-    from diffcam.model.camera import random_diffuser
-    from diffcam.model.sensor import bin_pixels
-    from diffcam.model.stack import psf_stack
-
-    n, dx = 768, 1e-6
-    camera = Camera(wavelength=532e-9, z2=0.6e-3, dx=dx, aperture_radius=0.2 * n * dx,
-                    shape=(n, n), pad=26, crop=(n // 2, n // 2))
-    phase = random_diffuser(jax.random.key(3), (n, n), dx, 532e-9, feature_size=30e-6,
-                            deflection=np.deg2rad(1.5))
-    z1 = 1e-3 / np.linspace(1 / 2, 1 / 10, 12)
-    spectrum = (np.array([515e-9, 532e-9, 549e-9]), np.array([0.5, 1.0, 0.5]))
-    stack = psf_stack(phase, camera, z1, spectrum=spectrum, progress=False)
-    pixels = np.asarray(bin_pixels(stack, dx, 4 * dx))
-    pixels = pixels / pixels.max() * 150
-    return np.random.default_rng(0).poisson(pixels).astype(np.float32) + 5
+    return measured_stack_simulation()[0]
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from diffcam.core.errors import ShapeError
 from diffcam.calibrate.near_far import CalibrationGeometry, calibration_intensities
 
 __all__ = ["cameraman_phase", "PaperSimulation",
-           "paper_simulation"]
+           "paper_simulation", "measured_stack_simulation"]
 
 
 def cameraman_phase(size: int = 512) -> Float[Array, "size size"]:
@@ -68,3 +68,41 @@ def paper_simulation(n: int = 1024, size: int = 512, phase=None) -> PaperSimulat
     lo = (size - scored) // 2
     mask = jnp.zeros((size, size), jnp.float32).at[lo:lo + scored, lo:lo + scored].set(1.0)
     return PaperSimulation(phase, aperture, geometry, near, far, truth, mask)
+
+
+def measured_stack_simulation(n_planes: int = 12, *, grid: int = 768, dx: float = 1e-6,
+                              binning: int = 4, photons: float = 150.0, dark: float = 5.0,
+                              seed: int = 3, noise: bool = True
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """A PSF stack as a camera would measure it, made by a higher-fidelity model than
+    the stack model that fits it (:func:`diffcam.calibrate.fit_stack`: monochromatic,
+    thin phase, 2× oversampled): a ``grid``² field at ``dx`` (m) behind a random 30 µm
+    diffuser (1.5° deflection, aperture radius 0.2·grid·dx), z2 = 0.6 mm, three
+    wavelengths (515/532/549 nm, weights ½/1/½), z1 from 2 to 10 mm equally spaced in
+    1/z1, integrated over ``binning``×``binning`` pixels, Poisson noise at a peak of
+    ``photons`` and a dark level of ``dark`` counts (``noise=False``: the expected counts,
+    the truth the noisy planes scatter about).
+
+    Returns:
+        (float32 counts (n_planes, grid/(2·binning), grid/(2·binning)), z1 in m).
+    """
+    import jax
+
+    from diffcam.model import Camera
+    from diffcam.model.camera import random_diffuser
+    from diffcam.model.sensor import bin_pixels
+    from diffcam.model.stack import psf_stack
+
+    camera = Camera(wavelength=532e-9, z2=0.6e-3, dx=dx, aperture_radius=0.2 * grid * dx,
+                    shape=(grid, grid), pad=26, crop=(grid // 2, grid // 2))
+    phase = random_diffuser(jax.random.key(seed), (grid, grid), dx, 532e-9,
+                            feature_size=30e-6, deflection=np.deg2rad(1.5))
+    z1 = 1e-3 / np.linspace(1 / 2, 1 / 10, n_planes)
+    spectrum = (np.array([515e-9, 532e-9, 549e-9]), np.array([0.5, 1.0, 0.5]))
+    stack = psf_stack(phase, camera, z1, spectrum=spectrum, progress=False)
+    pixels = np.asarray(bin_pixels(stack, dx, binning * dx))
+    pixels = pixels / pixels.max() * photons
+    if noise:
+        pixels = np.random.default_rng(0).poisson(pixels)
+    counts = pixels.astype(np.float32) + dark
+    return counts, z1
