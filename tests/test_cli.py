@@ -206,6 +206,9 @@ def test_calibrate_psf_compare_failures(calibration_files, tmp_path):
         (["psf", str(d / "near.tif"), "--z1", "20mm", "--z2", "1mm"], "phase file"),
         (["psf", str(tmp_path / "none.npz"), "--z1", "20mm", "--z2", "1mm"], "no such file"),
         (["psf", str(d / "phase.npz"), "--z1", "20mm:10mm:1mm", "--z2", "1mm"], "start ≤ stop"),
+        (["psf", str(d / "phase.npz"), "--z2", "1mm"], "needs --z1"),
+        (["psf", str(d / "phase.npz"), "--planes", "0:3", "--z1", "20mm", "--z2", "1mm"],
+         "--planes is for a stack-fit model"),
         (["compare", str(tmp_path / "small.tif"), "--phase", str(d / "phase.npz"),
           "--z2", "1mm"], "stack"),
     ]

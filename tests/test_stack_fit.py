@@ -257,6 +257,14 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     images = tifffile.imread(pred)
     assert images.shape == (11, 64, 80) and np.isfinite(images).all()
     np.testing.assert_allclose(images, fit.predict(range(11)), rtol=1e-6)
+    # `diffcam psf` takes the model too (plane indices, not depths)
+    via_psf = tmp_path / "via_psf.tif"
+    assert main(["psf", str(model), "--planes", "0:10", "-o", str(via_psf)]) == 0
+    np.testing.assert_array_equal(tifffile.imread(via_psf), images)
+    capsys.readouterr()
+    assert main(["psf", str(model), "--z1", "25mm", "--z2", "1mm", "-o", str(via_psf)]) == 2
+    assert "stack-fit model" in capsys.readouterr().err
+    np.testing.assert_array_equal(tifffile.imread(via_psf), images)   # left as it was
     fig, js = tmp_path / "cmp.png", tmp_path / "cmp.json"
     assert main(["compare-stack", str(src), "--model", str(model), "-o", str(fig),
                  "--json", str(js)]) == 0

@@ -114,9 +114,18 @@ def _camera_for(phase_file, z2, crop):
 
 
 def _cmd_psf(args) -> int:
+    from diffcam.apps.reconstruct_cli import is_stack_fit
     from diffcam.calibrate.phase_io import load_phase
     from diffcam.model.stack import psf_stack
 
+    if is_stack_fit(args.phase):
+        return _psf_from_stack_fit(args)
+    if args.planes is not None:
+        raise DiffcamError("--planes is for a stack-fit model from `diffcam fit`; a phase "
+                           "file takes depths: --z1 and --z2.")
+    if args.z1 is None or args.z2 is None:
+        raise DiffcamError("a phase file needs --z1 (depths) and --z2 (diffuser to sensor), "
+                           "with units, e.g. --z1 22mm:30mm:1mm --z2 1mm.")
     phase_file = load_phase(args.phase)
     camera = _camera_for(phase_file, args.z2, args.crop)
     depths = args.z1
@@ -129,6 +138,20 @@ def _cmd_psf(args) -> int:
     print(f"diffcam psf: {len(depths)} PSFs of {stack.shape[-2]}×{stack.shape[-1]} "
           f"(z1 {depths[0] * 1e3:g}–{depths[-1] * 1e3:g} mm, z2 {args.z2 * 1e3:g} mm) → {args.out}")
     return 0
+
+
+def _psf_from_stack_fit(args) -> int:
+    """``diffcam psf MODEL.npz --planes …``: the planes of a stack fit (as `diffcam
+    predict`); a stack fit knows plane indices, not depths."""
+    from diffcam.apps.fit_cli import _cmd_predict
+
+    given = [f for f, v in (("--z1", args.z1), ("--z2", args.z2), ("--crop", args.crop))
+             if v is not None]
+    if given:
+        raise DiffcamError(f"{args.phase} is a stack-fit model: it predicts plane indices "
+                           f"(--planes 0:43), it does not take {', '.join(given)}.")
+    return _cmd_predict(argparse.Namespace(model=args.phase, planes=args.planes, kappa=None,
+                                           rendered_only=False, out=args.out))
 
 
 def _grid_for(aperture_radius, dx):
@@ -344,16 +367,26 @@ def _add_calibrate(sub) -> None:
 
 
 def _add_psf(sub) -> None:
-    ps = sub.add_parser("psf", help="PSFs at depths from a phase file",
+    from diffcam.apps.fit_cli import _planes_arg
+
+    ps = sub.add_parser("psf", help="PSFs at depths from a phase file or a stack fit",
                         description="Compute the camera's PSF (paper Eq. 7) for point "
                                     "sources on axis at each depth; writes .npz or a "
-                                    "multi-page ImageJ TIFF with metadata.")
-    ps.add_argument("phase", help="phase file from `diffcam calibrate`")
-    ps.add_argument("--z1", type=_lengths("z1"), required=True,
-                    help="depth(s): 25mm, 22mm,25mm or 22mm:30mm:1mm (end included)")
-    ps.add_argument("--z2", type=_length("z2"), required=True, help="diffuser to sensor")
+                                    "multi-page ImageJ TIFF with metadata. Given a model "
+                                    "from `diffcam fit`, predict its planes (--planes), as "
+                                    "`diffcam predict` does.")
+    ps.add_argument("phase", help="phase file from `diffcam calibrate`, or a stack-fit "
+                                  "model from `diffcam fit`")
+    ps.add_argument("--z1", type=_lengths("z1"),
+                    help="depth(s): 25mm, 22mm,25mm or 22mm:30mm:1mm (end included); "
+                         "needed with a phase file")
+    ps.add_argument("--z2", type=_length("z2"),
+                    help="diffuser to sensor; needed with a phase file")
+    ps.add_argument("--planes", type=_planes_arg,
+                    help="stack-fit model only: planes, e.g. 0:43 (default: all)")
     ps.add_argument("--crop", type=int, help="square crop of each PSF (samples)")
-    ps.add_argument("-o", "--out", required=True, help="output .npz or .tif")
+    ps.add_argument("-o", "--out", required=True,
+                    help="output .npz or .tif (a stack fit: .tif or .npy)")
     ps.set_defaults(func=_cmd_psf)
 
 
