@@ -211,6 +211,9 @@ def test_calibrate_psf_compare_failures(calibration_files, tmp_path):
          "--planes is for a stack-fit model"),
         (["compare", str(tmp_path / "small.tif"), "--phase", str(d / "phase.npz"),
           "--z2", "1mm"], "stack"),
+        (["compare", str(tmp_path / "small.tif"), "--phase", str(d / "phase.npz")],
+         "needs --z2"),
+        (["compare", str(tmp_path / "small.tif")], "either --phase"),
     ]
     for args, message in cases:
         r = _diffcam(*args, "-o", str(out))

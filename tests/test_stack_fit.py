@@ -270,6 +270,10 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
                  "--json", str(js)]) == 0
     result = json.loads(js.read_text())
     assert len(result["per_plane"]) == 16 and fig.stat().st_size > 0
+    js2 = tmp_path / "cmp2.json"        # `diffcam compare --model` is the same comparison
+    assert main(["compare", str(src), "--model", str(model), "-o", str(fig),
+                 "--json", str(js2)]) == 0
+    assert json.loads(js2.read_text()) == result
     assert result["mean_held_out"]["held_out"] == 14
     # a bad planes argument is a usage error; a plane out of range is a DiffcamError
     assert main(["fit", str(src), "--planes", "4,40", "-o", str(model)]) == 2

@@ -239,6 +239,16 @@ def _cmd_compare(args) -> int:
     from diffcam.model.sensor import bin_pixels
     from diffcam.model.stack import psf_stack
 
+    if (args.model is None) == (args.phase is None):
+        raise DiffcamError("give either --phase (a phase file, with --z2) or --model (a "
+                           "stack fit from `diffcam fit`).")
+    if args.model is not None:
+        return _compare_stack_fit(args)
+    if args.z2 is None:
+        raise DiffcamError("--phase needs --z2 (diffuser to sensor, with a unit).")
+    if args.json is not None:
+        raise DiffcamError("--json is written with --model; with --phase the table is "
+                           "printed and the figure written.")
     captured, depths = _read_psfs(args.captured)
     if captured.ndim != 3:
         raise DiffcamError(f"{args.captured}: expected a stack of PSFs (nz, ny, nx), got "
@@ -390,15 +400,32 @@ def _add_psf(sub) -> None:
     ps.set_defaults(func=_cmd_psf)
 
 
+def _compare_stack_fit(args) -> int:
+    """``diffcam compare STACK --model MODEL.npz``: as ``diffcam compare-stack``."""
+    from diffcam.apps.fit_cli import _cmd_compare_stack
+
+    given = [f for f, v in (("--z1", args.z1), ("--z2", args.z2), ("--pixel", args.pixel),
+                            ("--anchor", args.anchor)) if v is not None]
+    if given:
+        raise DiffcamError(f"--model compares by plane index; it does not take "
+                           f"{', '.join(given)}.")
+    return _cmd_compare_stack(argparse.Namespace(stack=args.captured, model=args.model,
+                                                 key=None, out=args.out, json=args.json))
+
+
 def _add_compare(sub) -> None:
     cmp_ = sub.add_parser("compare", help="captured vs model vs scaled PSFs per depth",
                           description="Pearson (registered) of the wave model and of the "
                                       "scaling baseline against captured PSFs, per depth; "
-                                      "prints a table and writes a figure.")
+                                      "prints a table and writes a figure. With --model (a "
+                                      "fit from `diffcam fit`), per plane as `diffcam "
+                                      "compare-stack`.")
     cmp_.add_argument("captured", help="captured PSF stack (multi-page TIFF or diffcam .npz)")
-    cmp_.add_argument("--phase", required=True, help="phase file from `diffcam calibrate`")
+    cmp_.add_argument("--phase", help="phase file from `diffcam calibrate`")
+    cmp_.add_argument("--model", help="or a stack-fit model from `diffcam fit`")
+    cmp_.add_argument("--json", help="with --model: per-plane scores (.json)")
     cmp_.add_argument("--z1", type=_lengths("z1"), help="depth of each captured PSF")
-    cmp_.add_argument("--z2", type=_length("z2"), required=True)
+    cmp_.add_argument("--z2", type=_length("z2"), help="diffuser to sensor (with --phase)")
     cmp_.add_argument("--pixel", type=_length("pixel"), help="captured PSFs' pixel pitch")
     cmp_.add_argument("--anchor", type=_length("anchor"),
                       help="depth of the PSF the scaling baseline magnifies (default: first)")
