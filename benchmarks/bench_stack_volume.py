@@ -5,9 +5,8 @@ Usage: python -m benchmarks.bench_stack_volume [--planes 5,27] [--iterations 200
        [--downsample 2] [--solver admm|rl] [--figure PATH]
 
 The raw capture (``example_raw.png``, a tilted USAF target, bias subtracted, in counts)
-is reconstructed three times with :func:`diffcam.reconstruct.admm_tv_3d` (3-D TV,
-``ADMM`` below: the penalties with which the tilted target's depth changes steadily
-across it in ``tests/test_real_data.py``; ``--solver rl``: :func:`richardson_lucy_3d`),
+is reconstructed three times with :func:`diffcam.reconstruct.admm_tv_3d` (3-D TV, its
+defaults: μ1 = μ2 = μ3 = 1e-3, τ = 6e-4; ``--solver rl``: :func:`richardson_lucy_3d`),
 each time
 with a 44-plane stack prepared the same way (:func:`diffcam.calibrate.prepare_planes`:
 border-median dark level, unit mean per plane; then box-downsampled and clipped at 0):
@@ -44,8 +43,6 @@ from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import scaling_baseline
 from diffcam.io import downsample
 from diffcam.reconstruct import admm_tv_3d, richardson_lucy_3d
-
-ADMM = dict(mu1=1e-3, mu2=1e-3, mu3=1e-3, tau=6e-4)
 
 def column_depths(volume: np.ndarray, columns: np.ndarray) -> np.ndarray:
     """Depth of best focus of each of ``columns``: the plane holding most of the
@@ -135,7 +132,7 @@ def main(argv=None) -> None:
     for name, stack in psfs.items():
         t0 = time.perf_counter()
         psf = np.clip(downsample(stack.astype(np.float32), args.downsample), 0, None)
-        rec = admm_tv_3d(raw, psf, args.iterations, **ADMM) if args.solver == "admm" \
+        rec = admm_tv_3d(raw, psf, args.iterations) if args.solver == "admm" \
             else richardson_lucy_3d(raw, psf, args.iterations)
         volumes[name] = np.asarray(crop_to(rec.image, raw.shape), np.float64)
         seconds[name] = time.perf_counter() - t0

@@ -135,7 +135,7 @@ raw3d = load_raw_3d(downsample_by=2)
 volumes = {}
 for name, psfs in prepared.items():
     psfs = np.clip(downsample(np.asarray(psfs, np.float32), factor) if factor > 1 else psfs, 0, None)
-    rec = admm_tv_3d(raw3d, psfs, 20 if SMALL else 40, mu1=1e-3, mu2=1e-3, mu3=1e-3, tau=6e-4)
+    rec = admm_tv_3d(raw3d, psfs, 20 if SMALL else 40)
     volumes[name] = np.asarray(crop_to(rec.image, raw3d.shape))
 reference = volumes["measured"]
 fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), layout="constrained")

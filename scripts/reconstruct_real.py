@@ -75,8 +75,7 @@ def volume(out_dir: Path, iterations: int, factor: int) -> None:
     raw = load_raw_3d(downsample_by=factor)
     weights = stack.sum(axis=(1, 2))[:, None, None]   # light each plane sends to the sensor
     runs = {
-        "admm": ("ADMM-TV 3-D", lambda: admm_tv_3d(raw, stack, iterations, mu1=1e-3,
-                                                   mu2=1e-3, mu3=1e-3, tau=6e-4)),
+        "admm": ("ADMM-TV 3-D", lambda: admm_tv_3d(raw, stack, iterations)),
         "rl": ("Richardson–Lucy 3-D", lambda: richardson_lucy_3d(raw, stack, 2 * iterations)),
     }
     for key, (label, solve) in runs.items():

@@ -103,7 +103,7 @@ def _best_depth_per_column(volume, stack, sensor_shape):
 
 def test_tilted_usaf_target_admm_3d(volume_data):
     stack, raw = volume_data
-    out = admm_tv_3d(raw, stack, 40, mu1=1e-3, mu2=1e-3, mu3=1e-3, tau=6e-4)
+    out = admm_tv_3d(raw, stack, 40)                       # the defaults are these settings
     assert out.image.shape == (44,) + out.image.shape[1:]
     assert float(out.image.min()) >= 0
     assert float(out.residual[-1]) < 0.01                 # 0.005 measured
