@@ -14,33 +14,19 @@ while the TIFF written grows with them (N² float32 per depth).
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
 import sys
 import tempfile
-import textwrap
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from benchmarks.harness import markdown_table, write_json
+from benchmarks.harness import markdown_table, run_probed, write_json
 
 LAM, DX, Z2, Z1_RANGE = 532e-9, 5e-6, 1e-3, (22e-3, 30e-3)
 FLAT = 0.10   # the claim: peak RSS within 10 % across depth counts
-
-_PROBE = textwrap.dedent("""
-    import json, resource, subprocess, sys, time
-    t = time.perf_counter()
-    done = subprocess.run(sys.argv[1:], capture_output=True, text=True)
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024  # Linux: KiB
-    print(json.dumps({"rc": done.returncode, "wall_s": time.perf_counter() - t,
-                      "peak_bytes": peak, "stdout": done.stdout[-400:],
-                      "stderr": done.stderr[-2000:]}))
-""")
-
 
 def write_phase(path: Path, n: int) -> None:
     """A random diffuser on an n² grid as a diffcam phase file (``.npz``)."""
@@ -62,9 +48,7 @@ def run_cli(phase: Path, out: Path, count: int) -> dict:
     """One ``diffcam psf`` run in a fresh probe; its peak RSS, wall time and output size."""
     cmd = [sys.executable, "-m", "diffcam", "psf", str(phase), "--z1", depth_range(count),
            "--z2", f"{Z2 * 1e3:g}mm", "-o", str(out)]
-    probe = subprocess.run([sys.executable, "-c", _PROBE, *cmd], capture_output=True,
-                           text=True, timeout=3600, cwd=Path(__file__).resolve().parents[1])
-    record = json.loads(probe.stdout.strip().splitlines()[-1])
+    record = run_probed(cmd)
     if record["rc"]:
         raise RuntimeError(f"diffcam psf failed ({record['rc']}): {record['stderr']}")
     if f"{count} PSFs" not in record["stdout"]:

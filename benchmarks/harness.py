@@ -126,3 +126,29 @@ def optional_import(name: str, note: list[str]):
     except Exception as e:  # a missing peer is skipped, never fatal
         note.append(f"{name} not available ({type(e).__name__}: {e}); skipped")
         return None
+
+
+_PROBE = """
+import json, resource, subprocess, sys, time
+t = time.perf_counter()
+done = subprocess.run(sys.argv[1:], capture_output=True, text=True)
+peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024  # Linux: KiB
+print(json.dumps({"rc": done.returncode, "wall_s": time.perf_counter() - t,
+                  "peak_bytes": peak, "stdout": done.stdout[-400:],
+                  "stderr": done.stderr[-2000:]}))
+"""
+
+
+def run_probed(cmd: list[str], cwd=None, timeout: float = 3600) -> dict:
+    """Run ``cmd`` in a fresh probe process whose only child it is, so that
+    ``resource.getrusage(RUSAGE_CHILDREN).ru_maxrss`` is the command's own peak RSS.
+    Returns ``{"rc", "wall_s", "peak_bytes", "stdout", "stderr"}`` (the last 400 and
+    2000 characters of the outputs)."""
+    import json
+    import subprocess
+    import sys
+
+    probe = subprocess.run([sys.executable, "-c", _PROBE, *cmd], capture_output=True,
+                           text=True, timeout=timeout,
+                           cwd=cwd or Path(__file__).resolve().parents[1])
+    return json.loads(probe.stdout.strip().splitlines()[-1])

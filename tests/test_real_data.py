@@ -15,8 +15,8 @@ from scipy.stats import spearmanr
 from diffcam.data import load_psf_stack_3d, load_raw_3d, load_tutorial_pair
 from diffcam.core.grid import crop_to
 from diffcam.io import normalise_l2, read_psf_stack
-from diffcam.reconstruct import (admm_tv, admm_tv_3d, richardson_lucy, richardson_lucy_3d,
-                                 wiener)
+from diffcam.reconstruct import (admm_tv, admm_tv_3d, focus_sweep, richardson_lucy,
+                                 richardson_lucy_3d, wiener)
 
 SHARED_3D = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "diffusercam_3d"
 
@@ -101,9 +101,15 @@ def _best_depth_per_column(volume, stack, sensor_shape):
     return target, columns[:, target].argmax(axis=0)
 
 
-def test_tilted_usaf_target_admm_3d(volume_data):
+@pytest.fixture(scope="module")
+def admm_volume(volume_data):
     stack, raw = volume_data
-    out = admm_tv_3d(raw, stack, 40)                       # the defaults are these settings
+    return admm_tv_3d(raw, stack, 40)                      # the defaults are these settings
+
+
+def test_tilted_usaf_target_admm_3d(volume_data, admm_volume):
+    stack, raw = volume_data
+    out = admm_volume
     assert out.image.shape == (44,) + out.image.shape[1:]
     assert float(out.image.min()) >= 0
     assert float(out.residual[-1]) < 0.01                 # 0.005 measured
@@ -120,3 +126,17 @@ def test_tilted_usaf_target_richardson_lucy_3d(volume_data):
     assert float(out.residual[-1]) < 0.12                 # 0.089 measured
     target, best = _best_depth_per_column(out.image, stack, raw.shape)
     assert spearmanr(target, best)[0] < -0.4               # -0.64 measured: RL is blurrier
+
+
+def test_focus_sweep_finds_the_target_depth(volume_data, admm_volume):
+    """The plane a 2-D focus sweep picks lies within the depths the 3-D reconstruction
+    gives the tilted target; the sharpness of Richardson–Lucy reconstructions picks the
+    stack's first plane."""
+    stack, raw = volume_data
+    _, best_3d = _best_depth_per_column(admm_volume.image, stack, raw.shape)
+    sweep = focus_sweep(raw, stack[::2], 60)
+    plane = 2 * int(sweep.best)
+    assert best_3d.min() <= plane <= best_3d.max()
+    assert 4 <= plane <= 40                                # 28 measured, not an end
+    rl = focus_sweep(raw, stack[::2], 30, method="rl", measure="sharpness")
+    assert int(rl.best) == 0

@@ -64,8 +64,8 @@ def test_volume_puts_each_point_in_its_plane(scene, capsys):
 
     d, _ = scene
     out = d / "vol.tif"
-    assert _run(d / "raw.npy", "--psf", d / "psfs.tif", "--3d", "--iterations", 200,
-                "-o", out) == 0
+    assert _run(d / "raw.npy", "--psf", d / "psfs.tif", "--3d", "--method", "rl",
+                "--iterations", 200, "-o", out) == 0
     err = capsys.readouterr().err
     assert "reading" in err and "200 iterations" in err and "writing" in err
     volume, axes, meta = _volume(out)
@@ -225,20 +225,21 @@ def test_help_shows_defaults_with_units(capsys):
         main(["reconstruct", "--help"])
     assert stop.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    for words in ("(default: 150)", "(default: rl)", "(default: 1)", "counts", "'auto'",
-                  "--3d", "natural name order"):
+    for words in ("default: 100 for admm, 1000 for rl; with --3d 100 for admm, 300 for rl",
+                  "(default: admm)", "(default: 1)", "counts", "'auto'", "--3d",
+                  "natural name order"):
         assert words in text, words
 
 
 def test_real_capture_matches_the_api(tmp_path):
     """The shipped DiffuserCam capture at 1/8 size (33×40, 44 planes) through the CLI
-    gives the volume richardson_lucy_3d gives called directly (cropped to the sensor
-    frame as the CLI does): finite, max projections correlated (measured: Pearson
-    1.000000; a CLI that changed the data, the crop or the plane order would fall well
-    below the bound)."""
+    gives the volume admm_tv_3d (the default method) gives called directly (cropped to
+    the sensor frame as the CLI does): finite, max projections correlated (measured:
+    Pearson 1.000000; a CLI that changed the data, the crop or the plane order would
+    fall well below the bound)."""
     from diffcam.core.grid import crop_to
     from diffcam.data import load_psf_stack_3d, load_raw_3d
-    from diffcam.reconstruct import richardson_lucy_3d
+    from diffcam.reconstruct import admm_tv_3d
 
     raw, psfs = load_raw_3d(downsample_by=8), load_psf_stack_3d(downsample_by=8)
     assert raw.shape == (33, 40) and psfs.shape == (44, 33, 40)
@@ -248,7 +249,7 @@ def test_real_capture_matches_the_api(tmp_path):
                 "--iterations", 60, "--quiet", "-o", tmp_path / "vol.tif") == 0
     volume = _volume(tmp_path / "vol.tif")[0]
     assert volume.shape == (44, 33, 40) and np.isfinite(volume).all()
-    direct = np.asarray(crop_to(richardson_lucy_3d(raw, psfs, 60).image, raw.shape))
+    direct = np.asarray(crop_to(admm_tv_3d(raw, psfs, 60).image, raw.shape))
     pearson = np.corrcoef(volume.max(axis=0).ravel(), direct.max(axis=0).ravel())[0, 1]
     assert pearson > 0.999, pearson
 

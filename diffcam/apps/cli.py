@@ -74,6 +74,24 @@ def save_figure(fig, path) -> None:
     plt.close(fig)
 
 
+def save_open_figures(stem: str, folder=None) -> list[Path]:
+    """Write every open matplotlib figure as ``FOLDER/STEM_k.png`` (k = 1, 2, … in the
+    order they were made) with :func:`save_figure`, and close them: how a notebook run
+    as a script leaves its figures. ``FOLDER``: ``$DIFFCAM_FIGURES``, else ``figures``
+    in the working folder (made if missing)."""
+    import os
+
+    import matplotlib.pyplot as plt
+
+    folder = Path(folder or os.environ.get("DIFFCAM_FIGURES", "figures"))
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k, number in enumerate(plt.get_fignums(), start=1):
+        paths.append(folder / f"{stem}_{k}.png")
+        save_figure(plt.figure(number), paths[-1])
+    return paths
+
+
 def _read_psfs(path):
     """A PSF or PSF stack from an image file, a MATLAB ``.mat`` stack or a stack written
     by diffcam (``.npz``, ``.npy`` with its ``.json``, ``.tif`` with stack metadata);
@@ -327,6 +345,27 @@ def _add_demo(sub) -> None:
     demo.set_defaults(func=_cmd_demo)
 
 
+def _cmd_data(args) -> int:
+    from diffcam.data import export_captures
+
+    paths = export_captures(args.name, args.out, overwrite=args.force)
+    print(f"diffcam data: {len(paths)} files → {args.out}")
+    return 0
+
+
+def _add_data(sub) -> None:
+    data = sub.add_parser("data", help="write a built-in capture set as image files",
+                          description="Write a built-in measured capture set (Waller Lab "
+                                      "DiffuserCam data) as the image files a camera gives: "
+                                      "'hand' (a 2-D capture and its PSF) or 'usaf3d' (a "
+                                      "3-D capture and its 44-plane PSF stack, one file "
+                                      "per plane). See docs/real_data.md.")
+    data.add_argument("name", choices=["hand", "usaf3d"], help="capture set")
+    data.add_argument("-o", "--out", default="captures", help="folder (default: captures)")
+    data.add_argument("--force", action="store_true", help="overwrite existing files")
+    data.set_defaults(func=_cmd_data)
+
+
 def _add_plan(sub) -> None:
     plan = sub.add_parser("plan", help="check the sampling of a diffuser-camera geometry",
                           description="Report Fresnel numbers, point-source chirp sampling, "
@@ -437,8 +476,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_demo, _add_plan, _add_reconstruct, _add_calibrate, _add_psf, _add_compare,
-                _add_fit):
+    for add in (_add_demo, _add_data, _add_plan, _add_reconstruct, _add_calibrate, _add_psf,
+                _add_compare, _add_fit):
         add(sub)
     return parser
 

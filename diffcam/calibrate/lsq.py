@@ -63,6 +63,7 @@ from diffcam.calibrate.projections import initial_phase, retrieve_projections
 from diffcam.calibrate.result import RetrievalResult
 from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError, check_field
+from diffcam.core.progress import progress_bar, tick
 from diffcam.core.grid import crop_to, pad_to
 
 __all__ = ["FitOptions", "fit_phase", "retrieve_lsq", "near_far_model", "PhaseGrid", "JaxoptLBFGS",
@@ -285,12 +286,13 @@ def _scan_optimistix(problem, params, opt, iterations):
     # the state holds jaxprs beside arrays: carry only the arrays through the scan
     dynamic, static = eqx.partition(state, eqx.is_array)
 
-    def body(carry, _):
+    def body(carry, k):
+        tick(k)
         y, dynamic = carry
         y, state, _ = opt.step(fn, y, None, {}, eqx.combine(dynamic, static), frozenset())
         return (y, eqx.filter(state, eqx.is_array)), _half_sum_squares(problem.residuals(y))
 
-    (params, _), history = jax.lax.scan(body, (params, dynamic), None, length=iterations)
+    (params, _), history = jax.lax.scan(body, (params, dynamic), jnp.arange(iterations))
     return params, history
 
 
@@ -306,12 +308,13 @@ def _scan_jaxopt(problem, params, opt, iterations):
                           maxiter=iterations, tol=0.0, history_size=opt.history_size)
     state = solver.init_state(params)
 
-    def body(carry, _):
+    def body(carry, k):
+        tick(k)
         y, state = carry
         y, state = solver.update(y, state)
         return (y, state), state.value
 
-    (params, _), history = jax.lax.scan(body, (params, state), None, length=iterations)
+    (params, _), history = jax.lax.scan(body, (params, state), jnp.arange(iterations))
     return params, history
 
 
@@ -396,7 +399,8 @@ class FitOptions(Options):
 
 def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
               phase_grid: PhaseGrid, *, support=None, masks=None,
-              options: FitOptions = FitOptions(), extra0=None) -> RetrievalResult:
+              options: FitOptions = FitOptions(), extra0=None,
+              progress: bool = True) -> RetrievalResult:
     """Fit the phase (and per-image scale and background) to measured intensities.
 
     The engine under :func:`retrieve_lsq` and :func:`diffcam.calibrate.fit_to_psfs`.
@@ -413,6 +417,8 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
         masks: K weight images (0 = ignore, e.g. saturated pixels), or ``None``.
         options: :class:`FitOptions` (loss, solver, iterations, regularisation).
         extra0: starting extra parameters passed to ``model`` (fitted too).
+        progress: a progress bar for fits over 2 s (:mod:`diffcam.core.progress`;
+            ``DIFFCAM_PROGRESS=0`` turns every bar off).
 
     Returns:
         :class:`RetrievalResult`; ``stats["status"]`` is :func:`fit_status` of the run.
@@ -443,8 +449,9 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
                        bool(fit_background), (float(smoothness) > 0, float(tv) > 0))
     params = {"theta": jnp.asarray(theta0, dtype),
               "extra": jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), extra0)}
-    start, history, params, scale, background = _run_fit(problem, params, opt,
-                                                         int(iterations))
+    with progress_bar(int(iterations), "least squares", progress):
+        start, history, params, scale, background = jax.block_until_ready(
+            _run_fit(problem, params, opt, int(iterations)))
     phase = jnp.angle(jnp.exp(1j * phase_grid.expand(params["theta"])))
     phase.block_until_ready()
     status = fit_status(float(start), np.asarray(history))

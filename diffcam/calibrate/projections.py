@@ -44,6 +44,7 @@ from diffcam.core.backend import fft2, ifft2
 
 from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError, check_finite
+from diffcam.core.progress import progress_bar, tick
 from diffcam.optics.propagation import apply_transfer, transfer_function
 from diffcam.calibrate.near_far import CalibrationGeometry, check_captures, check_far_pitch
 from diffcam.calibrate.planes import check_planes
@@ -106,7 +107,8 @@ def _iterate(u0, near_amp, far_amp, planes, beta, *, method, iterations):
     p_near, p_far = _operators(near_amp, far_amp, planes)
     norm = jnp.linalg.norm(near_amp)
 
-    def step(u, _):
+    def step(u, k):
+        tick(k)
         pm = p_far(u)
         err = jnp.linalg.norm(jnp.abs(pm) - near_amp) / norm
         if method == "gs":
@@ -117,7 +119,7 @@ def _iterate(u0, near_amp, far_amp, planes, beta, *, method, iterations):
             u = beta * u + beta * p_near(2 * pm - u) + (1 - 2 * beta) * pm
         return u, err
 
-    u, history = jax.lax.scan(step, u0, None, length=iterations)
+    u, history = jax.lax.scan(step, u0, jnp.arange(iterations))
     return p_near(p_far(u)), history
 
 
@@ -188,7 +190,7 @@ class ProjectionOptions(Options):
 def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
                          geometry: CalibrationGeometry, *,
                          options: ProjectionOptions | None = None, key=None, far_pitch=None,
-                         planes=(), **overrides) -> RetrievalResult:
+                         planes=(), progress: bool = True, **overrides) -> RetrievalResult:
     """Retrieve the diffuser phase from near- and far-field intensities by projections.
 
     Args:
@@ -205,6 +207,7 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
             PSF through :func:`~diffcam.calibrate.psf_plane`): each adds a projection
             (one FFT pair) averaged with the far-field one; they break the twin and
             un-stall strongly scattering diffusers.
+        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
 
     Returns:
         :class:`RetrievalResult`; ``stats["restart_errors"]`` holds each run's final error.
@@ -231,8 +234,9 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
     near_f, far_f = _to_fft_order(near_amp), _to_fft_order(far_amp)
     extra = _plane_operands(check_planes(planes, shape), near_amp, geometry, z)
     run = partial(_iterate, method=method, iterations=iterations)
-    u, histories = jax.vmap(run, (0, None, None, None, None))(fields, near_f, far_f, extra,
-                                                              jnp.float32(beta))
+    with progress_bar(iterations, method.upper(), progress):
+        u, histories = jax.block_until_ready(jax.vmap(run, (0, None, None, None, None))(
+            fields, near_f, far_f, extra, jnp.float32(beta)))
     best = int(jnp.argmin(histories[:, -1]))
     u = u[best]
     if H is not None:

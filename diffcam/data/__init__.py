@@ -5,6 +5,8 @@
 * :func:`load_psf_stack_3d` — the 44-plane DiffuserCam 3-D PSF stack, 270x320, values
   as LCAV normalised them (one global min-max over the stack, so 0 … 1).
 * :func:`load_raw_3d` — the raw 3-D capture (a tilted USAF target) that goes with it.
+* :func:`export_captures` — write either set as the image files a camera gives
+  (``diffcam data``), for the command line's real-data walkthrough (docs/real_data.md).
 
 The arrays are NumPy float32 in sensor counts unless said otherwise.
 """
@@ -22,7 +24,7 @@ from diffcam.io import BackgroundWarning, downsample
 from diffcam.io import subtract_background as _subtract
 
 __all__ = ["DATA_DIR", "TutorialPair", "load_tutorial_pair", "load_psf_stack_3d",
-           "load_raw_3d", "IMAGE_BIAS_3D"]
+           "load_raw_3d", "IMAGE_BIAS_3D", "CAPTURES", "export_captures"]
 
 DATA_DIR = Path(__file__).resolve().parent
 IMAGE_BIAS_3D = 100.0
@@ -107,3 +109,63 @@ def load_raw_3d(*, subtract_bias: bool = True, downsample_by: int = 1) -> np.nda
             warnings.simplefilter("ignore", BackgroundWarning)
             image = _subtract(image, IMAGE_BIAS_3D)
     return downsample(image, downsample_by) if downsample_by != 1 else image
+
+
+CAPTURES = ("hand", "usaf3d")
+"""The built-in capture sets :func:`export_captures` writes."""
+
+
+def _capture_files(name: str) -> dict[str, np.ndarray]:
+    """File name (relative) → array, as a camera would have written them."""
+    if name == "hand":
+        pair = load_tutorial_pair(subtract_background=False)
+        return {"hand_raw.tif": pair.image, "hand_psf.tif": pair.psf}
+    d = _npz("diffusercam_3d.npz")
+    files = {"usaf_raw.png": d["image"]}
+    files.update({f"psfs/psf{k:02d}.tif": plane for k, plane in enumerate(d["psf_stack"])})
+    return files
+
+
+def export_captures(name: str, folder, *, overwrite: bool = False) -> list[Path]:
+    """Write a built-in capture set as image files, the way a camera gives them (dark
+    level not subtracted):
+
+    * ``"hand"``: ``hand_raw.tif`` and ``hand_psf.tif``, float32 counts, 300 × 400
+      (the DiffuserCam tutorial pair, box-averaged by 4; dark level 34 counts);
+    * ``"usaf3d"``: ``usaf_raw.png`` (16-bit counts, 270 × 320, sensor bias 100) and
+      ``psfs/psf00.tif`` … ``psf43.tif`` (16-bit, the stack's normalised values × 65535;
+      plane 0 nearest the camera).
+
+    All files are written together (:func:`diffcam.io.atomic_output`); an existing file
+    is an error unless ``overwrite``.
+
+    Returns:
+        The paths written.
+
+    Raises:
+        DiffcamError: an unknown name, or files that exist (without ``overwrite``).
+    """
+    import tifffile
+    from skimage.io import imsave
+
+    from diffcam.core.errors import DiffcamError
+    from diffcam.io import atomic_output
+
+    if name not in CAPTURES:
+        raise DiffcamError(f"unknown capture set {name!r}; choose one of {CAPTURES}.")
+    files = _capture_files(name)
+    folder = Path(folder)
+    paths = [folder / f for f in files]
+    existing = [str(p) for p in paths if p.exists()]
+    if existing and not overwrite:
+        raise DiffcamError(f"{existing[0]} exists ({len(existing)} of the {len(paths)} "
+                           f"files); choose another folder, or overwrite (--force).")
+    for p in paths:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(*paths) as temps:
+        for tmp, image in zip(temps if len(paths) > 1 else [temps], files.values()):
+            if tmp.suffix == ".png":
+                imsave(tmp, image, check_contrast=False)
+            else:
+                tifffile.imwrite(tmp, image)
+    return paths

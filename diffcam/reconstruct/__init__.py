@@ -3,7 +3,8 @@
 * :func:`richardson_lucy` — paper Eq. 15, jitted; ``convention="skimage"`` reproduces
   scikit-image; Biggs–Andrews acceleration; Dey et al. TV regularisation.
 * :func:`richardson_lucy_3d`, :func:`admm_tv_3d` — a volume from one image and a PSF stack.
-* :func:`focus_sweep` — deconvolve at every depth of a stack, pick the sharpest.
+* :func:`focus_sweep` — deconvolve at every depth of a stack, pick the plane that
+  explains the image best.
 * :func:`admm_tv` — the DiffuserCam ADMM-TV solver for the crop model.
 * :func:`wiener` — Tikhonov inverse filter, the fast linear baseline.
 * :func:`convolution_model` — the forward model ``A`` and its adjoint.
@@ -12,10 +13,10 @@ Every solver returns a :class:`Reconstruction`.
 """
 
 from diffcam.reconstruct.admm import admm_tv, admm_tv_3d
+from diffcam.reconstruct.focus import FocusSweep, focus_sweep, sharpness
 from diffcam.reconstruct.loop import Reconstruction
 from diffcam.reconstruct.operators import ConvolutionModel, convolution_model
-from diffcam.reconstruct.richardson_lucy import (FocusSweep, focus_sweep, richardson_lucy,
-                                                 richardson_lucy_3d, sharpness)
+from diffcam.reconstruct.richardson_lucy import richardson_lucy, richardson_lucy_3d
 from diffcam.reconstruct.wiener import wiener
 
 __all__ = [

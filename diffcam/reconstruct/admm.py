@@ -39,6 +39,7 @@ from jaxtyping import ArrayLike
 from diffcam.core.backend import irfft2, rfft2
 
 from diffcam.core.errors import DiffcamError, is_concrete
+from diffcam.core.progress import progress_bar
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
                                         check_iterations, check_psf, check_tol,
@@ -54,7 +55,8 @@ _BOUNDARIES = ("crop", "circular")
 
 def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100, *,
             mu1: float = 1e-6, mu2: float = 1e-5, mu3: float = 4e-5, tau: float = 1e-4,
-            boundary: str = "crop", tol: float | None = None) -> Reconstruction:
+            boundary: str = "crop", tol: float | None = None,
+            progress: bool = True) -> Reconstruction:
     """DiffuserCam ADMM-TV reconstruction of a 2-D scene from one sensor image.
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
@@ -73,19 +75,21 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100, *,
         boundary: ``"crop"`` (the sensor sees the centre of the full convolution; the
             estimate is on the larger object grid) or ``"circular"``.
         tol: stop early when the objective changes by less than ``tol`` (relative).
+        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
 
     Returns:
         :class:`Reconstruction`; ``image`` is the non-negative split variable ``w``,
         ``(..., oy, ox)``.
     """
     return _admm(image, psf, iterations, mu1=mu1, mu2=mu2, mu3=mu3, tau=tau,
-                 boundary=boundary, tol=tol, volume=False, tv_axial=False)
+                 boundary=boundary, tol=tol, volume=False, tv_axial=False,
+                 progress=progress)
 
 
 def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *,
                mu1: float = 1e-3, mu2: float = 1e-3, mu3: float = 1e-3, tau: float = 6e-4,
                tv_axial: bool = True, boundary: str = "crop",
-               tol: float | None = None) -> Reconstruction:
+               tol: float | None = None, progress: bool = True) -> Reconstruction:
     """DiffuserCam ADMM-TV reconstruction of a volume: ``b = crop(Σ_z h_z * v_z)``.
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
@@ -96,7 +100,8 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *,
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale, or a
             list of ``(my, mx)`` arrays.
         tv_axial: include differences along depth in the TV (3-D TV, as DiffuserCam).
-        iterations, mu1, mu2, mu3, tau, boundary, tol: as for :func:`admm_tv`. Defaults
+        iterations, mu1, mu2, mu3, tau, boundary, tol, progress: as for
+            :func:`admm_tv`. Defaults
             measured on the shipped DiffuserCam 3-D capture (raw counts minus the bias,
             binned 2×, 40 iterations): the tilted USAF target's depth ramps steadily
             across it (tests/test_real_data.py); ``tau`` = 6e-4 is DiffuserCam's 3-D TV
@@ -107,10 +112,12 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *,
         :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)``.
     """
     return _admm(image, as_psf_stack(psf_stack), iterations, mu1=mu1, mu2=mu2, mu3=mu3,
-                 tau=tau, boundary=boundary, tol=tol, volume=True, tv_axial=tv_axial)
+                 tau=tau, boundary=boundary, tol=tol, volume=True, tv_axial=tv_axial,
+                 progress=progress)
 
 
-def _admm(image, psf, iterations, *, mu1, mu2, mu3, tau, boundary, tol, volume, tv_axial):
+def _admm(image, psf, iterations, *, mu1, mu2, mu3, tau, boundary, tol, volume, tv_axial,
+          progress):
     if boundary not in _BOUNDARIES:
         raise DiffcamError(f"ADMM supports boundary in {_BOUNDARIES}, got {boundary!r}; "
                            f"for a 'same'-size model use richardson_lucy.")
@@ -135,9 +142,11 @@ def _admm(image, psf, iterations, *, mu1, mu2, mu3, tau, boundary, tol, volume, 
         psf = psf[..., None, :, :]
     flat = lambda a, k: a.reshape((-1,) + a.shape[a.ndim - k:])  # noqa: E731
     penalties = jnp.asarray([mu1, mu2, mu3, tau], dtype)
-    out = _admm_batched(flat(image, 2), flat(psf, 3), penalties,
-                        None if tol is None else jnp.asarray(tol, dtype),
-                        iterations=iterations, boundary=boundary, tv_axial=tv_axial)
+    with progress_bar(iterations, "ADMM-TV", progress):
+        out = jax.block_until_ready(_admm_batched(
+            flat(image, 2), flat(psf, 3), penalties,
+            None if tol is None else jnp.asarray(tol, dtype),
+            iterations=iterations, boundary=boundary, tv_axial=tv_axial))
     if not volume:
         out = out._replace(image=out.image[:, 0])
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)

@@ -8,6 +8,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array, lax
 
+from diffcam.core.progress import tick
+
 __all__ = ["Reconstruction", "iterate", "relative_residual"]
 
 
@@ -47,14 +49,19 @@ def iterate(step: Callable, state, iterations: int, tol: Array | None):
     With ``tol=None`` this is a ``lax.scan`` (reverse-mode differentiable); otherwise a
     ``lax.while_loop`` that stops once ``|f_k - f_{k-1}| <= tol·|f_{k-1}|`` for the
     objective ``f`` (forward-mode only). Returns ``(state, residual, objective,
-    iterations, converged)`` with NaN-filled histories of length ``iterations``.
+    iterations, converged)`` with NaN-filled histories of length ``iterations``. Each
+    iteration ticks the open progress bar (:mod:`diffcam.core.progress`).
     """
     if tol is None:
-        state, (res, obj) = lax.scan(lambda s, _: step(s), state, None, length=iterations)
+        def scan_step(s, k):
+            tick(k)
+            return step(s)
+        state, (res, obj) = lax.scan(scan_step, state, jnp.arange(iterations))
         return state, res, obj, jnp.asarray(iterations), jnp.asarray(False)
 
     def body(carry):
         state, k, res, obj, _ = carry
+        tick(k)
         state, (r, f) = step(state)
         f_prev = obj[jnp.maximum(k - 1, 0)]
         done = (k > 0) & (jnp.abs(f - f_prev) <= tol * jnp.abs(f_prev))

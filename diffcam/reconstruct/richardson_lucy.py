@@ -1,5 +1,5 @@
 """Richardson–Lucy deconvolution (paper Eq. 15), its accelerated and TV-regularised
-variants, 3-D (PSF-stack) reconstruction, and depth search by focus.
+variants, and 3-D (PSF-stack) reconstruction.
 
 The update, for a sensor image ``b``, forward model ``A`` (:mod:`.operators`) and estimate
 ``x``::
@@ -41,9 +41,10 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.scipy.special import xlogy
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike
 
 from diffcam.core.errors import DiffcamError, ShapeError, check_finite, is_concrete
+from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
                                         check_iterations, check_psf, check_tol,
                                         float_dtype)
@@ -51,8 +52,7 @@ from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import (BOUNDARIES, convolution_model, divergence,
                                            gradient, grid_shapes)
 
-__all__ = ["richardson_lucy", "richardson_lucy_3d", "focus_sweep", "FocusSweep",
-           "sharpness"]
+__all__ = ["richardson_lucy", "richardson_lucy_3d"]
 
 CONVENTIONS = ("adjoint", "skimage")
 _SEEN = 1e-5      # sensitivity below this fraction of its maximum: the pixel is unseen
@@ -64,8 +64,8 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
                     boundary: str = "same", convention: str = "adjoint",
                     accelerate: bool = False, tv_weight: float = 0.0,
                     init: ArrayLike | None = None, tol: float | None = None,
-                    eps: float = 1e-12, filter_epsilon: float | None = None
-                    ) -> Reconstruction:
+                    eps: float = 1e-12, filter_epsilon: float | None = None,
+                    progress: bool = True) -> Reconstruction:
     """Richardson–Lucy deconvolution of a sensor image by one PSF (paper Eq. 15).
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
@@ -93,6 +93,7 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
         eps: added to ``A x`` before dividing, as scikit-image does.
         filter_epsilon: where ``A x + eps < filter_epsilon`` the ratio is set to 0
             (scikit-image's argument); None or 0 disables it.
+        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
 
     Returns:
         :class:`Reconstruction` with ``image`` of shape ``(..., oy, ox)``: ``(ny, nx)`` for
@@ -106,13 +107,15 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
     """
     return _richardson_lucy(image, psf, iterations, boundary=boundary, convention=convention,
                             accelerate=accelerate, tv_weight=tv_weight, init=init, tol=tol,
-                            eps=eps, filter_epsilon=filter_epsilon, volume=False)
+                            eps=eps, filter_epsilon=filter_epsilon, volume=False,
+                            progress=progress)
 
 
 def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 150, *,
                        boundary: str = "crop", accelerate: bool = False,
                        tv_weight: float = 0.0, init: ArrayLike | None = None,
-                       tol: float | None = None, eps: float = 1e-12) -> Reconstruction:
+                       tol: float | None = None, eps: float = 1e-12,
+                       progress: bool = True) -> Reconstruction:
     """Richardson–Lucy reconstruction of a volume from one sensor image.
 
     The model is ``b = crop(Σ_z h_z * x_z)``: every depth plane of the object is blurred
@@ -127,7 +130,7 @@ def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int =
         image: ``(..., ny, nx)`` sensor image, non-negative.
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale (their
             relative intensities matter), or a list of ``(my, mx)`` arrays.
-        iterations, boundary, accelerate, tv_weight, init, tol, eps: as for
+        iterations, boundary, accelerate, tv_weight, init, tol, eps, progress: as for
             :func:`richardson_lucy`.
 
     Returns:
@@ -136,66 +139,11 @@ def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int =
     return _richardson_lucy(image, as_psf_stack(psf_stack), iterations, boundary=boundary,
                             convention="adjoint", accelerate=accelerate,
                             tv_weight=tv_weight, init=init, tol=tol, eps=eps,
-                            filter_epsilon=None, volume=True)
-
-
-class FocusSweep(NamedTuple):
-    """Result of :func:`focus_sweep`.
-
-    Attributes:
-        reconstruction: :class:`Reconstruction` with a depth axis before the two space
-            axes, ``(..., nz, oy, ox)``.
-        sharpness: ``(..., nz)`` the focus measure of every depth (:func:`sharpness`).
-        best: ``(...)`` int, index of the sharpest depth.
-    """
-
-    reconstruction: Reconstruction
-    sharpness: Array
-    best: Array
-
-
-def sharpness(estimate: Float[Array, "... ny nx"]) -> Float[Array, "..."]:
-    """Focus measure of an estimate: ``Σ x² · N / (Σ x)²`` over the last two axes.
-
-    The ratio of the mean square to the squared mean (1 for a flat image, ``N`` for a
-    single bright pixel): deconvolving with the PSF of the wrong depth leaves the light
-    spread into the other depth's caustic pattern, which lowers it. Scale-invariant.
-    """
-    n = estimate.shape[-1] * estimate.shape[-2]
-    total = jnp.sum(estimate, axis=(-2, -1))
-    return n * jnp.sum(estimate ** 2, axis=(-2, -1)) / jnp.where(total != 0, total, 1) ** 2
-
-
-def focus_sweep(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 50,
-                **options) -> FocusSweep:
-    """Deconvolve one sensor image at every depth of a PSF stack; pick the sharpest.
-
-    One batched, jitted :func:`richardson_lucy` call (``options`` are passed to it)
-    reconstructs the image with each PSF; :func:`sharpness` ranks the results.
-
-    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
-    (shapes are still checked) — call once eagerly (``iterations=1`` is enough) to validate.
-
-    Args:
-        image: ``(..., ny, nx)`` sensor image.
-        psf_stack: ``(nz, my, mx)`` PSFs over depth (or a list of ``(my, mx)`` arrays).
-        iterations: RL iterations per depth.
-
-    Returns:
-        :class:`FocusSweep`.
-    """
-    psf_stack = as_psf_stack(psf_stack)
-    if jnp.ndim(psf_stack) < 3:
-        raise ShapeError(f"psf_stack must be (nz, my, mx), got shape {jnp.shape(psf_stack)}; "
-                         f"for one PSF call richardson_lucy.")
-    image = jnp.asarray(image)
-    rec = richardson_lucy(image[..., None, :, :], psf_stack, iterations, **options)
-    score = sharpness(rec.image)
-    return FocusSweep(reconstruction=rec, sharpness=score, best=jnp.argmax(score, axis=-1))
+                            filter_epsilon=None, volume=True, progress=progress)
 
 
 def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate, tv_weight,
-                     init, tol, eps, filter_epsilon, volume) -> Reconstruction:
+                     init, tol, eps, filter_epsilon, volume, progress) -> Reconstruction:
     """Validate, broadcast the batch axes, run the jitted solver, restore the axes."""
     if boundary not in BOUNDARIES:
         raise DiffcamError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}.")
@@ -237,7 +185,9 @@ def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate
                        None if tol is None else jnp.asarray(tol, dtype))
     config = _Config(iterations, boundary, convention, bool(accelerate), use_tv, use_filter,
                      volume)
-    out = _rl_batched(flat(image, 2), flat(psf, core), init, weights, config)
+    with progress_bar(iterations, "Richardson–Lucy", progress):
+        out = jax.block_until_ready(_rl_batched(flat(image, 2), flat(psf, core), init,
+                                                weights, config))
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
