@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 
@@ -60,6 +61,16 @@ def save_image(path, image, *, bits: int = 16) -> None:
             import tifffile
 
             tifffile.imwrite(tmp, image, imagej=image.ndim == 3)
+
+
+class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` shows ``(default: X)`` where there is a default to show (not None/off)."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False or action.required \
+                or action.default == argparse.SUPPRESS or "default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
 
 
 def save_figure(fig, path) -> None:
@@ -370,14 +381,19 @@ def _add_plan(sub) -> None:
     plan = sub.add_parser("plan", help="check the sampling of a diffuser-camera geometry",
                           description="Report Fresnel numbers, point-source chirp sampling, "
                                       "propagator validity and padding before simulating.")
-    plan.add_argument("--wavelength", type=_length("wavelength"), default=532e-9)
-    plan.add_argument("--pixel", type=_length("pixel"), required=True, help="grid pitch")
+    plan.add_argument("--wavelength", type=_length("wavelength"), default="532nm",
+                      help="wavelength, with a unit")
+    plan.add_argument("--pixel", type=_length("pixel"), required=True,
+                      help="grid pitch, with a unit (3.45um)")
     plan.add_argument("--n", type=int, required=True, help="samples per side")
-    plan.add_argument("--z1", type=_length("z1"), required=True, help="smallest source depth")
-    plan.add_argument("--z2", type=_length("z2"), required=True, help="diffuser to sensor")
-    plan.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True)
-    plan.add_argument("--max-offset", type=_length("max-offset"), default=0.0,
-                      help="largest lateral source offset")
+    plan.add_argument("--z1", type=_length("z1"), required=True,
+                      help="smallest source depth, with a unit (22mm)")
+    plan.add_argument("--z2", type=_length("z2"), required=True,
+                      help="diffuser to sensor, with a unit (1mm)")
+    plan.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True,
+                      help="aperture radius, with a unit (2.3mm)")
+    plan.add_argument("--max-offset", type=_length("max-offset"), default="0mm",
+                      help="largest lateral source offset, with a unit")
     plan.set_defaults(func=_cmd_plan)
 
 
@@ -388,24 +404,28 @@ def _add_calibrate(sub) -> None:
                                      "focal plane of a Fourier lens); writes a phase .npz.")
     cal.add_argument("near", help="near-field capture (.png, .tif, .npy)")
     cal.add_argument("far", help="far-field capture at the lens's back focal plane")
-    cal.add_argument("--focal-length", type=_length("focal-length"), required=True)
-    cal.add_argument("--wavelength", type=_length("wavelength"), required=True)
+    cal.add_argument("--focal-length", type=_length("focal-length"), required=True,
+                     help="Fourier lens focal length, with a unit (5cm)")
+    cal.add_argument("--wavelength", type=_length("wavelength"), required=True,
+                     help="wavelength, with a unit (532nm)")
     cal.add_argument("--pixel", type=_length("pixel"), required=True,
-                     help="sensor pixel pitch of both captures")
-    cal.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True)
-    cal.add_argument("--near-distance", type=_length("near-distance"), default=0.0,
+                     help="sensor pixel pitch of both captures, with a unit (3.45um)")
+    cal.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True,
+                     help="radius of the aperture before the diffuser, with a unit")
+    cal.add_argument("--near-distance", type=_length("near-distance"), default="0mm",
                      help="diffuser to near-capture plane, free-space equivalent (0.5 mm "
                           "of n = 1.5 cover glass ≈ 0.33mm)")
     cal.add_argument("--dx", type=_length("dx"), help="diffuser grid pitch (default: --pixel)")
     cal.add_argument("--grid", type=int, help="calibration grid (default: 2× the aperture)")
     cal.add_argument("--background", type=float, default=0.0, help="dark level, counts")
     cal.add_argument("--saturation", type=float, help="raw count of a saturated pixel")
-    cal.add_argument("--solver", choices=["default", "gs", "hio", "raar"], default="default")
-    cal.add_argument("--iterations", type=int, default=300)
+    cal.add_argument("--solver", choices=["default", "gs", "hio", "raar"], default="default",
+                     help="default: RAAR with restarts, then least squares")
+    cal.add_argument("--iterations", type=int, default=300, help="projection iterations")
     cal.add_argument("--restarts", type=int,
                      help="random starts of the projections (default 4; 1 with --psf, "
                           "which starts flat)")
-    cal.add_argument("--seed", type=int, default=0)
+    cal.add_argument("--seed", type=int, default=0, help="seed of the random starts")
     cal.add_argument("--psf", help="a captured on-axis PSF at the grid pitch, background "
                      "subtracted: a third intensity plane for the projections (it resolves "
                      "the twin and un-stalls strongly scattering diffusers)")
@@ -476,6 +496,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.")
     sub = parser.add_subparsers(dest="command", required=True)
+    # every subcommand's --help shows its defaults (a parser may still pass its own)
+    sub._parser_class = functools.partial(argparse.ArgumentParser,
+                                          formatter_class=DefaultsFormatter)
     for add in (_add_demo, _add_data, _add_plan, _add_reconstruct, _add_calibrate, _add_psf,
                 _add_compare, _add_fit):
         add(sub)

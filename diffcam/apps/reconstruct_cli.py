@@ -391,23 +391,14 @@ def write_volume(paths, volume, source: PsfSource) -> None:
         plt.close(fig)
 
 
-class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows ``(default: X)`` only where there is a default to show (not None/off)."""
-
-    def _get_help_string(self, action):
-        if action.default is None or action.default is False or action.required:
-            return action.help
-        return super()._get_help_string(action)
-
-
 def _add_reconstruct(sub) -> None:
     """Add ``reconstruct`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.cli import _length
+    from diffcam.apps.cli import DefaultsFormatter, _length
     from diffcam.apps.fit_cli import _planes_arg
 
     rec = sub.add_parser(
         "reconstruct", help="deconvolve a sensor image with a PSF (or a volume with --3d)",
-        formatter_class=_DefaultsFormatter,
+        formatter_class=DefaultsFormatter,
         description="Reconstruct a scene from a raw capture and the PSF of its depth. With "
                     "a PSF stack, pick the plane by --depth, --plane, or else the sharpest "
                     "reconstruction; with --3d, reconstruct every plane as a volume "
