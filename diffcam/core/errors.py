@@ -50,8 +50,13 @@ class GeometryWarning(UserWarning):
     length or a wavelength is probably wrong (the result would be a confident wrong phase)."""
 
 
+_PLAIN = (int, float, complex, bool, str, np.ndarray, np.generic, type(None))
+
+
 def is_concrete(*values: Any) -> bool:
     """True if none of ``values`` is a JAX tracer (so their values can be inspected)."""
+    if all(isinstance(v, _PLAIN) for v in values):  # the common case, without a tree walk
+        return True
     return not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values))
 
 
@@ -61,22 +66,26 @@ def check_positive(name: str, value: Any, unit: str, *, allow_zero: bool = False
 
     Tracers pass unchecked. ``unit`` is used in the message, e.g. ``"m"``.
     """
-    if not is_concrete(value):
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        v = float(value)             # a plain number: no array machinery on the hot path
+        finite, negative, zero = math.isfinite(v), v < 0, v == 0
+    elif not is_concrete(value):
         return
-    arr = _as_real(name, value, f"a real number in {unit}").astype(np.float64)
-    if arr.size == 0:
-        raise DiffcamError(f"{name} is empty; give at least one value in {unit}.")
-    if not np.all(np.isfinite(arr)):
+    else:
+        arr = _as_real(name, value, f"a real number in {unit}").astype(np.float64)
+        if arr.size == 0:
+            raise DiffcamError(f"{name} is empty; give at least one value in {unit}.")
+        finite, negative, zero = (bool(np.all(np.isfinite(arr))), bool(np.any(arr < 0)),
+                                  bool(np.any(arr == 0)))
+    if not finite:
         raise DiffcamError(f"{name} must be finite, got {value!r} ({unit}).")
-    if allow_negative:
+    if allow_negative or not (negative or (zero and not allow_zero)):
         return
-    bad = arr < 0 if allow_zero else arr <= 0
-    if np.any(bad):
-        need = ">= 0" if allow_zero else "> 0"
-        raise DiffcamError(
-            f"{name} must be {need} (SI units: {unit}), got {value!r}. "
-            f"diffcam takes metres and radians everywhere: 25 mm is 25e-3."
-        )
+    need = ">= 0" if allow_zero else "> 0"
+    raise DiffcamError(
+        f"{name} must be {need} (SI units: {unit}), got {value!r}. "
+        f"diffcam takes metres and radians everywhere: 25 mm is 25e-3."
+    )
 
 
 _all_finite = jax.jit(lambda a: jax.numpy.isfinite(a).all())
@@ -115,8 +124,10 @@ def _as_real(name: str, value: Any, what: str, *, complex_ok: bool = False) -> n
     return arr
 
 
-def check_field(field: Any, name: str = "field", *, finite: bool = True) -> None:
-    """Check that ``field`` has at least two (space) axes, none of them empty."""
+def check_field(field: Any, name: str = "field", *, finite: bool | str = True) -> None:
+    """Check that ``field`` has at least two (space) axes, none of them empty, and holds
+    no NaN/Inf (``finite=True``; ``"host"`` checks only a NumPy array, for a caller that
+    checks a device array inside its own jitted call; ``False`` not at all)."""
     shape = np.shape(field)
     if len(shape) < 2:
         raise ShapeError(
@@ -125,7 +136,7 @@ def check_field(field: Any, name: str = "field", *, finite: bool = True) -> None
         )
     if 0 in shape:
         raise ShapeError(f"{name} has an empty axis: shape {shape}.")
-    if finite:
+    if finite is True or (finite == "host" and not isinstance(field, jax.Array)):
         check_finite(name, field)
 
 

@@ -155,14 +155,29 @@ def _normalised(intensity, normalise):
     return intensity / jnp.sum(intensity, axis=(-2, -1), keepdims=True)
 
 
+def _spectrum_or_camera(camera, wavelengths, weights):
+    """The spectrum, or (``None``) the camera's one wavelength at weight 1."""
+    if wavelengths is None:
+        dtype = real_dtype(camera)
+        return jnp.reshape(camera.wavelength, (1,)).astype(dtype), jnp.ones((1,), dtype)
+    return wavelengths, weights
+
+
 def _fields_of_phase(phase, camera, wavelengths, weights, z1, positions):
-    return fields_for_fft(diffuser_fields(phase, camera, wavelengths), camera, wavelengths,
-                          z1, positions)
+    """First stage of :func:`psf`: the fields its FFTs start from, and whether the
+    diffuser is finite (checked here rather than in a dispatch of its own)."""
+    wavelengths, _ = _spectrum_or_camera(camera, wavelengths, weights)
+    arr = phase.height if isinstance(phase, HeightMap) else phase
+    fields = fields_for_fft(diffuser_fields(phase, camera, wavelengths), camera, wavelengths,
+                            z1, positions)
+    return fields, jnp.isfinite(arr).all()
 
 
-def _irradiance_of_fields(fields, phase, camera, wavelengths, weights, z1, positions, *,
+def _irradiance_of_fields(first, phase, camera, wavelengths, weights, z1, positions, *,
                           normalise):
-    return irradiance(fields, camera, wavelengths, weights, z1, positions, normalise)
+    fields, finite = first
+    wavelengths, weights = _spectrum_or_camera(camera, wavelengths, weights)
+    return irradiance(fields, camera, wavelengths, weights, z1, positions, normalise)[0], finite
 
 
 _psf = staged(_fields_of_phase, _irradiance_of_fields, static_argnames=("normalise",))
@@ -170,11 +185,14 @@ _psf = staged(_fields_of_phase, _irradiance_of_fields, static_argnames=("normali
 
 # ------------------------------------------------------------------------- validation
 
-def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling):
+def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling,
+                 finite: bool = True):
     """Concrete checks before tracing: shapes, NaN, signs, and sampling at the extremes.
 
     ``z1`` and ``offsets`` (lateral distances |ρ1|, metres) may be arrays; the smallest
-    z1 and largest offset are checked.
+    z1 and largest offset are checked. ``finite=False`` leaves the NaN/Inf check of a
+    device-array diffuser to the caller (:func:`psf` computes it inside its jitted call);
+    a NumPy one is checked here, before anything else can fail.
     """
     if not isinstance(camera, Camera):
         raise DiffcamError(f"camera must be a diffcam.model.camera.Camera, got {type(camera)}.")
@@ -184,7 +202,8 @@ def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling):
         raise ShapeError(f"diffuser {what} has shape {np.shape(arr)} but the camera grid is "
                          f"{tuple(camera.shape)}; embed it with diffcam.core.grid.pad_to or "
                          f"build the Camera with shape={np.shape(arr)[-2:]}.")
-    check_finite(f"diffuser {what}", arr)
+    if finite or not isinstance(arr, jax.Array):
+        check_finite(f"diffuser {what}", arr)
     check_positive("z1 (source distance)", z1, "m")
     if not is_concrete(z1, offsets, camera, wavelengths):
         return
@@ -241,11 +260,21 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
         SamplingError: ``method="direct"`` with an undersampled source chirp, or a
             transfer function that aliases.
     """
-    wavelengths, weights = as_spectrum(spectrum, camera)
-    check_inputs(phase, camera, z1, jnp.hypot(jnp.asarray(x1), jnp.asarray(y1)), wavelengths,
-                 accept_undersampling)
     dtype = real_dtype(camera)
-    wavelengths, weights, z1 = wavelengths.astype(dtype), weights.astype(dtype), \
-        jnp.asarray(z1, dtype)
-    positions = jnp.stack([jnp.asarray(y1, dtype), jnp.asarray(x1, dtype)])[None]
-    return _psf(phase, camera, wavelengths, weights, z1, positions, normalise=normalise)[0]
+    if spectrum is None:   # the camera's wavelength, taken inside the jitted call
+        wavelengths = weights = None
+    else:
+        wavelengths, weights = (a.astype(dtype) for a in as_spectrum(spectrum, camera))
+    concrete = is_concrete(z1, y1, x1)
+    offset = np.hypot(x1, y1) if concrete else jnp.hypot(x1, y1)
+    check_inputs(phase, camera, z1, offset,
+                 camera.wavelength if wavelengths is None else wavelengths,
+                 accept_undersampling, finite=False)
+    # host values go to the jitted calls as NumPy arrays: no eager dispatch per argument
+    xp = np if concrete else jnp
+    z1 = xp.asarray(z1, dtype)
+    positions = xp.stack([xp.asarray(y1, dtype), xp.asarray(x1, dtype)])[None]
+    out, finite = _psf(phase, camera, wavelengths, weights, z1, positions, normalise=normalise)
+    if is_concrete(finite) and not bool(finite):
+        check_finite("diffuser phase", phase.height if isinstance(phase, HeightMap) else phase)
+    return out

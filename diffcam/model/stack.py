@@ -139,16 +139,13 @@ def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sha
            buffers=None):
     """PSFs (nz, npos, ny, nx) for the depths ``z1``, and the ``buffers`` to pass to the
     next call. Two jitted calls, so that the second one starts with its FFTs (see
-    :func:`diffcam.model.point_spread.fields_for_fft`); both write over the last chunk's buffers."""
-    if buffers is None:
-        shape = jax.eval_shape(lambda *a: _chunk_inputs(None, *a, sharding), prepared,
-                               camera, wavelengths, z1, positions)
-        place = sharding if sharding is not None else prepared.sharding
-        buffers = [jax.device_put(jnp.zeros(shape.shape, shape.dtype), place)
-                   for _ in range(2)]
-    inputs = _chunk_inputs(buffers[0], prepared, camera, wavelengths, z1, positions,
+    :func:`diffcam.model.point_spread.fields_for_fft`); both write over the last chunk's
+    buffers. The first chunk has none to write over (``None``): it allocates them, and a
+    stack of one chunk allocates nothing more."""
+    scratch = (None, None) if buffers is None else buffers
+    inputs = _chunk_inputs(scratch[0], prepared, camera, wavelengths, z1, positions,
                            sharding)
-    return _chunk_outputs(inputs, buffers[1], camera, wavelengths, weights, z1, positions,
+    return _chunk_outputs(inputs, scratch[1], camera, wavelengths, weights, z1, positions,
                           normalise, sharding)
 
 

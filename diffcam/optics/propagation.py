@@ -42,7 +42,8 @@ import numpy as np
 from jax import Array
 from jaxtyping import Complex, Num
 
-from diffcam.core.errors import (DiffcamError, check_field, check_positive, is_concrete, fmt_length,
+from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_positive,
+                                 is_concrete, fmt_length,
                      sampling_problem)
 from diffcam.core.grid import (coord_at, crop_to, fft_freq_at, fft_freqs, fft2c, ifft2c, pad_by,
                    pitch_yx)
@@ -73,8 +74,9 @@ METHODS = ("fresnel_tf", "fresnel_ir", "angular_spectrum")
 # --------------------------------------------------------------------------- helpers
 
 def _complex_dtype(field):
-    return jnp.complex128 if jnp.asarray(field).dtype in (jnp.float64, jnp.complex128) \
-        else jnp.complex64
+    dtype = field.dtype if hasattr(field, "dtype") else np.asarray(field).dtype
+    dtype = jax.dtypes.canonicalize_dtype(dtype)   # float64 is float32 without x64
+    return jnp.complex128 if dtype in (jnp.float64, jnp.complex128) else jnp.complex64
 
 
 def piston(wavelength, z):
@@ -85,7 +87,7 @@ def piston(wavelength, z):
     if is_concrete(wavelength, z):
         cycles = np.asarray(z, dtype=np.float64) / np.asarray(wavelength, dtype=np.float64)
         phase = 2 * np.pi * np.mod(cycles, 1.0)
-        return jnp.asarray(np.exp(1j * phase))
+        return np.exp(1j * phase)
     cycles = z / wavelength
     return jnp.exp(2j * jnp.pi * (cycles - jnp.floor(cycles)))
 
@@ -102,8 +104,8 @@ def critical_distance(shape, dx, wavelength) -> tuple[float, float]:
     return ny * dy * dy / lam, nx * dxx * dxx / lam
 
 
-def _check_common(field, dx, wavelength, z, pad):
-    check_field(field)
+def _check_common(field, dx, wavelength, z, pad, finite=True):
+    check_field(field, finite=finite)
     for p in pitch_yx(dx):
         check_positive("dx (pixel pitch)", p, "m")
     check_positive("wavelength", wavelength, "m")
@@ -249,23 +251,36 @@ def _propagate_core(field, dy, dx, wavelength, z, p, *, method, pad, band_limit)
     out = _step(u, H, in_place=method != "angular_spectrum").astype(u.dtype)
     if pad != (0, 0):
         out = crop_to(out, shape)
-    return out
+    return out, jnp.isfinite(field).all()
 
 
 def _run(method, field, dx, wavelength, z, pad, accept_undersampling, band_limit=True):
-    _check_common(field, dx, wavelength, z, pad)
+    # the NaN/Inf check of a device field is computed inside the jitted call (one
+    # dispatch instead of two: 130 µs of a 128² step's 440) and raised after it
+    _check_common(field, dx, wavelength, z, pad, finite="host")
     pad = (pad, pad) if isinstance(pad, int) else tuple(pad)
     _check_kernel_sampling(method, np.shape(field), dx, wavelength, z, pad,
                            accept_undersampling)
     if is_concrete(z) and float(np.max(np.abs(np.asarray(z)))) == 0.0:
         return jnp.asarray(field).astype(_complex_dtype(field))  # z = 0 is the identity
     dy, dxx = pitch_yx(dx)
-    field = jnp.asarray(field)
-    rdt = jnp.float64 if _complex_dtype(field) == jnp.complex128 else jnp.float32
-    return _propagate_core(field, jnp.asarray(dy, rdt), jnp.asarray(dxx, rdt),
-                           jnp.asarray(wavelength, rdt), jnp.asarray(z, rdt),
-                           piston(wavelength, z).astype(_complex_dtype(field)),
-                           method=method, pad=pad, band_limit=band_limit)
+    cdt = _complex_dtype(field)
+    rdt = jnp.float64 if cdt == jnp.complex128 else jnp.float32
+    # scalars go to the jitted core as they are (NumPy or traced): a jnp.asarray each
+    # would be one more dispatch per call (30 µs each, against 250 µs for a 128² step)
+    out, finite = _propagate_core(field, *(_scalar(v, rdt) for v in (dy, dxx, wavelength, z)),
+                                  _scalar(piston(wavelength, z), cdt),
+                                  method=method, pad=pad, band_limit=band_limit)
+    if is_concrete(finite) and not bool(finite):
+        check_finite("field", field)    # raises, with the count of bad samples
+    return out
+
+
+def _scalar(value, dtype):
+    """``value`` in ``dtype``: a NumPy value when concrete, else the traced value cast."""
+    if is_concrete(value) and not isinstance(value, jax.Array):
+        return np.asarray(value, dtype)
+    return jnp.asarray(value).astype(dtype)
 
 
 def fresnel_tf(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
@@ -327,15 +342,17 @@ def angular_spectrum(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0
 @partial(jax.jit, static_argnames=("inverse",))
 def _fourier_lens_core(field, dy, dx, wavelength, focal_length, p, *, inverse):
     u = field.astype(_complex_dtype(field))
+    finite = jnp.isfinite(field).all()
     if not inverse:
-        return p / (1j * wavelength * focal_length) * dy * dx * fft2c(u)
+        return p / (1j * wavelength * focal_length) * dy * dx * fft2c(u), finite
     ny, nx = u.shape[-2:]
     # dy, dx here are the far-field pitches; ifft2c carries 1/(ny·nx)
-    return jnp.conj(p) / (-1j * wavelength * focal_length) * dy * dx * (ny * nx) * ifft2c(u)
+    return (jnp.conj(p) / (-1j * wavelength * focal_length) * dy * dx * (ny * nx)
+            * ifft2c(u), finite)
 
 
 def _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse):
-    check_field(field)
+    check_field(field, finite="host")   # a device array: inside the jitted call, as in _run
     for q in pitch_yx(dx):
         check_positive("dx (pixel pitch)", q, "m")
     check_positive("wavelength", wavelength, "m")
@@ -346,11 +363,13 @@ def _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse):
     ny, nx = field.shape[-2:]
     dy, dxx = pitch_yx(dx)
     out_pitch = (wavelength * focal_length / (ny * dy), wavelength * focal_length / (nx * dxx))
-    rdt = jnp.float64 if _complex_dtype(field) == jnp.complex128 else jnp.float32
-    out = _fourier_lens_core(field, jnp.asarray(dy, rdt), jnp.asarray(dxx, rdt),
-                             jnp.asarray(wavelength, rdt), jnp.asarray(focal_length, rdt),
-                             piston(wavelength, focal_length).astype(_complex_dtype(field)),
-                             inverse=inverse)
+    cdt = _complex_dtype(field)
+    rdt = jnp.float64 if cdt == jnp.complex128 else jnp.float32
+    out, finite = _fourier_lens_core(
+        field, *(_scalar(v, rdt) for v in (dy, dxx, wavelength, focal_length)),
+        _scalar(piston(wavelength, focal_length), cdt), inverse=inverse)
+    if is_concrete(finite) and not bool(finite):
+        check_finite("field", field)
     return out, out_pitch
 
 
@@ -492,7 +511,7 @@ def plan_propagation(field: Num[Array, "... ny nx"], dx, wavelength, z, *,
         pad: ``"auto"`` (the spread predicted from the field's support and bandwidth,
             rounded up to an FFT-friendly size) or an int / ``(py, px)``.
     """
-    check_field(field)
+    check_field(field, finite=True if pad == "auto" else "host")  # else in the propagation
     if pad == "auto":
         if not is_concrete(field, z, dx, wavelength):
             raise DiffcamError("pad='auto' inspects the field and z, which are traced here; "
