@@ -14,13 +14,16 @@ from __future__ import annotations
 import argparse
 import importlib
 
-WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit", "cli_memory"]
+WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit", "cli_memory",
+             "overhead", "real_data"]
 QUICK = {"propagate": ["--sizes", "512", "1024"],
          "psf": ["--sizes", "512", "--depths", "8", "--no-memory"],
          "retrieval": ["--sizes", "512", "--repeats", "2"],
          "deconvolve": ["--quick"],
          "stack_fit": ["--quick"],
-         "cli_memory": ["--quick"]}
+         "cli_memory": ["--quick"],
+         "overhead": ["--sizes", "128", "--repeats", "5"],
+         "real_data": ["--downsample", "4"]}
 
 
 def main(argv=None):
