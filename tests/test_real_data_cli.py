@@ -21,9 +21,10 @@ def test_readme_lists_the_real_data_commands():
 @pytest.mark.slow
 def test_readme_real_data_commands(tmp_path):
     rows, work = run(downsample=2, fit_budget=25, work=tmp_path)
-    assert all(r["wall_s"] > 0 for r in rows) and len(rows) == 11  # 7 commands, 4 befores
-    s = scores(work, downsample=2)
-    assert s["hand_after"] > 0.97                     # 0.986 measured (half size)
+    assert all(r["wall_s"] > 0 for r in rows) and len(rows) == 10  # 7 commands, 3 befores
+    s = scores(work, downsample=2)     # measured: 0.987 / 0.958, ramps −0.69 / −0.49,
+    # model ramp −0.82, model volume 0.864
+    assert s["hand_after"] > 0.97
     assert s["hand_after"] > s["hand_before"] + 0.01  # the former default: 0.96
     assert s["usaf_ramp_after"] < -0.6                # the target's depth ramp
     assert s["usaf_ramp_model"] < -0.5
