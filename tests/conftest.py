@@ -1,4 +1,8 @@
-"""Shared test fixtures: float64 mode, NaN checking, finite-difference gradient checks."""
+"""Shared test fixtures: float64 mode, NaN checking, finite-difference gradient checks;
+crafted file headers for the hardening tests."""
+
+import struct
+import zlib
 
 import jax
 import numpy as np
@@ -36,3 +40,27 @@ def assert_grad_matches_fd(f, x, rel_step=1e-6, rtol=1e-5):
     g = float(jax.grad(f)(x))
     fd = fd_gradient(f, x, rel_step)
     np.testing.assert_allclose(g, fd, rtol=rtol, atol=1e-12 * max(abs(fd), 1.0))
+
+
+def listing(folder):
+    """The names in ``folder``, sorted (to see that no temporary file was left)."""
+    return sorted(p.name for p in folder.iterdir())
+
+
+def tiff_declaring(width, height):
+    """A float32 TIFF whose header declares width × height and which holds 16 bytes."""
+    entries = [(256, 4, width), (257, 4, height), (258, 3, 32), (259, 3, 1), (262, 3, 1),
+               (273, 4, 8), (277, 3, 1), (278, 4, height), (279, 4, 16), (339, 3, 3)]
+    ifd = struct.pack("<H", len(entries)) + b"".join(
+        struct.pack("<HHII", tag, kind, 1, value) if kind == 4
+        else struct.pack("<HHIHH", tag, kind, 1, value, 0) for tag, kind, value in entries)
+    return b"II*\x00" + struct.pack("<I", 24) + b"\x00" * 16 + ifd + b"\x00" * 4
+
+
+def png_declaring(width, height):
+    """A grayscale PNG whose IHDR declares width × height and which holds 64 bytes."""
+    chunk = lambda t, d: (struct.pack(">I", len(d)) + t + d  # noqa: E731
+                          + struct.pack(">I", zlib.crc32(t + d)))
+    return (b"\x89PNG\r\n\x1a\n"
+            + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + chunk(b"IEND", b""))

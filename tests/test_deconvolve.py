@@ -404,7 +404,7 @@ def test_rl_specific_errors():
 
 def test_admm_specific_errors():
     image, psf = _problem()
-    with pytest.raises(DiffcamError, match="mu2 must be > 0"):
+    with pytest.raises(DiffcamError, match="mu2 must be a finite number > 0"):
         admm_tv(image, psf, 3, mu2=0.0)
     with pytest.raises(DiffcamError, match="richardson_lucy"):
         admm_tv(image, psf, 3, boundary="same")

@@ -19,7 +19,6 @@ import sys
 import textwrap
 import threading
 import time
-import zlib
 
 import h5py
 import jax
@@ -31,6 +30,10 @@ import tifffile
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
+
+from conftest import listing as _listing
+from conftest import png_declaring as _png_declaring
+from conftest import tiff_declaring as _tiff_declaring
 
 import diffcam.io as dio
 import diffcam.model.stack as stack_module
@@ -59,10 +62,6 @@ def small():
 def _phase_file(seed=0, **info):
     rng = np.random.default_rng(seed)
     return PhaseFile(rng.random((8, 9)).astype(np.float32), 5e-6, LAM, 1e-3, info)
-
-
-def _listing(folder):
-    return sorted(p.name for p in folder.iterdir())
 
 
 def _umask():
@@ -496,24 +495,6 @@ def test_corrupt_bytes_give_one_line_errors(seeds, tmp_path, fmt, mutation):
 
 
 # ------------------------------------------------------------------ readers: crafted
-
-def _tiff_declaring(width, height):
-    """A float32 TIFF whose header declares width × height and which holds 16 bytes."""
-    entries = [(256, 4, width), (257, 4, height), (258, 3, 32), (259, 3, 1), (262, 3, 1),
-               (273, 4, 8), (277, 3, 1), (278, 4, height), (279, 4, 16), (339, 3, 3)]
-    ifd = struct.pack("<H", len(entries)) + b"".join(
-        struct.pack("<HHII", tag, kind, 1, value) if kind == 4
-        else struct.pack("<HHIHH", tag, kind, 1, value, 0) for tag, kind, value in entries)
-    return b"II*\x00" + struct.pack("<I", 24) + b"\x00" * 16 + ifd + b"\x00" * 4
-
-
-def _png_declaring(width, height):
-    chunk = lambda t, d: (struct.pack(">I", len(d)) + t + d  # noqa: E731
-                          + struct.pack(">I", zlib.crc32(t + d)))
-    return (b"\x89PNG\r\n\x1a\n"
-            + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + chunk(b"IEND", b""))
-
 
 def test_crafted_headers_are_refused_before_allocating(tmp_path):
     """Headers declaring 37 GiB (TIFF, PNG), 16 GiB (a 4e9-pixel TIFF row), 63 GiB (a

@@ -78,14 +78,21 @@ def check_positive(name: str, value: Any, unit: str, *, allow_zero: bool = False
         finite, negative, zero = (bool(np.all(np.isfinite(arr))), bool(np.any(arr < 0)),
                                   bool(np.any(arr == 0)))
     if not finite:
-        raise DiffcamError(f"{name} must be finite, got {value!r} ({unit}).")
+        raise DiffcamError(f"{name} must be finite, got {_show(value)} ({unit}).")
     if allow_negative or not (negative or (zero and not allow_zero)):
         return
     need = ">= 0" if allow_zero else "> 0"
     raise DiffcamError(
-        f"{name} must be {need} (SI units: {unit}), got {value!r}. "
+        f"{name} must be {need} (SI units: {unit}), got {_show(value)}. "
         f"diffcam takes metres and radians everywhere: 25 mm is 25e-3."
     )
+
+
+def _show(value: Any) -> str:
+    """``value`` for a message: a NumPy or JAX scalar as the plain number it holds."""
+    if np.ndim(value) == 0 and isinstance(value, (np.generic, np.ndarray, jax.Array)):
+        return repr(value.item())
+    return repr(value)
 
 
 _all_finite = jax.jit(lambda a: jax.numpy.isfinite(a).all())

@@ -31,6 +31,11 @@ from diffcam.optics.elements import circular_aperture
 __all__ = ["Camera", "HeightMap", "Spectrum", "as_spectrum", "diffuser_phase", "random_diffuser",
            "real_dtype", "with_method", "METHODS"]
 
+MAX_GRID_SAMPLES = 2 ** 28
+"""Largest propagation grid a Camera accepts (16384², 2 GiB per complex64 field): a
+mistyped pad or shape is refused before anything is allocated; raise it for the session
+by assigning to this constant."""
+
 METHODS = ("scaling", "direct")
 
 
@@ -103,6 +108,14 @@ class Camera(eqx.Module):
             raise ShapeError(f"camera shape must be positive (ny, nx), got {self.shape}.")
         if min(self.pad) < 0:
             raise DiffcamError(f"pad must be ≥ 0 samples per side, got {self.pad}.")
+        ny, nx = self.padded_shape
+        if ny * nx > MAX_GRID_SAMPLES:
+            raise DiffcamError(
+                f"the propagation grid {ny}×{nx} (shape {shape} plus pad {self.pad} per "
+                f"side) is {ny * nx / 2**20:.0f} Mi samples, {ny * nx * 8 / 2**30:.1f} GiB "
+                f"per complex64 field; the limit is {MAX_GRID_SAMPLES / 2**20:.0f} Mi samples "
+                f"(diffcam.model.camera.MAX_GRID_SAMPLES; the paper's 4000² grid is 15 Mi). "
+                f"Check pad and shape (samples, not metres).")
         if self.crop is not None:
             cy, cx = _pair(tuple(self.crop), "crop")
             if not (0 < cy <= shape[0] and 0 < cx <= shape[1]):

@@ -205,12 +205,21 @@ def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling,
     if finite or not isinstance(arr, jax.Array):
         check_finite(f"diffuser {what}", arr)
     check_positive("z1 (source distance)", z1, "m")
+    check_positive("lateral source offset |(y1, x1)|", offsets, "m", allow_zero=True)
     if not is_concrete(z1, offsets, camera, wavelengths):
         return
     z_min = float(np.min(np.asarray(z1)))
     z_max = float(np.max(np.asarray(z1)))
     rho = float(np.max(np.abs(np.asarray(offsets)))) if np.size(offsets) else 0.0
     dx, z2 = float(camera.dx), float(camera.z2)
+    half_diagonal = 0.5 * float(np.hypot(*camera.out_shape)) * dx
+    if rho * z2 / z_min > half_diagonal:
+        raise DiffcamError(
+            f"a source {fmt_length(rho)} off axis at z1 = {fmt_length(z_min)} is imaged "
+            f"{fmt_length(rho * z2 / z_min)} from the sensor centre, outside the "
+            f"{camera.out_shape[0]}×{camera.out_shape[1]} frame (half-diagonal "
+            f"{fmt_length(half_diagonal)}): its PSF would miss the frame. Move the source "
+            f"towards the axis or enlarge the camera's crop.")
     for lam in np.atleast_1d(np.asarray(wavelengths, dtype=np.float64)):
         lam = float(lam)
         # transfer-function sampling of the longest propagation on the padded grid

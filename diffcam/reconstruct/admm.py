@@ -29,6 +29,7 @@ units of the image squared, for the normalised PSF.
 
 from __future__ import annotations
 
+import math
 from functools import partial
 
 import jax
@@ -127,11 +128,11 @@ def _admm(image, psf, iterations, *, mu1, mu2, mu3, tau, boundary, tol, volume, 
     core = 3 if volume else 2
     check_psf(psf, jnp.shape(image), min_ndim=core)
     for name, value in (("mu1", mu1), ("mu2", mu2), ("mu3", mu3)):
-        if is_concrete(value) and not float(value) > 0:
-            raise DiffcamError(f"{name} must be > 0, got {value!r}; DiffuserCam uses "
-                               f"mu1=1e-6, mu2=1e-5, mu3=4e-5.")
-    if is_concrete(tau) and not float(tau) >= 0:
-        raise DiffcamError(f"tau must be >= 0, got {tau!r}.")
+        if is_concrete(value) and not 0 < float(value) < math.inf:
+            raise DiffcamError(f"{name} must be a finite number > 0, got {value!r}; "
+                               f"DiffuserCam uses mu1=1e-6, mu2=1e-5, mu3=4e-5.")
+    if is_concrete(tau) and not 0 <= float(tau) < math.inf:
+        raise DiffcamError(f"tau must be a finite number >= 0, got {tau!r}.")
     if is_concrete(image) and float(jnp.sum(jnp.asarray(image) ** 2)) == 0:
         raise DiffcamError("image is all zeros: there is nothing to reconstruct.")
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)

@@ -34,6 +34,7 @@ Variants:
 
 from __future__ import annotations
 
+import math
 from functools import partial
 from typing import NamedTuple
 
@@ -158,8 +159,8 @@ def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate
     core = 3 if volume else 2
     check_psf(psf, jnp.shape(image), min_ndim=core)
     for name, value in (("tv_weight", tv_weight), ("eps", eps)):
-        if is_concrete(value) and not (float(value) >= 0):
-            raise DiffcamError(f"{name} must be a number >= 0, got {value!r}.")
+        if is_concrete(value) and not 0 <= float(value) < math.inf:
+            raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
     dtype = float_dtype(image, psf)
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
