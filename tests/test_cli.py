@@ -18,7 +18,8 @@ def _diffcam(*args, cwd=None):
 @pytest.mark.slow
 def test_demo_writes_report(tmp_path):
     """`diffcam demo` (reduced grid and iterations) writes the figures, metrics.json and
-    report.md; the calibrated phase beats textbook GS and its PSF matches the truth."""
+    report.md; on the higher-fidelity data the calibrated phase beats textbook GS, and
+    nothing scores 1 by construction (the true phase through diffcam's model included)."""
     out = tmp_path / "report"
     r = _diffcam("demo", "--grid", "640", "--gs-iterations", "50",
                  "--calibration-iterations", "120", "-o", str(out))
@@ -27,9 +28,14 @@ def test_demo_writes_report(tmp_path):
     for name in ("fig3_phase.png", "fig5_cameraman.png", "fig6_random.png", "fig9_depths.png"):
         assert (out / name).stat().st_size > 10_000
     f3 = metrics["fig3"]
-    assert f3["phase_pearson_calibrated"] > 0.98 > f3["phase_pearson_gs"]
-    assert metrics["fig5"][-1]["psf_pearson"] > 0.95
-    assert len(metrics["fig9"]["z2_1mm"]) == 9
+    assert "higher-fidelity" in metrics["data"]
+    assert f3["phase_pearson_calibrated"] > f3["phase_pearson_gs"] + 0.1   # 0.91 vs 0.73
+    truth, gs, calibrated = metrics["fig5"][0], metrics["fig5"][1], metrics["fig5"][-1]
+    assert calibrated["phase_mse"] < 0.5 * gs["phase_mse"]
+    assert calibrated["psf_pearson"] > gs["psf_pearson"]
+    assert 0.9 < truth["psf_pearson"] < 0.995                             # 0.971 measured
+    rows = metrics["fig9"]["z2_1mm"]
+    assert len(rows) == 9 and all(0.9 < r["model_true_phase"] < 0.999 for r in rows)
     assert "Fig. 9" in (out / "report.md").read_text()
     assert "diffcam demo:" in r.stdout
 

@@ -11,6 +11,12 @@ from diffcam.core import progress
 from diffcam.reconstruct import admm_tv, focus_sweep, richardson_lucy
 
 
+@pytest.fixture(autouse=True)
+def bars_everywhere(monkeypatch):
+    """Bars also when stderr is not a terminal (pytest captures it)."""
+    monkeypatch.setattr(progress, "ON_TERMINALS_ONLY", False)
+
+
 @pytest.fixture
 def problem():
     rng = np.random.default_rng(0)

@@ -14,7 +14,8 @@ from diffcam.core.errors import ShapeError
 from diffcam.calibrate.near_far import CalibrationGeometry, calibration_intensities
 
 __all__ = ["cameraman_phase", "PaperSimulation",
-           "paper_simulation", "measured_stack_simulation"]
+           "paper_simulation", "measured_stack_simulation", "HIGH_FIDELITY_SPECTRUM",
+           "high_fidelity_captures", "high_fidelity_psfs"]
 
 
 def cameraman_phase(size: int = 512) -> Float[Array, "size size"]:
@@ -106,3 +107,124 @@ def measured_stack_simulation(n_planes: int = 12, *, grid: int = 768, dx: float 
         pixels = np.random.default_rng(0).poisson(pixels)
     counts = pixels.astype(np.float32) + dark
     return counts, z1
+
+
+HIGH_FIDELITY_SPECTRUM = (np.array([526e-9, 532e-9, 538e-9]), np.array([0.5, 1.0, 0.5]))
+"""Three lines across a 12 nm band around 532 nm (metres, relative power): the light of
+the higher-fidelity simulations below (a filtered LED or a laser diode's width)."""
+
+
+def _finer(phase, oversample: int):
+    """The diffuser phase cubic-interpolated onto a grid ``oversample``× finer (the true
+    diffuser is continuous; diffcam's model sees it at the sensor pitch)."""
+    import jax
+
+    phase = jnp.asarray(phase)
+    ny, nx = phase.shape[-2:]
+    return jax.image.resize(phase, (ny * oversample, nx * oversample), "cubic")
+
+
+def high_fidelity_psfs(phase, camera, z1, *, oversample: int = 2,
+                       spectrum=HIGH_FIDELITY_SPECTRUM, source_radius: float = 50e-6,
+                       photons: float | None = None, seed: int = 0) -> np.ndarray:
+    """PSFs as a camera records them, made by a higher-fidelity model than the one
+    diffcam inverts with (monochromatic, at the sensor pitch, a point source):
+
+    - the diffuser phase (radians at ``camera.wavelength``, on the camera grid)
+      cubic-interpolated onto a grid ``oversample``× finer, the aperture drawn there;
+    - three wavelengths (``spectrum``; the phase of a dispersion-free thin element,
+      θ·λ0/λ);
+    - a source of radius ``source_radius`` (m): its centre and six points on its rim,
+      averaged;
+    - the irradiance integrated over each sensor pixel (``camera.dx``);
+    - Poisson noise at ``photons`` at the brightest pixel (``None``: the expected
+      irradiance).
+
+    Args:
+        phase: ``camera.shape`` phase, radians.
+        camera: the camera diffcam's model uses (``aperture_radius`` set).
+        z1: depths, metres.
+
+    Returns:
+        float32 ``(nz, *camera.out_shape)``, each PSF of unit sum.
+    """
+    import dataclasses
+
+    from diffcam.core.errors import DiffcamError
+    from diffcam.model.sensor import bin_pixels
+    from diffcam.model.stack import psf_stack
+
+    if camera.aperture_radius is None:
+        raise DiffcamError("high_fidelity_psfs draws the aperture on its finer grid: give "
+                           "the camera an aperture_radius.")
+    k = int(oversample)
+    fine = dataclasses.replace(camera, dx=camera.dx / k,
+                               shape=tuple(k * n for n in camera.shape),
+                               pad=tuple(k * n for n in camera.pad),
+                               crop=tuple(k * n for n in camera.out_shape))
+    angles = np.arange(6) * np.pi / 3
+    offsets = np.concatenate([[[0.0, 0.0]], source_radius * np.stack(
+        [np.sin(angles), np.cos(angles)], axis=1)])
+    stack = psf_stack(_finer(phase, k), fine, np.atleast_1d(z1), offsets=offsets,
+                      spectrum=spectrum, progress=False)          # (nz, 7, ny, nx)
+    pixels = np.asarray(bin_pixels(jnp.asarray(stack.mean(axis=1)), fine.dx, camera.dx,
+                                   camera.out_shape), np.float64)
+    if photons is not None:
+        rng = np.random.default_rng(seed)
+        peak = pixels.max(axis=(-2, -1), keepdims=True)
+        pixels = rng.poisson(pixels / peak * photons).astype(np.float64)
+    return (pixels / pixels.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
+
+
+def high_fidelity_captures(phase, aperture_radius: float, geometry: CalibrationGeometry, *,
+                           oversample: int = 2, spectrum=HIGH_FIDELITY_SPECTRUM,
+                           photons: float | None = 1e5, seed: int = 0
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Near- and far-field captures of the paper's calibration (Section 3.1) made by a
+    higher-fidelity model than the one that inverts them:
+
+    - the diffuser on a grid ``oversample``× finer (phase cubic-interpolated, aperture
+      of ``aperture_radius`` (m) drawn there);
+    - three wavelengths (``spectrum``): the far field of each lands at its own pitch
+      λf/(N·dx) and is resampled onto the sensor, whose pixels are the pitch at
+      ``geometry.wavelength``; the near capture integrates each sensor pixel (the
+      grid's ``geometry.dx``);
+    - Poisson noise at ``photons`` at the brightest pixel of each (``None``: none).
+
+    Args:
+        phase: ``(n, n)`` phase on the calibration grid, radians at
+            ``geometry.wavelength``.
+
+    Returns:
+        ``(near, far)`` on the calibration grid and its far-field pitch, float32, scaled
+        as :func:`diffcam.calibrate.near_far.calibration_intensities` (W/m² for a unit
+        plane wave, up to the noise).
+    """
+    import dataclasses
+
+    from diffcam.model.sensor import bin_pixels, resample
+    from diffcam.optics.elements import circular_aperture
+
+    k = int(oversample)
+    fine_phase = _finer(phase, k)
+    shape = np.shape(phase)[-2:]
+    fine_dx = geometry.dx / k
+    aperture = circular_aperture(fine_phase.shape, fine_dx, aperture_radius)
+    lam0 = float(geometry.wavelength)
+    sensor_pitch = geometry.far_pitch(shape)
+    near = far = 0.0
+    for lam, w in zip(*(np.asarray(a, np.float64) for a in spectrum)):
+        g = dataclasses.replace(geometry, dx=fine_dx, wavelength=float(lam))
+        n_l, f_l = calibration_intensities(fine_phase * (lam0 / lam), aperture, g)
+        near = near + w * bin_pixels(n_l, fine_dx, geometry.dx, shape)
+        # the fine grid's far field: pitch λf/(k·N·dx/k), k× the field of view
+        far = far + w * resample(f_l, g.far_pitch(fine_phase.shape)[0], sensor_pitch[0], shape)
+    # the near capture sums k² fine samples per pixel; the far one is read at its pitch
+    total = float(np.sum(spectrum[1]))
+    near = np.asarray(near, np.float64) / (total * k * k)
+    far = np.asarray(far, np.float64) / total
+    if photons is not None:
+        rng = np.random.default_rng(seed)
+        near, far = (rng.poisson(a / a.max() * photons) * (a.max() / photons)
+                     for a in (near, far))
+    return np.asarray(near, np.float32), np.asarray(far, np.float32)

@@ -6,7 +6,7 @@ not depend on any bar. On the host, the tick advances the innermost bar opened b
 :func:`progress_bar` around the call, if any; without one it does nothing. A solver
 called under a caller's ``jit`` runs after its ``progress_bar`` block has closed, so it
 shows nothing. Bars appear only for runs longer than :data:`DELAY` seconds (tqdm's
-``delay``), so quick calls stay silent; ``progress=False`` on the public functions, or
+``delay``), so quick calls stay silent, and only on a terminal (a log file gets none); ``progress=False`` on the public functions, or
 ``DIFFCAM_PROGRESS=0`` in the environment, turns them off.
 
 Measured on Richardson–Lucy, 1000 iterations at 300 × 400 (one tick per iteration, no
@@ -25,6 +25,7 @@ import numpy as np
 __all__ = ["tick", "progress_bar", "enabled", "DELAY"]
 
 DELAY = 2.0  # seconds before a bar appears
+ON_TERMINALS_ONLY = True  # no bar when stderr is not a terminal (logs, pipes, CI)
 _BARS: list = []  # the bars open now, innermost last
 
 
@@ -62,7 +63,8 @@ def progress_bar(total: int, desc: str, progress: bool = True,
         return
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=int(total), desc=desc, unit=unit, delay=DELAY, leave=False)
+    bar = tqdm(total=int(total), desc=desc, unit=unit, delay=DELAY, leave=False,
+               disable=None if ON_TERMINALS_ONLY else False)
     _BARS.append(bar)
     try:
         yield
