@@ -233,6 +233,10 @@ def _metrics(s, fig3, fig5, rnd, fig6, sweeps) -> dict:
             "phase_pearson_flat_estimate_floor_twin_resolved":
                 fig3["flat_scores"]["twin_resolved"],
             "phase_mse_calibrated": fig3["resolved_scores"]["mse"],
+            "phase_pearson_gs_raw": fig3["gs_scores"]["raw"],
+            "phase_mse_gs": fig3["gs_scores"]["mse"],
+            "phase_pearson_flat_raw": fig3["flat_scores"]["raw"],
+            "phase_mse_flat": fig3["flat_scores"]["mse"],
             "calibration": f"{fig3['calibration_method']} "
                            f"{s.calibration_iterations} it + twin from one PSF",
             "twin_chosen": fig3["twin_chosen"],
@@ -268,18 +272,23 @@ def _report(s, metrics, fig3, sweeps) -> str:
         "## Fig. 3 — phase retrieval (central 300², the phase metric of docs/design.md)", "",
         _table([{"solver": f"textbook GS, {s.gs_iterations} it", "pearson": f3["phase_pearson_gs"],
                  "twin_resolved": f3["phase_pearson_gs_twin_resolved"],
+                 "raw": f3["phase_pearson_gs_raw"], "mse": f3["phase_mse_gs"],
                  "seconds": f3["seconds_gs"]},
                 {"solver": f3["calibration"], "pearson": f3["phase_pearson_calibrated"],
                  "twin_resolved": f3["phase_pearson_calibrated_twin_resolved"],
+                 "raw": f3["phase_pearson_calibrated_raw"], "mse": f3["phase_mse_calibrated"],
                  "seconds": f3["seconds_calibration"]},
                 {"solver": "paper, GS 2000 it", "pearson": 0.7890},
                 {"solver": "a flat estimate (the metric's floor)",
                  "pearson": f3["phase_pearson_flat_estimate_floor"],
-                 "twin_resolved": f3["phase_pearson_flat_estimate_floor_twin_resolved"]}],
-               ["solver", "pearson", "twin_resolved", "seconds"]), "",
+                 "twin_resolved": f3["phase_pearson_flat_estimate_floor_twin_resolved"],
+                 "raw": f3["phase_pearson_flat_raw"], "mse": f3["phase_mse_flat"]}],
+               ["solver", "pearson", "twin_resolved", "raw", "mse", "seconds"]), "",
         "The metric aligns the piston and scores θtrue + wrap(θest − θtrue − d) against "
         "θtrue, so even a flat estimate scores high (last row): read the phase MSE "
-        "(Fig. 5 table) beside it; `raw` in `metrics.json` is the unaligned Pearson.", "",
+        "(rad², after the same alignment) "
+        "beside it; `raw` is the Pearson without the piston alignment (wrapped phases: "
+        "near zero for any estimate).", "",
         "![](fig3_phase.png)", "",
         "## Fig. 5 — cameraman diffuser, z1 = 25 mm, z2 = 1 mm, RL of an 'F'", "",
         _table(metrics["fig5"], cols), "", "![](fig5_cameraman.png)", "",
