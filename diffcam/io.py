@@ -567,10 +567,7 @@ class _TermGuard:
         return guard
 
     def _handle(self, signum, frame) -> None:
-        if not self.deferring and _in_gc_callback(frame):
-            # an exception raised inside a garbage-collector callback (JAX has one) is
-            # printed and dropped: deliver the signal again once the callback is done
-            threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
+        if not self.deferring and redeliver_if_unraisable(signum, frame):
             return
         first = not self.received
         self.received = True
@@ -584,11 +581,37 @@ class _TermGuard:
             signal.raise_signal(signal.SIGTERM)  # now with its default action: exit
 
 
-def _in_gc_callback(frame) -> bool:
-    """Whether ``frame`` (where a signal interrupted) runs one of ``gc.callbacks``."""
+@contextlib.contextmanager
+def interrupts_as_keyboard_interrupt() -> Iterator[None]:
+    """SIGINT raises ``KeyboardInterrupt`` as Python's default handler does, except where
+    Python would print and drop it (see :func:`redeliver_if_unraisable`): there the
+    signal is delivered again a moment later. Installed only from the main thread and
+    only over Python's default handler; the previous handler is restored on exit."""
+    default = signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    if threading.current_thread() is not threading.main_thread() or not default:
+        yield
+        return
+
+    def handle(signum, frame) -> None:
+        if not redeliver_if_unraisable(signum, frame):
+            raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handle)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def redeliver_if_unraisable(signum: int, frame) -> bool:
+    """Send ``signum`` again in 50 ms if ``frame`` (where it interrupted) runs a
+    garbage-collector callback (JAX has one) or a ``__del__``: an exception raised there
+    is printed as "Exception ignored" with a traceback and dropped, and the run would
+    go on. Returns whether it did."""
     codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
     while frame is not None:
-        if frame.f_code in codes:
+        if frame.f_code in codes or frame.f_code.co_name == "__del__":
+            threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
             return True
         frame = frame.f_back
     return False

@@ -12,7 +12,7 @@ import numpy as np
 from diffcam.apps.fit_cli import _add_fit
 from diffcam.apps.reconstruct_cli import _add_reconstruct
 from diffcam.core.errors import DiffcamError
-from diffcam.io import atomic_output
+from diffcam.io import atomic_output, interrupts_as_keyboard_interrupt
 from diffcam.core.units import parse_length, parse_length_range
 
 
@@ -509,7 +509,8 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.func(args)
+        with interrupts_as_keyboard_interrupt():
+            return args.func(args)
     except DiffcamError as e:
         print(f"diffcam {args.command}: error: {e}", file=sys.stderr)
         return 2
