@@ -1,6 +1,4 @@
 """``python -m diffcam`` is the ``diffcam`` command."""
-import sys
+from diffcam.apps.cli import run
 
-from diffcam.apps.cli import main
-
-sys.exit(main())
+run()

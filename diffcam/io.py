@@ -27,13 +27,13 @@ with ``os.replace``, so an existing file is either untouched or wholly replaced.
 from __future__ import annotations
 
 import contextlib
-import gc
 import glob
 import os
 import re
 import secrets
 import signal
 import struct
+import sys
 import threading
 import warnings
 import zipfile
@@ -564,18 +564,25 @@ class _TermGuard:
             return None  # the caller (or an outer atomic_output) handles SIGTERM
         guard = cls()
         signal.signal(signal.SIGTERM, guard._handle)
+        guard._dropped = _redeliver_dropped(Terminated, guard._again)
+        guard._dropped.__enter__()
         return guard
 
     def _handle(self, signum, frame) -> None:
-        if not self.deferring and redeliver_if_unraisable(signum, frame):
-            return
         first = not self.received
         self.received = True
         if first and not self.deferring:
             self.deferring = True
             raise Terminated()
 
+    def _again(self) -> None:
+        """Python dropped the :class:`Terminated` raised by :meth:`_handle`: as if the
+        signal had not come yet, and it comes again."""
+        self.received = self.deferring = False
+        _send_again(signal.SIGTERM)
+
     def restore(self) -> None:
+        self._dropped.__exit__(None, None, None)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         if self.received:
             signal.raise_signal(signal.SIGTERM)  # now with its default action: exit
@@ -583,38 +590,46 @@ class _TermGuard:
 
 @contextlib.contextmanager
 def interrupts_as_keyboard_interrupt() -> Iterator[None]:
-    """SIGINT raises ``KeyboardInterrupt`` as Python's default handler does, except where
-    Python would print and drop it (see :func:`redeliver_if_unraisable`): there the
-    signal is delivered again a moment later. Installed only from the main thread and
-    only over Python's default handler; the previous handler is restored on exit."""
-    default = signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    if threading.current_thread() is not threading.main_thread() or not default:
+    """SIGINT raises ``KeyboardInterrupt`` as Python's default handler does, and a
+    ``KeyboardInterrupt`` that Python drops is delivered again (:func:`_redeliver_dropped`).
+    Installed only from the main thread and only over Python's default handler."""
+    main = threading.current_thread() is threading.main_thread()
+    if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         yield
         return
+    with _redeliver_dropped(KeyboardInterrupt, lambda: _send_again(signal.SIGINT)):
+        yield
 
-    def handle(signum, frame) -> None:
-        if not redeliver_if_unraisable(signum, frame):
-            raise KeyboardInterrupt
 
-    signal.signal(signal.SIGINT, handle)
+@contextlib.contextmanager
+def _redeliver_dropped(kind: type[BaseException], again) -> Iterator[None]:
+    """While the block runs, an exception of ``kind`` that Python prints as "Exception
+    ignored" and drops calls ``again()`` instead of being printed.
+
+    A signal handler's exception is dropped so when the signal lands in a garbage-
+    collector callback (JAX registers one), a ``__del__`` or a weakref callback; the run
+    would then go on as if no signal had come (seen in CI). ``again`` sends it anew.
+    """
+    previous = sys.unraisablehook
+
+    def hook(unraisable) -> None:
+        if isinstance(unraisable.exc_value, kind):
+            again()
+        else:
+            previous(unraisable)
+
+    sys.unraisablehook = hook
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        sys.unraisablehook = previous
 
 
-def redeliver_if_unraisable(signum: int, frame) -> bool:
-    """Send ``signum`` again in 50 ms if ``frame`` (where it interrupted) runs a
-    garbage-collector callback (JAX has one) or a ``__del__``: an exception raised there
-    is printed as "Exception ignored" with a traceback and dropped, and the run would
-    go on. Returns whether it did."""
-    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
-    while frame is not None:
-        if frame.f_code in codes or frame.f_code.co_name == "__del__":
-            threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
-            return True
-        frame = frame.f_back
-    return False
+def _send_again(signum: int) -> None:
+    """Send ``signum`` to this process in 50 ms (after the code that dropped it)."""
+    timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+    timer.daemon = True
+    timer.start()
 
 
 def _create_temp(target: Path, *, probe: bool = False) -> tuple[int, Path]:
