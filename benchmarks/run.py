@@ -15,7 +15,7 @@ import argparse
 import importlib
 
 WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit", "cli_memory",
-             "overhead", "real_data"]
+             "overhead", "real_data", "fft"]
 QUICK = {"propagate": ["--sizes", "512", "1024"],
          "psf": ["--sizes", "512", "--depths", "8", "--no-memory"],
          "retrieval": ["--sizes", "512", "--repeats", "2"],
@@ -23,7 +23,8 @@ QUICK = {"propagate": ["--sizes", "512", "1024"],
          "stack_fit": ["--quick"],
          "cli_memory": ["--quick"],
          "overhead": ["--sizes", "128", "--repeats", "5"],
-         "real_data": ["--downsample", "4"]}
+         "real_data": ["--downsample", "4"],
+         "fft": ["--sizes", "512", "--repeats", "3", "--workload-size", "256", "--rounds", "1"]}
 
 
 def main(argv=None):

@@ -2,13 +2,27 @@
 
 Every transform in diffcam goes through :func:`fft2`, :func:`ifft2`, :func:`rfft2` and
 :func:`irfft2` (over the last two axes, batched over leading ones), and every
-propagation step through :func:`transfer_step`. Today they are XLA's FFT (``jnp.fft``);
-a faster CPU library can replace them here without touching a line of physics.
+propagation step through :func:`transfer_step`. Two backends stand behind them:
 
-What is also here, and only here, are the scheduling aids that XLA's CPU backend needs.
+- ``"fftw"`` (CPU): FFTW on its own threads through XLA FFI custom calls
+  (:mod:`diffcam.core.fftw`; needs FFTW, e.g. ``pip install 'diffcam[fftw]'``, and a
+  C++ compiler once). On a 2-core machine a Fresnel step measured 1.14-1.29x faster
+  than with XLA's FFT at 1024²-4096², Gerchberg–Saxton 1.8x (``benchmarks/bench_fft.py``).
+- ``"xla"``: ``jnp.fft``; the default, and the only one on GPU/TPU.
+
+``"xla"`` is the default. ``"auto"`` takes FFTW on CPU when it loads, else XLA. Choose
+with :func:`set_fft` or the environment (``DIFFCAM_FFT=xla|auto|fftw``,
+``DIFFCAM_FFT_THREADS=n``); :func:`fft_backend` says which one runs. FFTW is not the
+default yet: it measures a plan for every new shape (kept between runs, but a session
+of many shapes pays for each) and ``psf_stack`` is still faster with XLA's FFT
+(``docs/fft.md``). The choice is made when a function is traced: :func:`set_fft`
+clears JAX's caches so that jitted functions trace again.
+
+What is also here, and only here, are the scheduling aids that XLA's CPU FFT needs.
 None changes a result; each is differentiable and ``vmap``-able, and each is justified
-by a benchmark (``benchmarks/RESULTS.md``); on other backends they reduce to the plain
-expression.
+by a benchmark (``benchmarks/RESULTS.md``); with FFTW or on other backends they reduce
+to the plain expression (:func:`materialise` and :func:`vector` stay on CPU: they are
+not about the FFT).
 
 **The FFT rule (CPU).** XLA splits a large elementwise fusion over its intra-op thread
 pool and goes on with the program on whichever pool thread finishes last; an FFT that
@@ -29,42 +43,151 @@ while on one core (``taskset``) the same programs cost the same. So on CPU:
 
 from __future__ import annotations
 
+import os
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array, lax
 
+from diffcam.core import fftw
+from diffcam.core.errors import DiffcamError
+
 __all__ = ["fft2", "ifft2", "rfft2", "irfft2", "fft_size", "transfer_step",
-           "transfer_step_with_spectrum", "vector",
-           "staged", "materialise", "on_cpu"]
+           "transfer_step_with_spectrum", "vector", "staged", "materialise", "on_cpu",
+           "set_fft", "fft_backend", "fft_status"]
 
 _AXES = (-2, -1)
+BACKENDS = ("auto", "fftw", "xla")
+_setting = {"backend": None, "why_not_fftw": None}
 
 
 def on_cpu() -> bool:
-    """True when JAX's default backend is the CPU (the scheduling aids apply)."""
+    """True when JAX's default backend is the CPU."""
     return jax.default_backend() == "cpu"
+
+
+def set_fft(backend: str = "xla", *, threads: int | None = None,
+            planning: str = "measure") -> str:
+    """Choose the FFT behind every transform; returns the one that will run.
+
+    Args:
+        backend: ``"xla"`` (the default), ``"fftw"`` (an error if it cannot load)
+            or ``"auto"`` (FFTW on CPU when it loads, else XLA).
+        threads: FFTW's threads (default ``$DIFFCAM_FFT_THREADS``, else every CPU this
+            process may use).
+        planning: FFTW's planning effort, ``"measure"``, ``"patient"`` or
+            ``"estimate"`` (:func:`diffcam.core.fftw.configure`).
+
+    Clears JAX's compilation caches: functions traced before used the former choice.
+    """
+    if backend not in BACKENDS:
+        raise DiffcamError(f"the FFT backend is one of {', '.join(BACKENDS)}, not {backend!r}.")
+    _setting["backend"], _setting["why_not_fftw"] = backend, None
+    if backend != "xla" and (backend == "fftw" or on_cpu()):
+        try:
+            fftw.configure(threads=threads, planning=planning)
+        except DiffcamError as e:
+            if backend == "fftw":
+                raise
+            _setting["why_not_fftw"] = str(e)
+    jax.clear_caches()
+    return fft_backend()
+
+
+def fft_backend() -> str:
+    """The FFT the next traced function uses: ``"fftw"`` or ``"xla"``."""
+    backend = _setting["backend"]
+    if backend is None:  # first use: the environment's choice
+        backend = os.environ.get("DIFFCAM_FFT", "xla").strip().lower() or "xla"
+        if backend not in BACKENDS:
+            raise DiffcamError(f"DIFFCAM_FFT is one of {', '.join(BACKENDS)}, not {backend!r}.")
+        set_fft(backend)
+        backend = _setting["backend"]
+    if backend == "xla" or not on_cpu() or _setting["why_not_fftw"] is not None:
+        return "xla"
+    return "fftw"
+
+
+def fft_status() -> str:
+    """One line for logs and reports: the FFT in use and, if FFTW was asked for and
+    is not used, why."""
+    if fft_backend() == "fftw":
+        return f"FFT: FFTW, {fftw.threads()} threads"
+    if not on_cpu():
+        return f"FFT: XLA on {jax.default_backend()}"
+    why = _setting["why_not_fftw"]
+    return "FFT: XLA" + (f" (FFTW unavailable: {why.splitlines()[0]})" if why else "")
+
+
+def _fftw_in_use() -> bool:
+    return fft_backend() == "fftw"
+
+
+def _xla_fft_on_cpu() -> bool:
+    """Whether the FFT rule applies (XLA's FFT on CPU): the aids below are needed."""
+    return on_cpu() and not _fftw_in_use()
+
+
+def _norm_scale(norm: str | None, n: int, inverse: bool):
+    """The factor numpy's ``norm`` puts on an unnormalised transform of ``n`` samples."""
+    if norm == "ortho":
+        return 1 / np.sqrt(n)
+    if norm not in (None, "backward", "forward"):
+        raise DiffcamError(f"norm is None, 'backward', 'ortho' or 'forward', not {norm!r}.")
+    return 1 / n if (norm == "forward") != inverse else None
+
+
+def _scaled(x: Array, scale) -> Array:
+    return x if scale is None else x * jnp.asarray(scale, x.real.dtype)
+
+
+def _as_complex(u) -> Array:
+    u = jnp.asarray(u)
+    return u.astype(jnp.promote_types(u.dtype, jnp.complex64))
+
+
+def _fit(u: Array, shape) -> Array:
+    """``u`` cropped or zero-padded at the end of its last two axes to ``shape``."""
+    u = u[..., :shape[0], :shape[1]]
+    pad = [(0, 0)] * (u.ndim - 2) + [(0, shape[0] - u.shape[-2]), (0, shape[1] - u.shape[-1])]
+    return jnp.pad(u, pad) if any(p for _, p in pad) else u
 
 
 def fft2(u: Array, norm: str | None = None) -> Array:
     """2-D DFT over the last two axes (``numpy.fft.fft2`` conventions)."""
-    return jnp.fft.fft2(u, axes=_AXES, norm=norm)
+    if not _fftw_in_use():
+        return jnp.fft.fft2(u, axes=_AXES, norm=norm)
+    u = _as_complex(u)
+    return _scaled(fftw.c2c(u, -1), _norm_scale(norm, u.shape[-2] * u.shape[-1], False))
 
 
 def ifft2(u: Array, norm: str | None = None) -> Array:
     """Inverse of :func:`fft2` (``1/(ny·nx)`` unless ``norm`` says otherwise)."""
-    return jnp.fft.ifft2(u, axes=_AXES, norm=norm)
+    if not _fftw_in_use():
+        return jnp.fft.ifft2(u, axes=_AXES, norm=norm)
+    u = _as_complex(u)
+    return _scaled(fftw.c2c(u, +1), _norm_scale(norm, u.shape[-2] * u.shape[-1], True))
 
 
 def rfft2(u: Array, s=None) -> Array:
-    """2-D DFT of a real array over the last two axes, half spectrum along the last."""
-    return jnp.fft.rfft2(u, s=s, axes=_AXES)
+    """2-D DFT of a real array over the last two axes, half spectrum along the last;
+    ``s`` crops or zero-pads the input first."""
+    if not _fftw_in_use() or jnp.iscomplexobj(u):
+        return jnp.fft.rfft2(u, s=s, axes=_AXES)
+    u = jnp.asarray(u)
+    u = u.astype(jnp.promote_types(u.dtype, jnp.float32))
+    return fftw.r2c(u if s is None else _fit(u, tuple(s)))
 
 
 def irfft2(u: Array, s=None) -> Array:
-    """Inverse of :func:`rfft2` onto the real shape ``s``."""
-    return jnp.fft.irfft2(u, s=s, axes=_AXES)
+    """Inverse of :func:`rfft2` onto the real shape ``s`` (default: an even width)."""
+    if not _fftw_in_use():
+        return jnp.fft.irfft2(u, s=s, axes=_AXES)
+    u = _as_complex(u)
+    ny, nx = (u.shape[-2], 2 * (u.shape[-1] - 1)) if s is None else tuple(s)
+    return _scaled(fftw.c2r(_fit(u, (ny, nx // 2 + 1)), nx), 1 / (ny * nx))
 
 
 def fft_size(n: int) -> int:
@@ -89,7 +212,7 @@ def transfer_step(u: Array, H: Array) -> Array:
     """``ifft2(fft2(u) · H)``: one propagation step with a transfer function ``H`` that
     broadcasts against the spectrum (prebuilt, or the outer product of two 1-D factors).
 
-    On CPU the product is written over the spectrum in two row blocks as in-place
+    With XLA's FFT on CPU the product is written over the spectrum in two row blocks as in-place
     dynamic-update-slices, which keeps the inverse FFT multi-threaded (module docstring).
     """
     return transfer_step_with_spectrum(u, H)[0]
@@ -100,7 +223,7 @@ def transfer_step_with_spectrum(u: Array, H: Array) -> tuple[Array, Array]:
     caller that donates both field-sized arrays back as the next call's buffers, so
     that no fresh, page-faulted buffer is allocated per call (:mod:`diffcam.model.stack`)."""
     u_hat = fft2(u)
-    if not on_cpu():
+    if not _xla_fft_on_cpu():
         spectrum = u_hat * H
         return ifft2(spectrum), spectrum
     u_hat = jnp.broadcast_to(u_hat, jnp.broadcast_shapes(u_hat.shape, H.shape))
@@ -147,13 +270,17 @@ def materialise(x: Array, token: Array) -> Array:
 def staged(first: Callable, second: Callable, static_argnames=()) -> Callable:
     """``second(first(*args), *args)`` as one callable that is jitted once per shape.
 
-    On CPU the two halves run as two jitted calls, so that ``second``'s FFTs start a
+    With XLA's FFT on CPU the two halves run as two jitted calls, so that ``second``'s FFTs start a
     program of their own (the FFT rule); elsewhere as one. ``static_argnames`` name
     keyword arguments of ``second`` that fix shapes or code paths.
     """
-    if not on_cpu():
-        return jax.jit(lambda *a, **k: second(first(*a), *a, **k),
-                       static_argnames=static_argnames)
+    fused = jax.jit(lambda *a, **k: second(first(*a), *a, **k),
+                    static_argnames=static_argnames)
     first_j = jax.jit(first)
     second_j = jax.jit(second, static_argnames=static_argnames)
-    return lambda *a, **k: second_j(first_j(*a), *a, **k)
+
+    def call(*a, **k):  # decided per call: the backend may be chosen after import
+        if _xla_fft_on_cpu():
+            return second_j(first_j(*a), *a, **k)
+        return fused(*a, **k)
+    return call

@@ -1,0 +1,181 @@
+"""CPU FFT at the library's speed: diffcam's FFT seam with its FFTW backend and with
+XLA's FFT, beside the FFT libraries called directly (issue: one step ≤ 1.2× pyFFTW).
+
+    python -m benchmarks.bench_fft [--sizes 1024 2048 4096] [--repeats 7]
+                                   [--workload-size 1024] [--rounds 2]
+
+Part 1, one process, candidates interleaved (complex64, medians, compile excluded):
+
+* ``pair``: ``ifft2(fft2(u))``; ``step``: one Fresnel transfer-function step at half its
+  sampling limit (:func:`diffcam.optics.propagation.fresnel_tf`: FFT, product with the kernel, inverse
+  FFT). diffcam runs jitted, compiled ahead of time once per backend;
+* pyFFTW: ``FFTW`` objects planned with ``FFTW_MEASURE`` on every thread, the step's
+  product in place in numpy (normalisation left to the product, as diffcam folds it);
+  scipy.fft with ``workers`` = every thread; numpy.fft (one thread).
+
+Part 2, whole workloads per iteration / per PSF, FFTW against XLA's FFT: each backend
+runs in its own process (a backend is chosen when a function is traced, and diffcam's
+functions keep their traces), the processes alternated ``--rounds`` times; the median
+over the rounds. ``psf_stack`` per PSF (32 depths), Gerchberg–Saxton per iteration (50),
+Richardson–Lucy per iteration (100, ``boundary="circular"``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from benchmarks.harness import markdown_table, time_interleaved, write_json
+
+LAM, DX = 532e-9, 2e-6
+TARGET = 1.2
+
+
+def _threads() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
+def transform_rows(n: int, repeats: int) -> list[dict]:
+    import jax
+    import jax.numpy as jnp
+    import pyfftw
+    import scipy.fft
+
+    from diffcam.core import backend
+    from diffcam.optics.propagation import fresnel_tf
+
+    rng = np.random.default_rng(0)
+    u = (rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))).astype(np.complex64)
+    uj = jnp.asarray(u)
+    z = 0.5 * n * DX ** 2 / LAM  # half the transfer function's sampling limit
+    programs = {}
+    for name in ("fftw", "xla"):
+        backend.set_fft(name)
+        programs[name, "pair"] = jax.jit(
+            lambda v: backend.ifft2(backend.fft2(v))).lower(uj).compile()
+        programs[name, "step"] = jax.jit(
+            lambda v: fresnel_tf(v, DX, LAM, z)).lower(uj).compile()
+    backend._setting["backend"] = None
+    # the libraries' step multiplies by a kernel of the same size (its values do not
+    # change the time), with the inverse's 1/N² folded in
+    H = (np.exp(1j * rng.uniform(0, 2 * np.pi, (n, n))) / (n * n)).astype(np.complex64)
+
+    threads = _threads()
+    a = pyfftw.empty_aligned((n, n), "complex64")
+    b = pyfftw.empty_aligned((n, n), "complex64")
+    forward = pyfftw.FFTW(a, b, axes=(0, 1), threads=threads, flags=("FFTW_MEASURE",))
+    inverse = pyfftw.FFTW(b, a, axes=(0, 1), direction="FFTW_BACKWARD", threads=threads,
+                          flags=("FFTW_MEASURE",), normalise_idft=False)
+    a[:] = u
+
+    def pyfftw_pair():
+        forward()
+        return inverse()
+
+    def pyfftw_step():
+        forward()
+        np.multiply(b, H, out=b)
+        return inverse()
+
+    rows = []
+    for kind in ("pair", "step"):
+        candidates = {
+            "diffcam FFTW": lambda p=programs["fftw", kind]: p(uj),
+            "diffcam XLA": lambda p=programs["xla", kind]: p(uj),
+            "pyFFTW": pyfftw_pair if kind == "pair" else pyfftw_step,
+            "scipy.fft": (lambda: scipy.fft.ifft2(scipy.fft.fft2(u, workers=threads),
+                                                  workers=threads)) if kind == "pair" else
+                         (lambda: scipy.fft.ifft2(scipy.fft.fft2(u, workers=threads) * H,
+                                                  workers=threads)),
+            "numpy.fft": (lambda: np.fft.ifft2(np.fft.fft2(u))) if kind == "pair" else
+                         (lambda: np.fft.ifft2(np.fft.fft2(u) * H)),
+        }
+        t = time_interleaved(candidates, repeats=repeats)
+        ref = t["pyFFTW"]["median_s"]
+        for name, s in t.items():
+            rows.append({"N": n, "row": kind, "candidate": name,
+                         "ms": s["median_s"] * 1e3, "vs_pyfftw": s["median_s"] / ref,
+                         "ok": (s["median_s"] / ref <= TARGET) if name == "diffcam FFTW" else "",
+                         "loadavg": os.getloadavg()[0]})
+    # the seam's transforms agree with each other (a benchmark of wrong answers is none)
+    out_f = np.asarray(programs["fftw", "step"](uj))
+    out_x = np.asarray(programs["xla", "step"](uj))
+    assert np.abs(out_f - out_x).max() <= 1e-3 * np.abs(out_x).max(), "FFTW and XLA disagree"
+    return rows
+
+
+def workload_times(n: int, repeats: int) -> dict[str, float]:
+    """Seconds per PSF / per iteration under the backend set by ``DIFFCAM_FFT``."""
+    import jax
+
+    import diffcam as dc
+    from benchmarks.harness import time_interleaved as timed
+    from diffcam.calibrate import CalibrationGeometry, calibration_intensities, gerchberg_saxton
+    from diffcam.reconstruct import richardson_lucy
+
+    cam = dc.Camera(wavelength=LAM, z2=1e-3, dx=5e-6, aperture_radius=0.3 * n * 5e-6,
+                    shape=(n, n))
+    phase = dc.random_diffuser(jax.random.key(0), (n, n), 5e-6, LAM)
+    depths = np.linspace(22e-3, 30e-3, 32)
+    geometry = CalibrationGeometry(dx=5e-6, wavelength=LAM, focal_length=5e-2)
+    near, far = calibration_intensities(phase, cam.aperture(), geometry)
+    psf = np.asarray(dc.psf(phase, cam, 25e-3))
+    image = np.random.default_rng(1).uniform(0, 1, (n, n)).astype(np.float32)
+    t = timed({
+        "psf_stack per PSF": lambda: dc.psf_stack(phase, cam, depths, progress=False),
+        "GS per iteration": lambda: gerchberg_saxton(near, far, geometry, iterations=50,
+                                                     restarts=1, key=jax.random.key(1),
+                                                     progress=False).phase,
+        "RL per iteration": lambda: richardson_lucy(image, psf, 100, boundary="circular",
+                                                    progress=False).image,
+    }, repeats=repeats)
+    per = {"psf_stack per PSF": len(depths), "GS per iteration": 50, "RL per iteration": 100}
+    return {k: t[k]["median_s"] / per[k] for k in t}
+
+
+def workload_rows(n: int, rounds: int, repeats: int) -> list[dict]:
+    runs = {"fftw": [], "xla": []}
+    for _ in range(rounds):
+        for name in runs:
+            env = dict(os.environ, DIFFCAM_FFT=name)
+            done = subprocess.run([sys.executable, "-m", "benchmarks.bench_fft", "--child",
+                                   str(n), "--repeats", str(repeats)], env=env,
+                                  capture_output=True, text=True, check=True)
+            runs[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
+    rows = []
+    for key in runs["fftw"][0]:
+        f = float(np.median([r[key] for r in runs["fftw"]]))
+        x = float(np.median([r[key] for r in runs["xla"]]))
+        rows.append({"N": n, "row": key, "candidate": "FFTW vs XLA", "ms": f * 1e3,
+                     "xla_ms": x * 1e3, "speedup": x / f, "loadavg": os.getloadavg()[0]})
+    return rows
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
+    p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--workload-size", type=int, default=1024)
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        print(json.dumps(workload_times(args.child, args.repeats)))
+        return
+    rows = [r for n in args.sizes for r in transform_rows(n, args.repeats)]
+    print(markdown_table(rows, ["N", "row", "candidate", "ms", "vs_pyfftw", "ok", "loadavg"]))
+    work = workload_rows(args.workload_size, args.rounds, max(3, args.repeats // 2)) \
+        if args.rounds else []
+    if work:
+        print(markdown_table(work, ["N", "row", "ms", "xla_ms", "speedup", "loadavg"]))
+    malloc = {k: v for k, v in os.environ.items() if k.startswith("MALLOC_")}
+    print(f"wrote {write_json('fft', rows + work, {'target_vs_pyfftw': TARGET, 'threads': _threads(), 'malloc_env': malloc})}")
+
+
+if __name__ == "__main__":
+    main()
