@@ -54,6 +54,21 @@ def test_plan_reports_and_rejects_bad_units():
     assert "Traceback" not in too_big.stderr
 
 
+def test_quiet_and_verbose():
+    """`diffcam -q` prints nothing on stdout; `diffcam -v` adds the FFT backend, the
+    device and the wall time on stderr; both at once is a usage error (exit 2)."""
+    plan = ["plan", "--pixel", "3.45um", "--n", "4096", "--z1", "22mm", "--z2", "1mm",
+            "--aperture-radius", "2.3mm"]
+    quiet = _diffcam("-q", *plan)
+    assert quiet.returncode == 0 and quiet.stdout == "" and quiet.stderr == ""
+    loud = _diffcam("-v", *plan)
+    assert loud.returncode == 0 and "29.83 mm" in loud.stdout
+    assert "FFT: XLA" in loud.stderr and "cpu" in loud.stderr.lower()
+    assert loud.stderr.rstrip().endswith(" s")
+    both = _diffcam("-q", "-v", *plan)
+    assert both.returncode == 2 and "not allowed with" in both.stderr
+
+
 def test_units():
     """Lengths with units convert to metres; ranges include their end."""
     assert parse_length("25mm") == pytest.approx(0.025)

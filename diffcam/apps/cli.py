@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -496,6 +498,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.")
+    talk = parser.add_mutually_exclusive_group()
+    talk.add_argument("-q", "--quiet", dest="global_quiet", action="store_true",
+                      help="print only errors: no progress bars, no summaries")
+    talk.add_argument("-v", "--verbose", action="store_true",
+                      help="also print the FFT backend, JAX's device and the wall time")
     sub = parser.add_subparsers(dest="command", required=True)
     # every subcommand's --help shows its defaults (a parser may still pass its own)
     sub._parser_class = functools.partial(argparse.ArgumentParser,
@@ -506,11 +513,43 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def _talk(args):
+    """``diffcam -q``: standard output and progress bars off (errors still reach
+    stderr); ``diffcam -v``: the FFT backend and device first, the wall time last."""
+    if args.global_quiet:
+        progress = os.environ.get("DIFFCAM_PROGRESS")
+        os.environ["DIFFCAM_PROGRESS"] = "0"
+        try:
+            with open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
+                yield
+        finally:
+            if progress is None:
+                os.environ.pop("DIFFCAM_PROGRESS", None)
+            else:
+                os.environ["DIFFCAM_PROGRESS"] = progress
+        return
+    if not args.verbose:
+        yield
+        return
+    import jax
+
+    from diffcam.core.backend import fft_status
+
+    print(f"diffcam {args.command}: JAX {jax.__version__} on {jax.devices()[0]}; "
+          f"{fft_status()}", file=sys.stderr)
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        print(f"diffcam {args.command}: {time.perf_counter() - start:.1f} s", file=sys.stderr)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        with interrupts_as_keyboard_interrupt():
+        with interrupts_as_keyboard_interrupt(), _talk(args):
             return args.func(args)
     except DiffcamError as e:
         print(f"diffcam {args.command}: error: {e}", file=sys.stderr)

@@ -315,8 +315,10 @@ def _primitive(name: str, shape_dtype, call, transpose) -> Primitive:
 
 
 def _c2c_call(x, *, sign):
-    return jax.ffi.ffi_call("diffcam_fftw_c2c", jax.ShapeDtypeStruct(x.shape, x.dtype))(
-        x, sign=np.int64(sign))
+    # in place: XLA reuses the input's buffer when nothing else needs it (else it
+    # copies), instead of a fresh output buffer (a pair at 4096²: 196 ms vs 221)
+    return jax.ffi.ffi_call("diffcam_fftw_c2c", jax.ShapeDtypeStruct(x.shape, x.dtype),
+                            input_output_aliases={0: 0})(x, sign=np.int64(sign))
 
 
 def _r2c_call(x):

@@ -6,10 +6,11 @@
 // buffer, batched over the leading ones, unnormalised (FFTW's conventions; the
 // 1/(ny*nx) of an inverse transform is applied in JAX, where XLA fuses it).
 //
-// Plans are made once per (precision, kind, shape, alignment, threads, effort) under a
-// lock, on a scratch input and the caller's output (measuring writes to both), and
-// executed on each transform of a batch in turn with the new-array functions, which
-// FFTW documents as thread-safe. A c2r transform overwrites its input, so it runs on
+// Plans are made once per (precision, kind, shape, alignment, in place, threads,
+// effort) under a lock, on a scratch input and the caller's output (measuring writes
+// to both; the scratch alone when in place), and executed on each transform of a batch
+// in turn with the new-array functions, which FFTW documents as thread-safe. Complex
+// transforms run in place (XLA aliases their output to their input). A c2r transform overwrites its input, so it runs on
 // a copy: XLA's operand buffers are not ours to change. FFTW's wisdom (what its
 // measurements found) is exported and imported as strings for Python to keep.
 
@@ -67,7 +68,7 @@ unsigned effort = kMeasure;
 double timelimit = -1;  // seconds per plan (FFTW_NO_TIMELIMIT)
 std::mutex planner;     // FFTW's planner is not thread-safe
 int64_t plans_made = 0;
-std::map<std::tuple<int, int, int64_t, int64_t, bool, int, unsigned>, Plan> plans;
+std::map<std::tuple<int, int, int64_t, int64_t, bool, bool, int, unsigned>, Plan> plans;
 
 struct Scratch {  // grows to the largest c2r input seen by this thread
   int precision = 0;
@@ -116,9 +117,10 @@ size_t ComplexBytes(int precision) { return precision == 0 ? 8 : 16; }
 
 // The plan for one transform of ny x nx (the real shape for r2c/c2r), made on a
 // scratch input (planning writes to its arrays) and the caller's output.
-Plan GetPlan(int precision, Kind kind, int64_t ny, int64_t nx, bool aligned, void* out) {
+Plan GetPlan(int precision, Kind kind, int64_t ny, int64_t nx, bool aligned, bool in_place,
+             void* out) {
   std::lock_guard<std::mutex> lock(planner);
-  auto key = std::make_tuple(precision, int(kind), ny, nx, aligned, threads, effort);
+  auto key = std::make_tuple(precision, int(kind), ny, nx, aligned, in_place, threads, effort);
   auto found = plans.find(key);
   if (found != plans.end()) return found->second;
   ++plans_made;
@@ -133,6 +135,7 @@ Plan GetPlan(int precision, Kind kind, int64_t ny, int64_t nx, bool aligned, voi
   if (scratch_in == nullptr) return nullptr;
   std::memset(scratch_in, 0, in_bytes + offset);
   void* in = scratch_in + offset;
+  if (in_place) out = in;  // the caller's output is its input: plan on the scratch
   unsigned flags = effort | (aligned ? 0u : kUnaligned);
   api.plan_with_nthreads(threads);
   api.set_timelimit(timelimit);
@@ -220,7 +223,7 @@ ffi::Error Transform(Kind kind, ffi::AnyBuffer x, ffi::Result<ffi::AnyBuffer> y)
       in = copy;
     }
     bool aligned = api.alignment_of(in) == 0 && api.alignment_of(out_at) == 0;
-    Plan plan = GetPlan(precision, kind, ny, nx, aligned, out_at);
+    Plan plan = GetPlan(precision, kind, ny, nx, aligned, in == out_at, out_at);
     if (plan == nullptr) {
       return ffi::Error::Internal("diffcam FFTW: no plan for " + std::to_string(ny) + " x " +
                                   std::to_string(nx));
