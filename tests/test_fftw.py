@@ -180,6 +180,16 @@ def test_backend_switch_and_its_errors(monkeypatch):
         backend.fft_backend()
     monkeypatch.delenv("DIFFCAM_FFT")
     assert backend.fft_backend() == "xla"  # the default
+    # FFTW failing to load: "fftw" raises and keeps the former choice, "auto" falls
+    # back to XLA and says why
+    def broken(**_):
+        raise DiffcamError("FFTW (libfftw3f) was not found: install it")
+    monkeypatch.setattr(fftw, "configure", broken)
+    with pytest.raises(DiffcamError, match="not found"):
+        backend.set_fft("fftw")
+    assert backend.fft_backend() == "xla"
+    assert backend.set_fft("auto") == "xla"
+    assert backend.fft_status() == "FFT: XLA (FFTW unavailable: FFTW (libfftw3f) was not found: install it)"
     # no FFTW anywhere: a clear error naming the fix (checked on the finder itself; the
     # loaded libraries of this process stay)
     monkeypatch.setattr(fftw.importlib.util, "find_spec", lambda name: None)

@@ -82,18 +82,24 @@ def set_fft(backend: str = "xla", *, threads: int | None = None,
 
     Clears JAX's compilation caches: functions traced before used the former choice.
     """
+    _choose(backend, threads, planning)
+    jax.clear_caches()
+    return fft_backend()
+
+
+def _choose(backend: str, threads: int | None = None, planning: str = "measure") -> None:
+    """Record the choice once FFTW, if asked for, is loaded; nothing changes on error."""
     if backend not in BACKENDS:
         raise DiffcamError(f"the FFT backend is one of {', '.join(BACKENDS)}, not {backend!r}.")
-    _setting["backend"], _setting["why_not_fftw"] = backend, None
+    why_not_fftw = None
     if backend != "xla" and (backend == "fftw" or on_cpu()):
         try:
             fftw.configure(threads=threads, planning=planning)
         except DiffcamError as e:
             if backend == "fftw":
                 raise
-            _setting["why_not_fftw"] = str(e)
-    jax.clear_caches()
-    return fft_backend()
+            why_not_fftw = str(e)
+    _setting["backend"], _setting["why_not_fftw"] = backend, why_not_fftw
 
 
 def fft_backend() -> str:
@@ -103,8 +109,7 @@ def fft_backend() -> str:
         backend = os.environ.get("DIFFCAM_FFT", "xla").strip().lower() or "xla"
         if backend not in BACKENDS:
             raise DiffcamError(f"DIFFCAM_FFT is one of {', '.join(BACKENDS)}, not {backend!r}.")
-        set_fft(backend)
-        backend = _setting["backend"]
+        _choose(backend)  # nothing was traced with another choice: no cache to clear
     if backend == "xla" or not on_cpu() or _setting["why_not_fftw"] is not None:
         return "xla"
     return "fftw"
