@@ -15,7 +15,7 @@ import argparse
 import importlib
 
 WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit", "cli_memory",
-             "overhead", "real_data", "fft"]
+             "overhead", "real_data", "fft", "grad"]
 QUICK = {"propagate": ["--sizes", "512", "1024"],
          "psf": ["--sizes", "512", "--depths", "8", "--no-memory"],
          "retrieval": ["--sizes", "512", "--repeats", "2"],
@@ -24,6 +24,7 @@ QUICK = {"propagate": ["--sizes", "512", "1024"],
          "cli_memory": ["--quick"],
          "overhead": ["--sizes", "128", "--repeats", "5"],
          "real_data": ["--downsample", "4"],
+         "grad": ["--sizes", "256", "--repeats", "3"],
          "fft": ["--sizes", "512", "--repeats", "3", "--workload-size", "256", "--rounds", "1"]}
 
 

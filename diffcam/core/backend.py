@@ -21,8 +21,7 @@ clears JAX's caches so that jitted functions trace again.
 What is also here, and only here, are the scheduling aids that XLA's CPU FFT needs.
 None changes a result; each is differentiable and ``vmap``-able, and each is justified
 by a benchmark (``benchmarks/RESULTS.md``); with FFTW or on other backends they reduce
-to the plain expression (:func:`materialise` and :func:`vector` stay on CPU: they are
-not about the FFT).
+to the plain expression (:func:`vector` stays on CPU: it is not about the FFT).
 
 **The FFT rule (CPU).** XLA splits a large elementwise fusion over its intra-op thread
 pool and goes on with the program on whichever pool thread finishes last; an FFT that
@@ -35,10 +34,10 @@ while on one core (``taskset``) the same programs cost the same. So on CPU:
 - :func:`vector` computes the 1-D factors of separable kernels in a loop, which XLA
   neither splits nor fuses into the N² product that consumes them;
 - :func:`staged` runs a computation whose FFT follows a large product as two jitted
-  calls, so the FFT starts a call of its own;
-- :func:`materialise` computes a value once instead of once per consumer (XLA's
-  fusion copied the gathers of a sampled PSF into each consumer: 23× an FFT pair per
-  PSF at 1024² instead of 1.4×).
+  calls, so the FFT starts a call of its own.
+
+(The cubic sampling of the scaling-theorem PSF keeps XLA from copying its gathers into
+each consumer by itself: :mod:`diffcam.model.spline`.)
 """
 
 from __future__ import annotations
@@ -55,7 +54,7 @@ from diffcam.core import fftw
 from diffcam.core.errors import DiffcamError
 
 __all__ = ["fft2", "ifft2", "rfft2", "irfft2", "fft_size", "transfer_step",
-           "transfer_step_with_spectrum", "vector", "staged", "materialise", "on_cpu",
+           "transfer_step_with_spectrum", "vector", "staged", "on_cpu",
            "set_fft", "fft_backend", "fft_status"]
 
 _AXES = (-2, -1)
@@ -254,22 +253,6 @@ def vector(f: Callable[[Array], Array], n: int, block: int = 512) -> Array:
     def one_block(b):
         return f(b * block + lax.iota(jnp.int32, block))
     return lax.map(one_block, jnp.arange(-(-n // block), dtype=jnp.int32)).reshape(-1)[:n]
-
-
-def materialise(x: Array, token: Array) -> Array:
-    """``x``, computed once rather than once per consumer.
-
-    On CPU, a conditional on a runtime-true ``token > 0`` (a pixel pitch, say: a traced
-    value XLA cannot fold) is a boundary XLA's fusion cannot cross. Its never-taken
-    branch returns ``-x`` only because XLA deletes a conditional whose branches are the
-    same; ``lax.optimization_barrier`` is removed before fusion too. Measured on the
-    scaling-theorem PSF stack at 1024²: 35–37 ms per PSF with this conditional, 46–51 ms
-    with identical branches, with the optimisation barrier, or with nothing.
-    Elsewhere ``x`` itself.
-    """
-    if not on_cpu():
-        return x
-    return lax.cond(token > 0, lambda a: a, lambda a: -a, x)
 
 
 def staged(first: Callable, second: Callable, static_argnames=()) -> Callable:

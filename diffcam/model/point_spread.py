@@ -47,13 +47,14 @@ import numpy as np
 from jaxtyping import Float
 from jax import Array
 
-from diffcam.core.backend import (fft2, ifft2, materialise, staged, transfer_step_with_spectrum)
+from diffcam.core.backend import fft2, ifft2, staged, transfer_step_with_spectrum
 from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, check_positive,
                                  fmt_length, is_concrete, sampling_problem)
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.model.camera import (Camera, HeightMap, as_spectrum, diffuser_phase,
                                   real_dtype)
-from diffcam.model.sensor import bspline_prefilter, cubic_sample
+from diffcam.model.sensor import bspline_prefilter
+from diffcam.model.spline import spline_sample
 from diffcam.optics.elements import apply_phase, spherical_wave
 from diffcam.optics.propagation import (critical_distance, effective_distance,
                                         magnification, transfer_function)
@@ -106,8 +107,9 @@ def _magnified(field, camera, wavelength, z1, y1, x1):
     shift = z2 / (z1 + z2) / camera.dx  # source offset → sample offset, per metre
     ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
     tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
-    s = cubic_sample(cubic_sample(field, ty, -2), tx, -1) / (mag * wavelength * z1)
-    return materialise(s.real ** 2 + s.imag ** 2, camera.dx)
+    # mag ≥ 1: the sample points step by ≤ 1 field sample (spline_sample's promise)
+    s = spline_sample(spline_sample(field, ty, -2), tx, -1) / (mag * wavelength * z1)
+    return s.real ** 2 + s.imag ** 2
 
 
 def fields_for_fft(prepared, camera: Camera, wavelengths, z1, positions) -> Array:

@@ -26,39 +26,15 @@ from jaxtyping import Float
 from diffcam.core.backend import fft2, fft_size, ifft2
 
 from diffcam.core.errors import DiffcamError, check_field, check_positive, is_concrete
+from diffcam.model.spline import cubic_sample
 
 __all__ = ["resample", "bin_pixels", "shot_noise", "read_noise", "saturate", "quantise"]
-
-
-def _bspline_weights(frac):
-    """Cubic B-spline weights of taps −1, 0, 1, 2 at offset ``frac`` ∈ [0, 1)."""
-    f2, f3 = frac * frac, frac * frac * frac
-    g = 1 - frac
-    return jnp.stack([g * g * g, 3 * f3 - 6 * f2 + 4, -3 * f3 + 3 * f2 + 3 * frac + 1, f3],
-                     axis=-1) / 6
 
 
 def bspline_prefilter(n):
     """1/B(f) on the FFT frequencies of ``n`` samples: turns samples into cubic B-spline
     coefficients when it multiplies their spectrum (B(f) = (4 + 2cos 2πf)/6)."""
     return 6 / (4 + 2 * jnp.cos(2 * jnp.pi * jnp.fft.fftfreq(n)))
-
-
-def cubic_sample(f, t, axis: int):
-    """Evaluate the cubic spline with coefficients ``f`` along ``axis`` (−2 or −1) at
-    fractional indices ``t`` (coefficients beyond the grid are zero): four gathers of
-    near-consecutive rows or columns, cache-friendly either way (no transposes)."""
-    n = f.shape[axis]
-    i0 = jnp.floor(t)
-    w = _bspline_weights(t - i0)
-    i0 = i0.astype(jnp.int32)
-    out = 0
-    for k in range(4):
-        idx = i0 - 1 + k
-        wk = jnp.where((idx >= 0) & (idx < n), w[:, k], 0.0).astype(f.real.dtype)
-        wk = wk[:, None] if axis == -2 else wk
-        out = out + jnp.take(f, jnp.clip(idx, 0, n - 1), axis=axis, mode="clip") * wk
-    return out
 
 
 def _area_rows(f, lo, hi, taps):

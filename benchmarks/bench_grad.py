@@ -1,0 +1,88 @@
+"""Reverse mode against the forward pass: ``value_and_grad`` ÷ forward, both PSF paths.
+
+    python -m benchmarks.bench_grad --sizes 512 1024 2048 4096
+
+For each N and each PSF path (``direct``: Eq. 7 propagated by z2; ``scaling``: the
+scaling theorem, the default), the loss Σ w·PSF(phase) at one depth (w a fixed random
+weight, the shape of a data term), compiled once as ``jax.jit(loss)`` and once as
+``jax.jit(jax.value_and_grad(loss))`` with respect to the phase. Times are medians of
+interleaved repeats (``benchmarks.harness``); memory is XLA's own figure for each
+compiled program (``memory_analysis()``: temporaries, and temporaries plus arguments
+and outputs). The issue's targets: ratio ≤ 2 and a gradient step's memory ≤ 3× the
+forward's, at 512²–4096².
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from benchmarks.harness import markdown_table, time_interleaved, write_json
+from diffcam.model import Camera, psf
+
+LAM, DX, Z2, Z1 = 532e-9, 5e-6, 1e-3, 25e-3
+
+
+def _camera(n, method):
+    return Camera(wavelength=LAM, z2=Z2, dx=DX, aperture_radius=0.3 * n * DX, shape=(n, n),
+                  method=method)
+
+
+def _memory_mb(compiled):
+    """(temporaries, temporaries + arguments + outputs) in MB, or (None, None)."""
+    try:
+        m = compiled.memory_analysis()
+    except Exception:  # optional in XLA backends
+        return None, None
+    total = m.temp_size_in_bytes + m.argument_size_in_bytes + m.output_size_in_bytes
+    return m.temp_size_in_bytes / 2 ** 20, total / 2 ** 20
+
+
+def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
+    rows = []
+    for n in sizes:
+        rng = np.random.default_rng(0)
+        phase = jnp.asarray(rng.uniform(-np.pi, np.pi, (n, n)), jnp.float32)
+        for method in ("direct", "scaling"):
+            cam = _camera(n, method)
+            w = jnp.asarray(rng.random(cam.out_shape), jnp.float32)
+
+            def loss(ph):
+                return jnp.sum(w * psf(ph, cam, Z1, accept_undersampling=True))
+
+            fwd = jax.jit(loss).lower(phase).compile()
+            vag = jax.jit(jax.value_and_grad(loss)).lower(phase).compile()
+            t = time_interleaved({"forward": lambda: fwd(phase),
+                                  "value_and_grad": lambda: vag(phase)},
+                                 repeats=repeats, budget_s=180)
+            (ft, fa), (gt, ga) = _memory_mb(fwd), _memory_mb(vag)
+            f_ms, g_ms = 1e3 * t["forward"]["median_s"], 1e3 * t["value_and_grad"]["median_s"]
+            rows.append({"N": n, "path": method, "forward_ms": f_ms, "value_and_grad_ms": g_ms,
+                         "ratio": g_ms / f_ms, "forward_temp_mb": ft, "grad_temp_mb": gt,
+                         "forward_total_mb": fa, "grad_total_mb": ga,
+                         "memory_ratio": None if fa is None else ga / fa,
+                         "repeats": t["forward"]["repeats"], "loadavg": os.getloadavg()[0]})
+            print(markdown_table(rows[-1:], COLUMNS), flush=True)
+    return rows
+
+
+COLUMNS = ["N", "path", "forward_ms", "value_and_grad_ms", "ratio", "forward_temp_mb",
+           "grad_temp_mb", "forward_total_mb", "grad_total_mb", "memory_ratio", "loadavg"]
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048, 4096])
+    p.add_argument("--repeats", type=int, default=7)
+    args = p.parse_args(argv)
+    rows = run(args.sizes, args.repeats)
+    print(markdown_table(rows, COLUMNS))
+    print(f"wrote {write_json('grad', rows, {'loss': 'sum(w * psf(phase, camera, 25 mm))'})}")
+
+
+if __name__ == "__main__":
+    main()

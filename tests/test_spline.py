@@ -1,0 +1,93 @@
+"""The cubic B-spline sampling primitive (diffcam.model.spline): values of the B-spline,
+its written-out transpose against JAX's own derivatives of the plain gathers, and the
+NaN it returns when its promise on the sample points is broken."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffcam.model import Camera, psf
+from diffcam.model.spline import bspline_weights, cubic_sample, spline_sample
+
+RNG = np.random.default_rng(0)
+
+
+def _complex(shape):
+    return jnp.asarray(RNG.standard_normal(shape) + 1j * RNG.standard_normal(shape))
+
+
+def test_weights_are_the_cubic_b_spline():
+    """At a knot the weights are 1/6, 4/6, 1/6, 0; they sum to 1 and their derivatives
+    to 0 at any offset; the slope at a knot is (−1/2, 0, 1/2, 0)."""
+    np.testing.assert_allclose(bspline_weights(jnp.zeros(1)), [[1 / 6, 4 / 6, 1 / 6, 0]],
+                               atol=1e-7)
+    u = jnp.linspace(0, 0.999, 17)
+    np.testing.assert_allclose(jnp.sum(bspline_weights(u), -1), 1, rtol=1e-6)
+    for order in (1, 2, 3):
+        np.testing.assert_allclose(jnp.sum(bspline_weights(u, order), -1), 0, atol=1e-5)
+    np.testing.assert_allclose(bspline_weights(jnp.zeros(1), 1), [[-0.5, 0, 0.5, 0]], atol=1e-7)
+    assert not np.any(bspline_weights(u, 4))
+
+
+@pytest.mark.parametrize("axis", [-2, -1])
+def test_transpose_is_the_adjoint(axis, x64):
+    """⟨S f, g⟩ = ⟨f, Sᵀ g⟩ for the written-out transpose, batched, points partly off
+    the grid and stepping by less than one sample."""
+    n, m = 40, 57
+    f = _complex((3, n, n))
+    t = jnp.asarray((np.arange(m) - m // 2) / 1.3 + n / 2 - 5.2)
+    s, pullback = jax.vjp(lambda f: spline_sample(f, t, axis), f)
+    g = _complex(s.shape)
+    (st_g,) = pullback(g)
+    np.testing.assert_allclose(jnp.sum(s * g), jnp.sum(f * st_g), rtol=1e-12)
+
+
+def test_derivatives_equal_jax_on_the_plain_gathers(x64):
+    """Gradients in f and t, forward mode, a Hessian in t and vmap over the points of
+    a 2-D magnification equal JAX's own derivatives of the same gathers."""
+    n, m = 50, 61
+    f = _complex((2, n, n))
+    g = _complex((2, m, m))
+    t = jnp.asarray((np.arange(m) - m // 2) / 1.3 + n / 2 + 0.37)
+
+    def loss(sample):
+        return lambda f, t: jnp.sum(jnp.abs(sample(sample(f, t, -2), t, -1) * g) ** 2)
+    new, old = loss(spline_sample), loss(cubic_sample)
+    np.testing.assert_allclose(new(f, t), old(f, t), rtol=1e-13)
+    for a, b in zip(jax.grad(new, (0, 1))(f, t), jax.grad(old, (0, 1))(f, t)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(b))))
+    tangents = (0.3 * f, jnp.ones_like(t))
+    np.testing.assert_allclose(jax.jvp(new, (f, t), tangents)[1],
+                               jax.jvp(old, (f, t), tangents)[1], rtol=1e-10)
+    h_new = jax.hessian(lambda t: new(f, t))(t)
+    h_old = jax.hessian(lambda t: old(f, t))(t)
+    np.testing.assert_allclose(h_new, h_old, atol=1e-10 * float(jnp.max(jnp.abs(h_old))))
+    ts = jnp.stack([t, t + 0.2])
+    np.testing.assert_allclose(jax.vmap(jax.grad(new), (None, 0))(f, ts),
+                               jax.vmap(jax.grad(old), (None, 0))(f, ts), rtol=1e-10,
+                               atol=1e-10)
+
+
+@pytest.mark.parametrize("t", [np.arange(30) * 1.5, np.arange(30)[::-1] * 0.5],
+                         ids=["steps beyond max_step", "decreasing"])
+def test_a_broken_promise_gives_nan_not_a_wrong_gradient(t):
+    f = _complex((40, 40)).astype(jnp.complex64)
+    grad = jax.grad(lambda f: jnp.sum(jnp.abs(spline_sample(f, jnp.asarray(t), -2)) ** 2))(f)
+    assert np.isnan(np.asarray(grad)).any()
+    # with the promise widened the same points differentiate as JAX's own gathers
+    if np.all(np.diff(t) > 0):
+        wide = jax.grad(lambda f: jnp.sum(jnp.abs(spline_sample(f, jnp.asarray(t), -2,
+                                                                 max_step=2.0)) ** 2))(f)
+        plain = jax.grad(lambda f: jnp.sum(jnp.abs(cubic_sample(f, jnp.asarray(t), -2)) ** 2))(f)
+        np.testing.assert_allclose(wide, plain, rtol=1e-5, atol=1e-4)
+
+
+def test_scaling_psf_in_a_users_jit_equals_the_call():
+    """A camera closed over by the user's jit (every geometry a constant): same PSF."""
+    cam = Camera(wavelength=532e-9, z2=1e-3, dx=5e-6, aperture_radius=0.1e-3, shape=(64, 64))
+    phase = jnp.asarray(RNG.uniform(-3, 3, (64, 64)), jnp.float32)
+    np.testing.assert_allclose(jax.jit(lambda p: psf(p, cam, 25e-3))(phase),
+                               psf(phase, cam, 25e-3), rtol=2e-5, atol=1e-9)
