@@ -39,7 +39,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import Array
+from jax import Array, lax
 from jaxtyping import Complex, Num
 
 from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_positive,
@@ -242,9 +242,11 @@ def _step(u, H, in_place=True):
 
 
 @partial(jax.jit, static_argnames=("method", "pad", "band_limit"))
-def _propagate_core(field, dy, dx, wavelength, z, p, *, method, pad, band_limit):
+def _propagate_core(field, geometry, *, method, pad, band_limit):
     shape = field.shape
     u = field.astype(_complex_dtype(field))
+    dy, dx, wavelength, z = geometry[0], geometry[1], geometry[2], geometry[3]
+    p = lax.complex(geometry[4], geometry[5]).astype(u.dtype)
     if pad != (0, 0):
         u = pad_by(u, pad)
     H = _kernel(u.shape, dy, dx, wavelength, z, p, method, band_limit)
@@ -266,21 +268,23 @@ def _run(method, field, dx, wavelength, z, pad, accept_undersampling, band_limit
     dy, dxx = pitch_yx(dx)
     cdt = _complex_dtype(field)
     rdt = jnp.float64 if cdt == jnp.complex128 else jnp.float32
-    # scalars go to the jitted core as they are (NumPy or traced): a jnp.asarray each
-    # would be one more dispatch per call (30 µs each, against 250 µs for a 128² step)
-    out, finite = _propagate_core(field, *(_scalar(v, rdt) for v in (dy, dxx, wavelength, z)),
-                                  _scalar(piston(wavelength, z), cdt),
+    out, finite = _propagate_core(field, _geometry((dy, dxx, wavelength, z), piston(wavelength, z),
+                                                   rdt),
                                   method=method, pad=pad, band_limit=band_limit)
     if is_concrete(finite) and not bool(finite):
         check_finite("field", field)    # raises, with the count of bad samples
     return out
 
 
-def _scalar(value, dtype):
-    """``value`` in ``dtype``: a NumPy value when concrete, else the traced value cast."""
-    if is_concrete(value) and not isinstance(value, jax.Array):
-        return np.asarray(value, dtype)
-    return jnp.asarray(value).astype(dtype)
+def _geometry(lengths, p, dtype):
+    """``(dy, dx, λ, z)`` and the piston's real and imaginary parts as one (6,) vector:
+    a NumPy array when all are concrete, so a call pays one host-to-device copy instead
+    of five (10 µs each, against 250 µs for a 128² step); else the traced values
+    stacked."""
+    values = (*lengths, p.real, p.imag)
+    if is_concrete(*values) and not any(isinstance(v, jax.Array) for v in values):
+        return np.asarray(values, dtype)
+    return jnp.stack([jnp.asarray(v).astype(dtype) for v in values])
 
 
 def fresnel_tf(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
@@ -340,8 +344,10 @@ def angular_spectrum(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0
 # ---------------------------------------------------------------------- Fourier lens
 
 @partial(jax.jit, static_argnames=("inverse",))
-def _fourier_lens_core(field, dy, dx, wavelength, focal_length, p, *, inverse):
+def _fourier_lens_core(field, geometry, *, inverse):
     u = field.astype(_complex_dtype(field))
+    dy, dx, wavelength, focal_length = geometry[0], geometry[1], geometry[2], geometry[3]
+    p = lax.complex(geometry[4], geometry[5]).astype(u.dtype)
     finite = jnp.isfinite(field).all()
     if not inverse:
         return p / (1j * wavelength * focal_length) * dy * dx * fft2c(u), finite
@@ -366,8 +372,8 @@ def _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse):
     cdt = _complex_dtype(field)
     rdt = jnp.float64 if cdt == jnp.complex128 else jnp.float32
     out, finite = _fourier_lens_core(
-        field, *(_scalar(v, rdt) for v in (dy, dxx, wavelength, focal_length)),
-        _scalar(piston(wavelength, focal_length), cdt), inverse=inverse)
+        field, _geometry((dy, dxx, wavelength, focal_length), piston(wavelength, focal_length),
+                         rdt), inverse=inverse)
     if is_concrete(finite) and not bool(finite):
         check_finite("field", field)
     return out, out_pitch
