@@ -2,16 +2,22 @@
 XLA's FFT, beside the FFT libraries called directly (issue: one step ≤ 1.2× pyFFTW).
 
     python -m benchmarks.bench_fft [--sizes 1024 2048 4096] [--repeats 7]
-                                   [--workload-size 1024] [--rounds 2]
+                                   [--workload-sizes 1024 2048] [--rounds 2]
 
 Part 1, one process, candidates interleaved (complex64, medians, compile excluded):
 
 * ``pair``: ``ifft2(fft2(u))``; ``step``: one Fresnel transfer-function step at half its
   sampling limit (:func:`diffcam.optics.propagation.fresnel_tf`: FFT, product with the kernel, inverse
   FFT). diffcam runs jitted, compiled ahead of time once per backend;
+* ``loop step``: the same step jitted with its input donated, called as ``u = step(u)``
+  (a field propagated in a loop): XLA writes the output over the input's buffer instead
+  of a fresh one (a fresh 4096² buffer is 32768 page faults here);
 * pyFFTW: ``FFTW`` objects planned with ``FFTW_MEASURE`` on every thread, the step's
   product in place in numpy (normalisation left to the product, as diffcam folds it);
   scipy.fft with ``workers`` = every thread; numpy.fft (one thread).
+
+Run it again with ``DIFFCAM_MALLOC=keep`` (:mod:`diffcam.core.memory`) to see the
+steps without the page faults of fresh output buffers (JSON ``fft_malloc_keep.json``).
 
 Part 2, whole workloads per iteration / per PSF, FFTW against XLA's FFT: each backend
 runs in its own process (a backend is chosen when a function is traced, and diffcam's
@@ -60,6 +66,8 @@ def transform_rows(n: int, repeats: int) -> list[dict]:
             lambda v: backend.ifft2(backend.fft2(v))).lower(uj).compile()
         programs[name, "step"] = jax.jit(
             lambda v: fresnel_tf(v, DX, LAM, z)).lower(uj).compile()
+        programs[name, "loop step"] = jax.jit(
+            lambda v: fresnel_tf(v, DX, LAM, z), donate_argnums=0).lower(uj).compile()
     backend._setting["backend"] = None
     # the libraries' step multiplies by a kernel of the same size (its values do not
     # change the time), with the inverse's 1/N² folded in
@@ -82,11 +90,21 @@ def transform_rows(n: int, repeats: int) -> list[dict]:
         np.multiply(b, H, out=b)
         return inverse()
 
+    # "loop step": u = step(u), the input donated (a field propagated in a loop), so the
+    # output reuses its buffer as pyFFTW reuses its arrays
+    fields = {name: jnp.array(uj) for name in ("fftw", "xla")}
+
+    def loop_step(name):
+        fields[name] = programs[name, "loop step"](fields[name])
+        return fields[name]
+
     rows = []
-    for kind in ("pair", "step"):
+    for kind in ("pair", "step", "loop step"):
         candidates = {
-            "diffcam FFTW": lambda p=programs["fftw", kind]: p(uj),
-            "diffcam XLA": lambda p=programs["xla", kind]: p(uj),
+            "diffcam FFTW": (lambda p=programs["fftw", kind]: p(uj)) if kind != "loop step"
+                            else (lambda: loop_step("fftw")),
+            "diffcam XLA": (lambda p=programs["xla", kind]: p(uj)) if kind != "loop step"
+                           else (lambda: loop_step("xla")),
             "pyFFTW": pyfftw_pair if kind == "pair" else pyfftw_step,
             "scipy.fft": (lambda: scipy.fft.ifft2(scipy.fft.fft2(u, workers=threads),
                                                   workers=threads)) if kind == "pair" else
@@ -95,6 +113,8 @@ def transform_rows(n: int, repeats: int) -> list[dict]:
             "numpy.fft": (lambda: np.fft.ifft2(np.fft.fft2(u))) if kind == "pair" else
                          (lambda: np.fft.ifft2(np.fft.fft2(u) * H)),
         }
+        if kind == "loop step":  # the libraries' step already reuses (pyFFTW) or not
+            del candidates["scipy.fft"], candidates["numpy.fft"]
         t = time_interleaved(candidates, repeats=repeats)
         ref = t["pyFFTW"]["median_s"]
         for name, s in t.items():
@@ -104,6 +124,7 @@ def transform_rows(n: int, repeats: int) -> list[dict]:
                          "loadavg": os.getloadavg()[0]})
     # the seam's transforms agree with each other (a benchmark of wrong answers is none)
     out_f = np.asarray(programs["fftw", "step"](uj))
+    assert np.allclose(np.asarray(programs["fftw", "loop step"](jnp.array(uj))), out_f)
     out_x = np.asarray(programs["xla", "step"](uj))
     assert np.abs(out_f - out_x).max() <= 1e-3 * np.abs(out_x).max(), "FFTW and XLA disagree"
     return rows
@@ -160,7 +181,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
     p.add_argument("--repeats", type=int, default=7)
-    p.add_argument("--workload-size", type=int, default=1024)
+    p.add_argument("--workload-sizes", type=int, nargs="*", default=[1024, 2048])
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -169,12 +190,16 @@ def main(argv=None):
         return
     rows = [r for n in args.sizes for r in transform_rows(n, args.repeats)]
     print(markdown_table(rows, ["N", "row", "candidate", "ms", "vs_pyfftw", "ok", "loadavg"]))
-    work = workload_rows(args.workload_size, args.rounds, max(3, args.repeats // 2)) \
+    work = [r for n in args.workload_sizes
+            for r in workload_rows(n, args.rounds, max(3, args.repeats // 2))] \
         if args.rounds else []
     if work:
         print(markdown_table(work, ["N", "row", "ms", "xla_ms", "speedup", "loadavg"]))
-    malloc = {k: v for k, v in os.environ.items() if k.startswith("MALLOC_")}
-    print(f"wrote {write_json('fft', rows + work, {'target_vs_pyfftw': TARGET, 'threads': _threads(), 'malloc_env': malloc})}")
+    from diffcam.core import memory
+    policy = memory.keep_freed_memory()
+    name = "fft" if policy != "keep" else "fft_malloc_keep"
+    extra = {"target_vs_pyfftw": TARGET, "threads": _threads(), "memory": memory.status()}
+    print(f"{memory.status()}\nwrote {write_json(name, rows + work, extra)}")
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ QUICK = {"propagate": ["--sizes", "512", "1024"],
          "overhead": ["--sizes", "128", "--repeats", "5"],
          "real_data": ["--downsample", "4"],
          "grad": ["--sizes", "256", "--repeats", "3"],
-         "fft": ["--sizes", "512", "--repeats", "3", "--workload-size", "256", "--rounds", "1"]}
+         "fft": ["--sizes", "512", "--repeats", "3", "--workload-sizes", "256", "--rounds", "1"]}
 
 
 def main(argv=None):

@@ -534,10 +534,11 @@ def _talk(args):
         return
     import jax
 
+    from diffcam.core import memory
     from diffcam.core.backend import fft_status
 
     print(f"diffcam {args.command}: JAX {jax.__version__} on {jax.devices()[0]}; "
-          f"{fft_status()}", file=sys.stderr)
+          f"{fft_status()}; {memory.status()}", file=sys.stderr)
     start = time.perf_counter()
     try:
         yield

@@ -144,6 +144,9 @@ def _norm_scale(norm: str | None, n: int, inverse: bool):
 
 
 def _scaled(x: Array, scale) -> Array:
+    """``x · scale``; the FFTW path scales a transform's input, not its output, so that
+    XLA fuses the product into whatever computed the input (a product with a transfer
+    function, say) instead of a pass of its own over the result."""
     return x if scale is None else x * jnp.asarray(scale, x.real.dtype)
 
 
@@ -164,7 +167,7 @@ def fft2(u: Array, norm: str | None = None) -> Array:
     if not _fftw_in_use():
         return jnp.fft.fft2(u, axes=_AXES, norm=norm)
     u = _as_complex(u)
-    return _scaled(fftw.c2c(u, -1), _norm_scale(norm, u.shape[-2] * u.shape[-1], False))
+    return fftw.c2c(_scaled(u, _norm_scale(norm, u.shape[-2] * u.shape[-1], False)), -1)
 
 
 def ifft2(u: Array, norm: str | None = None) -> Array:
@@ -172,7 +175,7 @@ def ifft2(u: Array, norm: str | None = None) -> Array:
     if not _fftw_in_use():
         return jnp.fft.ifft2(u, axes=_AXES, norm=norm)
     u = _as_complex(u)
-    return _scaled(fftw.c2c(u, +1), _norm_scale(norm, u.shape[-2] * u.shape[-1], True))
+    return fftw.c2c(_scaled(u, _norm_scale(norm, u.shape[-2] * u.shape[-1], True)), +1)
 
 
 def rfft2(u: Array, s=None) -> Array:
@@ -191,7 +194,7 @@ def irfft2(u: Array, s=None) -> Array:
         return jnp.fft.irfft2(u, s=s, axes=_AXES)
     u = _as_complex(u)
     ny, nx = (u.shape[-2], 2 * (u.shape[-1] - 1)) if s is None else tuple(s)
-    return _scaled(fftw.c2r(_fit(u, (ny, nx // 2 + 1)), nx), 1 / (ny * nx))
+    return fftw.c2r(_scaled(_fit(u, (ny, nx // 2 + 1)), 1 / (ny * nx)), nx)
 
 
 def fft_size(n: int) -> int:
@@ -255,12 +258,18 @@ def vector(f: Callable[[Array], Array], n: int, block: int = 512) -> Array:
     return lax.map(one_block, jnp.arange(-(-n // block), dtype=jnp.int32)).reshape(-1)[:n]
 
 
+STAGED_FROM = 192 * 192  # samples of the first argument from which staged() splits
+
+
 def staged(first: Callable, second: Callable, static_argnames=()) -> Callable:
     """``second(first(*args), *args)`` as one callable that is jitted once per shape.
 
-    With XLA's FFT on CPU the two halves run as two jitted calls, so that ``second``'s FFTs start a
-    program of their own (the FFT rule); elsewhere as one. ``static_argnames`` name
-    keyword arguments of ``second`` that fix shapes or code paths.
+    With XLA's FFT on CPU, and a first argument of at least :data:`STAGED_FROM`
+    samples, the two halves run as two jitted calls, so that ``second``'s FFTs start a
+    program of their own (the FFT rule); elsewhere as one. Below that size a second
+    dispatch costs more than the rule (one PSF at 128²: 0.72 ms split, 0.41 fused;
+    ``benchmarks/bench_overhead.py``). ``static_argnames`` name keyword arguments of
+    ``second`` that fix shapes or code paths.
     """
     fused = jax.jit(lambda *a, **k: second(first(*a), *a, **k),
                     static_argnames=static_argnames)
@@ -268,7 +277,8 @@ def staged(first: Callable, second: Callable, static_argnames=()) -> Callable:
     second_j = jax.jit(second, static_argnames=static_argnames)
 
     def call(*a, **k):  # decided per call: the backend may be chosen after import
-        if _xla_fft_on_cpu():
+        if _xla_fft_on_cpu() and max(map(np.size, jax.tree_util.tree_leaves(a[0])),
+                                     default=0) >= STAGED_FROM:
             return second_j(first_j(*a), *a, **k)
         return fused(*a, **k)
     return call

@@ -77,22 +77,29 @@ def cubic_sample(f, t, axis: int, order: int = 0):
     return out
 
 
-def _real_matmul(m, x):
-    """``m`` (r × i, real) times the rows of ``x`` (..., i, nx), real or complex."""
+def _real_matmul(m, x, axis):
+    """``m`` (r × i, real) applied along ``axis`` (−2 or −1) of ``x``, real or complex:
+    (..., i, nx) → (..., r, nx), or (..., ny, i) → (..., ny, r)."""
     if jnp.iscomplexobj(x):
-        return lax.complex(_real_matmul(m, x.real), _real_matmul(m, x.imag))
-    return jnp.einsum("ri,...ix->...rx", m, x)
+        return lax.complex(_real_matmul(m, x.real, axis), _real_matmul(m, x.imag, axis))
+    return jnp.einsum("ri,...ix->...rx" if axis == -2 else "ri,...xi->...xr", m, x)
 
 
-def _transpose_rows(ct, t, n, order, max_step):
-    """Σ over outputs of weight × cotangent row, into the ``n`` grid rows (see module)."""
+def _transpose_blocks(ct, t, n, order, max_step, axis):
+    """Σ over outputs of weight × cotangent row (column), into the ``n`` grid rows
+    (columns) along ``axis`` (see module): in place along either axis, so the
+    columns' transpose needs no transposed copies of the field."""
     m = t.shape[0]
     nb = -(-m // _BLOCK)
     r = int(math.ceil((_BLOCK - 1) * max_step)) + 5        # grid rows a block can touch
     t = jnp.pad(t, (0, nb * _BLOCK - m), mode="edge")
-    ct = jnp.pad(ct, [(0, 0)] * (ct.ndim - 2) + [(0, nb * _BLOCK - m), (0, 0)])
+    pad = [(0, 0)] * ct.ndim
+    pad[axis] = (0, nb * _BLOCK - m)
+    ct = jnp.pad(ct, pad)
     i0, w = _taps(t, n, order, ct.real.dtype)
-    acc = jnp.zeros(ct.shape[:-2] + (n + 2 * r, ct.shape[-1]), ct.dtype)
+    shape = list(ct.shape)
+    shape[axis] = n + 2 * r
+    acc = jnp.zeros(shape, ct.dtype)
 
     def block(b, acc):
         s = b * _BLOCK
@@ -101,24 +108,20 @@ def _transpose_rows(ct, t, n, order, max_step):
         r0 = jnp.clip(i0b[0] - 1, -r, n)                     # first grid row of the window
         rows = i0b[:, None] - 1 + jnp.arange(4) - r0         # (block, 4) in [0, r)
         weights = jnp.einsum("ik,ikr->ri", wb, jax.nn.one_hot(rows, r, dtype=wb.dtype))
-        add = _real_matmul(weights, lax.dynamic_slice_in_dim(ct, s, _BLOCK, axis=-2))
-        cur = lax.dynamic_slice_in_dim(acc, r0 + r, r, axis=-2)
-        return lax.dynamic_update_slice_in_dim(acc, cur + add, r0 + r, axis=-2)
+        add = _real_matmul(weights, lax.dynamic_slice_in_dim(ct, s, _BLOCK, axis=axis), axis)
+        cur = lax.dynamic_slice_in_dim(acc, r0 + r, r, axis=axis)
+        return lax.dynamic_update_slice_in_dim(acc, cur + add, r0 + r, axis=axis)
 
     acc = lax.fori_loop(0, nb, block, acc)
     first, last = i0[::_BLOCK], i0[_BLOCK - 1::_BLOCK]
     fits = jnp.all(jnp.diff(i0) >= 0) & jnp.all(last - first + 4 <= r)
-    return jnp.where(fits, acc[..., r:r + n, :], jnp.nan)
+    return jnp.where(fits, lax.slice_in_dim(acc, r, r + n, axis=axis), jnp.nan)
 
 
 def _transpose(ct, f, t, *, axis, order, max_step):
     if type(ct) is ad.Zero:
         return ad.Zero(f.aval), None
-    n = f.aval.shape[axis]
-    if axis == -2:
-        return _transpose_rows(ct, t, n, order, max_step), None
-    ct_t = _transpose_rows(jnp.swapaxes(ct, -1, -2), t, n, order, max_step)
-    return jnp.swapaxes(ct_t, -1, -2), None
+    return _transpose_blocks(ct, t, f.aval.shape[axis], order, max_step, axis), None
 
 
 def _shape(f, t, *, axis, order, max_step):

@@ -207,6 +207,10 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
                  accept_undersampling)
     devices = list(jax.devices()) if devices is None else list(devices)
+    # no larger than the depths need, to a power of two (few compilations): a chunk is
+    # padded to its full size, and 64 slots for 32 depths computed twice the PSFs (128²)
+    need = -(-depths.size // len(devices))
+    batch_size = min(int(batch_size), 1 << (need - 1).bit_length())
     return _chunks(phase, camera, depths, pos, wavelengths, weights, normalise,
                    batch_size, devices, to_host)
 
