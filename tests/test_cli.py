@@ -1,6 +1,7 @@
 """The command line, run as a user runs it (a subprocess)."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -56,14 +57,16 @@ def test_plan_reports_and_rejects_bad_units():
 
 def test_quiet_and_verbose():
     """`diffcam -q` prints nothing on stdout; `diffcam -v` adds the FFT backend, the
-    device and the wall time on stderr; both at once is a usage error (exit 2)."""
+    allocator policy, the device and the wall time on stderr; both at once is a usage error (exit 2)."""
     plan = ["plan", "--pixel", "3.45um", "--n", "4096", "--z1", "22mm", "--z2", "1mm",
             "--aperture-radius", "2.3mm"]
     quiet = _diffcam("-q", *plan)
     assert quiet.returncode == 0 and quiet.stdout == "" and quiet.stderr == ""
     loud = _diffcam("-v", *plan)
     assert loud.returncode == 0 and "29.83 mm" in loud.stdout
-    assert "FFT: XLA" in loud.stderr and "cpu" in loud.stderr.lower()
+    backend = "FFTW" if os.environ.get("DIFFCAM_FFT") == "fftw" else "XLA"
+    assert f"FFT: {backend}" in loud.stderr and "cpu" in loud.stderr.lower()
+    assert "memory: " in loud.stderr
     assert loud.stderr.rstrip().endswith(" s")
     both = _diffcam("-q", "-v", *plan)
     assert both.returncode == 2 and "not allowed with" in both.stderr
