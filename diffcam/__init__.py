@@ -20,10 +20,6 @@ Units are SI everywhere (metres, radians); grids are centred (index N//2 is the 
 ``docs/design.md`` maps the paper's equations to functions.
 """
 
-from diffcam.core import memory as _memory
-
-_memory.keep_freed_memory()  # before JAX's threads first allocate (diffcam.core.memory)
-
 from diffcam import calibrate, core, evaluate, model, optics, reconstruct
 from diffcam.calibrate import retrieve_phase
 from diffcam.core.errors import (DiffcamError, GeometryWarning, SamplingError, ShapeError,

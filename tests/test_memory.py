@@ -1,69 +1,57 @@
-"""The allocator policy (diffcam.core.memory): a jitted call's fresh output block comes
-from memory already in the process instead of new pages, read off the kernel's own
-page-fault counter, in fresh processes (the policy is a per-process setting)."""
+"""Huge pages for fresh buffers (diffcam.core.memory): what the process is told is what
+the kernel's page-fault counter shows, in fresh processes (glibc reads its tunables when
+a process starts)."""
 
 import json
 import os
-import platform
 import subprocess
 import sys
 
 import pytest
 
-pytestmark = pytest.mark.skipif(
-    platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
-    reason="the policy is glibc's (elsewhere it reports 'unsupported', tested below)")
-
-# 72 MiB per output: above the 64 MiB that glibc's per-thread heaps can hold, so only
-# the arena setting keeps it off mmap
-PROBE = r"""
-import json, resource, sys
-import diffcam
 from diffcam.core import memory
+
+PROBE = r"""
+import json, resource
 import jax, jax.numpy as jnp
-import numpy as np
+from diffcam.core import memory
 double = jax.jit(lambda x: x * 2)
-x = jnp.ones((3072, 3072), jnp.complex64)
+x = jnp.ones((3072, 3072), jnp.complex64)   # 72 MiB: glibc serves it with mmap
 faults = []
-for _ in range(24):
+for _ in range(6):
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     double(x).block_until_ready()
     faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
-def rss():
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * resource.getpagesize()
-held = rss()
-released = memory.release()
-print(json.dumps({"policy": memory.keep_freed_memory(), "status": memory.status(),
-                  "faults": faults, "pages": 3072 * 3072 * 8 // resource.getpagesize(),
-                  "released": released, "rss_drop": held - rss()}))
+print(json.dumps({"state": memory.huge_pages(), "status": memory.status(),
+                  "faults": faults[1:], "pages": 3072 * 3072 * 8 // resource.getpagesize()}))
 """
 
 
-def _probe(**env):
+def _probe(tunables):
+    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+    if tunables:
+        env["GLIBC_TUNABLES"] = tunables
     done = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True,
-                          env={**os.environ, **env}, check=True)
-    return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
+                          env=env, check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def test_kept_memory_takes_the_page_faults_out_of_every_call():
-    kept, _ = _probe(DIFFCAM_MALLOC="keep")
-    system, _ = _probe(DIFFCAM_MALLOC="system")
-    assert kept["policy"] == "keep" and "kept" in kept["status"]
-    assert system["policy"] == "system"
-    # glibc's defaults: every call's 72 MiB output is fresh pages, one fault per page
-    assert min(system["faults"]) >= 0.9 * system["pages"]
-    # kept: once the heap's holes have merged (about 10 calls here, more under load:
-    # docs of diffcam.core.memory), a freed block serves the next call
-    assert sorted(kept["faults"][-12:])[6] <= 0.02 * kept["pages"]
+@pytest.mark.skipif(memory.huge_pages() == "unavailable" or memory._thp_mode() == "always",
+                    reason="needs glibc >= 2.35 and transparent huge pages in madvise mode")
+def test_the_tunable_takes_the_page_faults_out_of_fresh_buffers():
+    plain, huge = _probe(None), _probe(memory.TUNABLE)
+    assert plain["state"] == "off" and memory.TUNABLE in plain["status"]
+    assert huge["state"] == "on" and "huge pages" in huge["status"]
+    # 4 KiB pages: every call's fresh 72 MiB output faults each of its pages in
+    assert min(plain["faults"]) >= 0.9 * plain["pages"]
+    # huge pages: 2 MiB each, 512 times fewer faults (a little more where the kernel
+    # has no free huge page at hand)
+    assert sorted(huge["faults"])[2] <= 0.05 * huge["pages"]
 
 
-def test_release_hands_the_kept_memory_back():
-    kept, _ = _probe(DIFFCAM_MALLOC="keep")
-    assert kept["released"] and kept["rss_drop"] >= 3072 * 3072 * 8 // 2
-
-
-def test_an_unknown_setting_warns_and_leaves_the_defaults():
-    result, stderr = _probe(DIFFCAM_MALLOC="fast")
-    assert result["policy"] == "system"
-    assert "DIFFCAM_MALLOC is 'keep' or 'system', not 'fast'" in stderr
+def test_the_state_is_read_from_the_start_environment(monkeypatch):
+    """Setting the variable from Python does not give this process huge pages, so the
+    report does not change."""
+    before = memory.huge_pages()
+    monkeypatch.setenv("GLIBC_TUNABLES", memory.TUNABLE)
+    assert memory.huge_pages() == before

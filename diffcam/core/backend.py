@@ -6,15 +6,16 @@ propagation step through :func:`transfer_step`. Two backends stand behind them:
 
 - ``"fftw"`` (CPU): FFTW on its own threads through XLA FFI custom calls
   (:mod:`diffcam.core.fftw`; needs FFTW, e.g. ``pip install 'diffcam[fftw]'``, and a
-  C++ compiler once). On a 2-core machine a Fresnel step measured 1.14-1.29x faster
-  than with XLA's FFT at 1024²-4096², Gerchberg–Saxton 1.8x (``benchmarks/bench_fft.py``).
+  C++ compiler once). On a 2-core machine a Fresnel step measured within 1.2x of
+  pyFFTW called directly when it writes over its input (1.2-1.6x XLA's FFT),
+  Gerchberg–Saxton 1.6-2.3x faster than with XLA's FFT (``benchmarks/bench_fft.py``).
 - ``"xla"``: ``jnp.fft``; the default, and the only one on GPU/TPU.
 
 ``"xla"`` is the default. ``"auto"`` takes FFTW on CPU when it loads, else XLA. Choose
 with :func:`set_fft` or the environment (``DIFFCAM_FFT=xla|auto|fftw``,
 ``DIFFCAM_FFT_THREADS=n``); :func:`fft_backend` says which one runs. FFTW is not the
-default yet: it measures a plan for every new shape (kept between runs, but a session
-of many shapes pays for each) and ``psf_stack`` is still faster with XLA's FFT
+default: it is GPL, it measures a plan for every new shape (kept between runs, but a
+session of many shapes pays for each), and ``psf_stack`` is no faster with it
 (``docs/fft.md``). The choice is made when a function is traced: :func:`set_fft`
 clears JAX's caches so that jitted functions trace again.
 
