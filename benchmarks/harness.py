@@ -58,7 +58,7 @@ def time_interleaved(candidates: dict[str, Callable[[], object]], repeats: int =
     for name, s in stats.items():
         times = s["times"] or [s["first_s"]]
         out[name] = {"median_s": statistics.median(times), "min_s": min(times),
-                     "first_s": s["first_s"], "repeats": len(s["times"]),
+                     "times_s": times, "first_s": s["first_s"], "repeats": len(s["times"]),
                      "output": outputs[name]}
     return out
 

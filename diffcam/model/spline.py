@@ -97,25 +97,32 @@ def _transpose_blocks(ct, t, n, order, max_step, axis):
     pad[axis] = (0, nb * _BLOCK - m)
     ct = jnp.pad(ct, pad)
     i0, w = _taps(t, n, order, ct.real.dtype)
+    first, last = i0[::_BLOCK], i0[_BLOCK - 1::_BLOCK]
+    fits = jnp.all(jnp.diff(i0) >= 0) & jnp.all(last - first + 4 <= r)
+    broken = jnp.where(fits, 1.0, jnp.nan).astype(w.dtype)   # NaN weights: NaN gradient
+    # the accumulator is the grid itself: a window that would cross an edge is moved
+    # inside, which only drops taps off the grid, whose weights are zero. Grids smaller
+    # than a window get a margin of r rows on each side instead.
+    off = 0 if n >= r else r
+    size = n + 2 * off
     shape = list(ct.shape)
-    shape[axis] = n + 2 * r
+    shape[axis] = size
     acc = jnp.zeros(shape, ct.dtype)
 
     def block(b, acc):
         s = b * _BLOCK
         i0b = lax.dynamic_slice_in_dim(i0, s, _BLOCK)
         wb = lax.dynamic_slice_in_dim(w, s, _BLOCK)
-        r0 = jnp.clip(i0b[0] - 1, -r, n)                     # first grid row of the window
-        rows = i0b[:, None] - 1 + jnp.arange(4) - r0         # (block, 4) in [0, r)
+        start = jnp.clip(i0b[0] - 1 + off, 0, size - r)     # window's first row in acc
+        rows = i0b[:, None] - 1 + jnp.arange(4) + off - start   # (block, 4); off-window: 0
         weights = jnp.einsum("ik,ikr->ri", wb, jax.nn.one_hot(rows, r, dtype=wb.dtype))
-        add = _real_matmul(weights, lax.dynamic_slice_in_dim(ct, s, _BLOCK, axis=axis), axis)
-        cur = lax.dynamic_slice_in_dim(acc, r0 + r, r, axis=axis)
-        return lax.dynamic_update_slice_in_dim(acc, cur + add, r0 + r, axis=axis)
+        add = _real_matmul(weights * broken,
+                           lax.dynamic_slice_in_dim(ct, s, _BLOCK, axis=axis), axis)
+        cur = lax.dynamic_slice_in_dim(acc, start, r, axis=axis)
+        return lax.dynamic_update_slice_in_dim(acc, cur + add, start, axis=axis)
 
     acc = lax.fori_loop(0, nb, block, acc)
-    first, last = i0[::_BLOCK], i0[_BLOCK - 1::_BLOCK]
-    fits = jnp.all(jnp.diff(i0) >= 0) & jnp.all(last - first + 4 <= r)
-    return jnp.where(fits, lax.slice_in_dim(acc, r, r + n, axis=axis), jnp.nan)
+    return acc if off == 0 else lax.slice_in_dim(acc, off, off + n, axis=axis)
 
 
 def _transpose(ct, f, t, *, axis, order, max_step):
