@@ -226,8 +226,9 @@ def transfer_step(u: Array, H: Array) -> Array:
     """``ifft2(fft2(u) · H)``: one propagation step with a transfer function ``H`` that
     broadcasts against the spectrum (prebuilt, or the outer product of two 1-D factors).
 
-    With XLA's FFT on CPU the product is written over the spectrum in two row blocks as in-place
-    dynamic-update-slices, which keeps the inverse FFT multi-threaded (module docstring).
+    With XLA's FFT on CPU the product is written over the spectrum in two row blocks as
+    in-place dynamic-update-slices, which keeps the inverse FFT multi-threaded (module
+    docstring); a linear primitive there, whose reverse rule runs the same program.
     """
     return transfer_step_with_spectrum(u, H)[0]
 
