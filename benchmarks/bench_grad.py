@@ -8,9 +8,9 @@ weight, the shape of a data term), compiled once as ``jax.jit(loss)`` and once a
 ``jax.jit(jax.value_and_grad(loss))`` with respect to the phase. Times are medians of
 interleaved repeats (``benchmarks.harness``; at least ``--repeats``, and at least 2 s
 of forward calls at small sizes), and the ratio is the median over the rounds of each
-round's value_and_grad ÷ forward (the two calls side by side); memory is XLA's own figure for each
-compiled program (``memory_analysis()``: temporaries, and temporaries plus arguments
-and outputs). The issue's targets: ratio ≤ 2 and a gradient step's memory ≤ 3× the
+round's value_and_grad ÷ forward (the two calls side by side); memory is XLA's own
+figure for each compiled program (``memory_analysis()``: temporaries, and temporaries
+plus arguments and outputs). The issue's targets: ratio ≤ 2 and a gradient step's memory ≤ 3× the
 forward's, at 512²–4096².
 """
 
@@ -75,7 +75,8 @@ def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
             paired = float(np.median(np.divide(t["value_and_grad"]["times_s"],
                                                t["forward"]["times_s"])))
             rows.append({"N": n, "path": method, "forward_ms": f_ms, "value_and_grad_ms": g_ms,
-                         "ratio": paired, "ratio_of_medians": g_ms / f_ms, "forward_temp_mb": ft, "grad_temp_mb": gt,
+                         "ratio": paired, "ratio_of_medians": g_ms / f_ms,
+                         "forward_temp_mb": ft, "grad_temp_mb": gt,
                          "forward_total_mb": fa, "grad_total_mb": ga,
                          "memory_ratio": None if fa is None else ga / fa,
                          "repeats": t["forward"]["repeats"], "loadavg": os.getloadavg()[0]})

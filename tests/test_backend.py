@@ -54,7 +54,6 @@ def test_transfer_step_vmaps_and_differentiates():
     np.testing.assert_allclose(jax.grad(loss)(h, True), jax.grad(loss)(h, False), rtol=1e-4)
 
 
-
 def test_transfer_step_derivatives_in_both_modes():
     """The row-block step's own reverse rule (the adjoint through the same row-block
     program) and forward rule, against finite differences to second order (float64)
@@ -80,6 +79,7 @@ def test_transfer_step_derivatives_in_both_modes():
         np.testing.assert_allclose(jax.vmap(transfer_step, (None, 0))(u[0], hs),
                                    jax.vmap(plain, (None, 0))(u[0], hs)[0], rtol=1e-12,
                                    atol=1e-12)
+
 
 @pytest.mark.usefixtures("debug_nans")
 @pytest.mark.parametrize("n", [1, 511, 512, 513, 2000])

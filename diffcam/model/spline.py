@@ -99,7 +99,7 @@ def _transpose_blocks(ct, t, n, order, max_step, axis):
     i0, w = _taps(t, n, order, ct.real.dtype)
     first, last = i0[::_BLOCK], i0[_BLOCK - 1::_BLOCK]
     fits = jnp.all(jnp.diff(i0) >= 0) & jnp.all(last - first + 4 <= r)
-    broken = jnp.where(fits, 1.0, jnp.nan).astype(w.dtype)   # NaN weights: NaN gradient
+    w = w * jnp.where(fits, 1.0, jnp.nan).astype(w.dtype)    # NaN weights: NaN gradient
     # the accumulator is the grid itself: a window that would cross an edge is moved
     # inside, which only drops taps off the grid, whose weights are zero. Grids smaller
     # than a window get a margin of r rows on each side instead.
@@ -116,8 +116,7 @@ def _transpose_blocks(ct, t, n, order, max_step, axis):
         start = jnp.clip(i0b[0] - 1 + off, 0, size - r)     # window's first row in acc
         rows = i0b[:, None] - 1 + jnp.arange(4) + off - start   # (block, 4); off-window: 0
         weights = jnp.einsum("ik,ikr->ri", wb, jax.nn.one_hot(rows, r, dtype=wb.dtype))
-        add = _real_matmul(weights * broken,
-                           lax.dynamic_slice_in_dim(ct, s, _BLOCK, axis=axis), axis)
+        add = _real_matmul(weights, lax.dynamic_slice_in_dim(ct, s, _BLOCK, axis=axis), axis)
         cur = lax.dynamic_slice_in_dim(acc, start, r, axis=axis)
         return lax.dynamic_update_slice_in_dim(acc, cur + add, start, axis=axis)
 
