@@ -107,7 +107,7 @@ def _magnified(field, camera, wavelength, z1, y1, x1):
     shift = z2 / (z1 + z2) / camera.dx  # source offset → sample offset, per metre
     ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
     tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
-    # mag ≥ 1: the sample points step by ≤ 1 field sample (spline_sample's promise)
+    # the sample points increase with the output index (spline_sample's promise)
     s = spline_sample(spline_sample(field, ty, -2), tx, -1) / (mag * wavelength * z1)
     return s.real ** 2 + s.imag ** 2
 

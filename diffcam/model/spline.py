@@ -7,22 +7,21 @@ to ``f`` is the same sampling; in reverse mode JAX transposes it, and the transp
 gather is a scatter-add, which XLA's CPU backend runs serially (the scaling-theorem
 PSF's reverse pass at 1024²: 42 ms of sampling transposes against 3.8 ms of sampling).
 
-Here the sampling is a linear JAX primitive whose transpose is written out: the
-outputs are taken in blocks of 32; a block's sample points span at most
-``31·max_step + 5`` consecutive grid rows when the points increase by at most
-``max_step`` samples each, so the block's contribution is one small dense product (its
-32 × R spline weights, transposed, times the block's cotangent rows) added into those
-rows in place. No scatter. Points that decrease, or steps beyond ``max_step``, would
-fall outside a block's window: the transpose then returns NaN rather than a wrong
-gradient (``jax_debug_nans`` points at it). Forward mode applies the primitive to the
-tangent; the derivative with respect to ``t`` samples with the weights' derivative
+Here the sampling is a linear JAX primitive whose transpose is a primitive too, written
+as gathers: grid row ``j`` receives ``Σᵢ β₃(tᵢ − j)·ctᵢ`` over the points within two
+samples of it, ``a_j ≤ i < b_j`` (found by ``searchsorted``, as the points do not
+decrease), so the transpose gathers rows (columns) of the cotangent as the sampling
+gathers rows (columns) of the grid: five gathers where the points step by less than one
+sample but more than 0.8, more passes of five for denser points. Decreasing points
+would break the search: the transpose then returns NaN rather than a wrong gradient
+(``jax_debug_nans`` points at it). Forward mode applies a primitive to the tangent;
+the derivative with respect to ``t`` samples (spreads) with the weights' derivative
 (orders up to 3; the cubic's 4th derivative is 0), so geometry gradients and higher
 orders work.
 """
 
 from __future__ import annotations
 
-import math
 from functools import partial
 
 import jax
@@ -32,169 +31,184 @@ from jax import lax
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
-__all__ = ["spline_sample", "cubic_sample", "bspline_weights"]
+__all__ = ["spline_sample", "cubic_sample", "bspline"]
 
-_BLOCK = 32
-_LOOP = 4      # loop iterations of the forward (see _in_blocks)
-# 6 × the cubic B-spline's four weights at offset u ∈ [0, 1), taps −1, 0, 1, 2, as
-# polynomial coefficients of 1, u, u², u³
-_COEFFS = np.array([[1, -3, 3, -1], [4, 0, -6, 3], [1, 3, 3, -3], [0, 0, 0, 1]], float) / 6
+_LOOP = 4      # loop iterations of the sampling and its transpose (see _in_blocks)
+_PASS = 5      # gathers per pass of the transpose: one pass for points 0.8–1 sample apart
+# the cubic B-spline β₃(x) = p(|x|), as polynomial coefficients of 1, a, a², a³:
+# p = 2/3 − a² + a³/2 on [0, 1) and (2 − a)³/6 on [1, 2)
+_INNER = np.array([2 / 3, 0, -1, 1 / 2])
+_OUTER = np.array([4 / 3, -2, 1, -1 / 6])
 
 
-def bspline_weights(frac, order: int = 0):
-    """The ``order``-th derivative (in ``frac``) of the cubic B-spline weights of taps
-    −1, 0, 1, 2 at offset ``frac`` ∈ [0, 1): shape ``frac.shape + (4,)``."""
-    c = _COEFFS
-    for _ in range(order):
-        c = c[:, 1:] * np.arange(1, c.shape[1])
-    if c.shape[1] == 0:
-        return jnp.zeros(frac.shape + (4,), frac.dtype)
-    out = 0
-    for p in reversed(range(c.shape[1])):          # Horner, one polynomial per tap
-        out = out * frac[..., None] + jnp.asarray(c[:, p], frac.dtype)
-    return out
+def bspline(x, order: int = 0):
+    """The cubic B-spline β₃ (its ``order``-th derivative) at ``x``; zero for |x| ≥ 2.
+
+    The piece is chosen by |x|, and β₃ is continuous with two derivatives: two roundings
+    of one ``x`` give two nearby values (see :func:`_taps`)."""
+    a = jnp.abs(x)
+
+    def piece(c):
+        for _ in range(order):
+            c = c[1:] * np.arange(1, c.size)
+        out = jnp.zeros_like(a)
+        for coef in reversed(c):       # Horner
+            out = out * a + coef
+        return out
+    value = jnp.where(a < 1, piece(_INNER), jnp.where(a < 2, piece(_OUTER), 0))
+    return value * jnp.sign(x) if order % 2 else value
 
 
 def _taps(t, n, order, dtype):
-    """First tap index, and the weights (zero for taps off the grid): (m,), (m, 4)."""
-    i0 = jnp.floor(t)
-    w = bspline_weights(t - i0, order)
-    i0 = i0.astype(jnp.int32)
-    idx = i0[:, None] - 1 + jnp.arange(4)
-    return i0, jnp.where((idx >= 0) & (idx < n), w, 0.0).astype(dtype)
+    """The four grid indices each point gathers, clipped to the grid, and their weights
+    β₃(t − index) (zero for taps off the grid): (m, 4) each.
+
+    The first tap is floor(t) − 1, floor(t) found by a search of the grid: one integer
+    array for the gathers and the weights. Written as ``jnp.floor``, XLA may compute t
+    once per consumer, and two roundings of a t at an integer put the weights on the
+    wrong taps (a user's jit with constant geometry did: PSFs off by 5%); a weight
+    computed from another rounding of t differs only in its last bits (:func:`bspline`
+    is continuous). Beyond the grid the search stops at −1 or n − 1, whose taps still
+    cover every grid sample within reach."""
+    i0 = jnp.searchsorted(jnp.arange(n, dtype=t.dtype), t, side="right").astype(jnp.int32)
+    idx = (i0 - 2)[:, None] + jnp.arange(4)
+    w = jnp.where((idx >= 0) & (idx < n), bspline(t[:, None] - idx, order), 0.0)
+    return jnp.clip(idx, 0, n - 1), w.astype(dtype)
 
 
 def cubic_sample(f, t, axis: int, order: int = 0):
     """The sampling itself, as plain JAX (JAX's own derivatives: its transpose is a
     scatter-add): four gathers along ``axis``, cache-friendly either way; ``order`` > 0
     samples the spline's derivative in ``t``."""
-    n = f.shape[axis]
-    i0, w = _taps(t, n, order, f.real.dtype)
+    return _gathered(f, *_taps(t, f.shape[axis], order, f.real.dtype), axis)
+
+
+def _in_blocks(fn, x, rows, axis):
+    """``fn(x, rows)`` computed in ``_LOOP`` blocks inside a loop, so that its result is one
+    buffer: XLA cannot fuse a loop's body into the loop's consumers. Fused, XLA copied
+    the 16 gathers of a 2-D sampling into every consumer (the real and the imaginary part
+    of |s|² each): the scaling-theorem PSF at 1024² took 80–117 ms instead of 25–35 ms,
+    depending on which inputs were constants. Along −2 the blocks split ``rows`` (arrays
+    whose first axis runs over the output rows); along −1, the rows of ``x``. What the
+    loop's body takes from outside is computed once, before the loop."""
+    n_rows = rows[0].shape[0] if axis == -2 else x.shape[-2]
+    nb = min(_LOOP, n_rows)
+    bs = -(-n_rows // nb)
+    if axis == -2:
+        blocks = tuple(jnp.pad(r, [(0, nb * bs - n_rows)] + [(0, 0)] * (r.ndim - 1),
+                               mode="edge").reshape((nb, bs) + r.shape[1:]) for r in rows)
+        out = lax.map(lambda rb: fn(x, rb), blocks)
+    else:
+        xb = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, nb * bs - n_rows), (0, 0)])
+        xb = jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])), -3, 0)
+        out = lax.map(lambda xb: fn(xb, rows), xb)
+    out = jnp.moveaxis(out, 0, -3)
+    return out.reshape(out.shape[:-3] + (nb * bs, out.shape[-1]))[..., :n_rows, :]
+
+
+def _gathered(x, index, weight, axis):
+    """Σ_q x[index[:, q]]·weight[:, q], gathering along ``axis``: (k, q) → k outputs."""
     out = 0
-    for k in range(4):
-        wk = w[:, k, None] if axis == -2 else w[:, k]
-        out = out + jnp.take(f, jnp.clip(i0 - 1 + k, 0, n - 1), axis=axis, mode="clip") * wk
+    for q in range(index.shape[1]):
+        w = weight[:, q, None] if axis == -2 else weight[:, q]
+        out = out + jnp.take(x, index[:, q], axis=axis, mode="clip") * w
     return out
 
 
-def _real_matmul(m, x, axis):
-    """``m`` (r × i, real) applied along ``axis`` (−2 or −1) of ``x``, real or complex:
-    (..., i, nx) → (..., r, nx), or (..., ny, i) → (..., ny, r)."""
-    if jnp.iscomplexobj(x):
-        return lax.complex(_real_matmul(m, x.real, axis), _real_matmul(m, x.imag, axis))
-    return jnp.einsum("ri,...ix->...rx" if axis == -2 else "ri,...xi->...xr", m, x)
+def _sample(f, t, *, axis, order):
+    taps = _taps(t, f.shape[axis], order, f.real.dtype)
+    return _in_blocks(lambda f, taps: _gathered(f, *taps, axis), f, taps, axis)
 
 
-def _transpose_blocks(ct, t, n, order, max_step, axis):
-    """Σ over outputs of weight × cotangent row (column), into the ``n`` grid rows
-    (columns) along ``axis`` (see module): in place along either axis, so the
-    columns' transpose needs no transposed copies of the field."""
+def _spread(ct, t, *, n, axis, order):
+    """The transpose of :func:`_sample` onto ``n`` grid indices, as gathers (module): grid
+    index j gathers the points ``a ≤ i < b`` within two samples of it, in passes of
+    ``_PASS`` gathers, as many as the most crowded index needs."""
     m = t.shape[0]
-    nb = -(-m // _BLOCK)
-    r = int(math.ceil((_BLOCK - 1) * max_step)) + 5        # grid rows a block can touch
-    t = jnp.pad(t, (0, nb * _BLOCK - m), mode="edge")
-    pad = [(0, 0)] * ct.ndim
-    pad[axis] = (0, nb * _BLOCK - m)
-    ct = jnp.pad(ct, pad)
-    i0, w = _taps(t, n, order, ct.real.dtype)
-    first, last = i0[::_BLOCK], i0[_BLOCK - 1::_BLOCK]
-    fits = jnp.all(jnp.diff(i0) >= 0) & jnp.all(last - first + 4 <= r)
-    w = w * jnp.where(fits, 1.0, jnp.nan).astype(w.dtype)    # NaN weights: NaN gradient
-    # the accumulator is the grid itself: a window that would cross an edge is moved
-    # inside, which only drops taps off the grid, whose weights are zero. Grids smaller
-    # than a window get a margin of r rows on each side instead.
-    off = 0 if n >= r else r
-    size = n + 2 * off
-    shape = list(ct.shape)
-    shape[axis] = size
-    acc = jnp.zeros(shape, ct.dtype)
+    j = jnp.arange(n, dtype=t.dtype)[:, None]
+    a = jnp.searchsorted(t, j[:, 0] - 2, side="right")[:, None]   # first tᵢ > j − 2
+    b = jnp.searchsorted(t, j[:, 0] + 2, side="left")[:, None]    # first tᵢ ≥ j + 2
+    broken = jnp.where(jnp.all(jnp.diff(t) >= 0), 1.0, jnp.nan).astype(t.dtype)
 
-    def block(b, acc):
-        s = b * _BLOCK
-        i0b = lax.dynamic_slice_in_dim(i0, s, _BLOCK)
-        wb = lax.dynamic_slice_in_dim(w, s, _BLOCK)
-        start = jnp.clip(i0b[0] - 1 + off, 0, size - r)     # window's first row in acc
-        rows = i0b[:, None] - 1 + jnp.arange(4) + off - start   # (block, 4); off-window: 0
-        weights = jnp.einsum("ik,ikr->ri", wb, jax.nn.one_hot(rows, r, dtype=wb.dtype))
-        add = _real_matmul(weights, lax.dynamic_slice_in_dim(ct, s, _BLOCK, axis=axis), axis)
-        cur = lax.dynamic_slice_in_dim(acc, start, r, axis=axis)
-        return lax.dynamic_update_slice_in_dim(acc, cur + add, start, axis=axis)
-
-    acc = lax.fori_loop(0, nb, block, acc)
-    return acc if off == 0 else lax.slice_in_dim(acc, off, off + n, axis=axis)
+    def one_pass(first):
+        i = a + first + jnp.arange(_PASS)
+        index = jnp.minimum(i, m - 1)
+        w = jnp.where(i < b, bspline(t[index] - j, order) * broken, 0).astype(ct.real.dtype)
+        return _in_blocks(lambda x, rows: _gathered(x, *rows, axis), ct, (index, w), axis)
+    passes = -(-jnp.max(b - a) // _PASS)
+    return lax.fori_loop(1, passes, lambda p, acc: acc + one_pass(p * _PASS), one_pass(0))
 
 
-def _transpose(ct, f, t, *, axis, order, max_step):
-    if type(ct) is ad.Zero:
-        return ad.Zero(f.aval), None
-    return _transpose_blocks(ct, t, f.aval.shape[axis], order, max_step, axis), None
+def _with_length(x, t, axis, length):
+    shape = list(x.shape)
+    shape[axis] = length
+    return jax.core.ShapedArray(tuple(shape), x.dtype)
 
 
-def _shape(f, t, *, axis, order, max_step):
-    shape = list(f.shape)
-    shape[axis] = t.shape[0]
-    return jax.core.ShapedArray(tuple(shape), f.dtype)
+def _along(dt, axis):
+    return dt[:, None] if axis == -2 else dt
 
 
 sample_p = Primitive("diffcam_spline_sample")
-sample_p.def_abstract_eval(_shape)
-sample_p.def_impl(lambda f, t, **k: jax.jit(partial(sample_p.bind, **k))(f, t))
+spread_p = Primitive("diffcam_spline_spread")   # sample_p's transpose, and the reverse
+sample_p.def_abstract_eval(lambda f, t, *, axis, order: _with_length(f, t, axis, t.shape[0]))
+spread_p.def_abstract_eval(lambda ct, t, *, n, axis, order: _with_length(ct, t, axis, n))
+for _p, _rule in ((sample_p, _sample), (spread_p, _spread)):
+    _p.def_impl(lambda *a, _p=_p, **k: jax.jit(partial(_p.bind, **k))(*a))
+    mlir.register_lowering(_p, mlir.lower_fun(_rule, multiple_results=False))
 
 
-def _in_blocks(f, t, *, axis, order, max_step):
-    """:func:`cubic_sample` computed in ``_LOOP`` blocks of output rows inside a loop, so
-    that its result is one buffer: XLA cannot fuse a loop's body into the loop's
-    consumers. Fused, XLA copied the 16 gathers of a 2-D sampling into every consumer
-    (the real and the imaginary part of |s|² each): the scaling-theorem PSF at 1024²
-    took 80–117 ms instead of 25–35 ms, depending on which inputs were constants."""
-    del max_step
-    rows = f.shape[-2] if axis == -1 else t.shape[0]
-    nb = min(_LOOP, rows)
-    bs = -(-rows // nb)
-    if axis == -2:
-        tb = jnp.pad(t, (0, nb * bs - rows), mode="edge").reshape(nb, bs)
-        out = lax.map(lambda tb: cubic_sample(f, tb, -2, order), tb)
-    else:
-        fb = jnp.pad(f, [(0, 0)] * (f.ndim - 2) + [(0, nb * bs - rows), (0, 0)])
-        fb = jnp.moveaxis(fb.reshape(f.shape[:-2] + (nb, bs, f.shape[-1])), -3, 0)
-        out = lax.map(lambda fb: cubic_sample(fb, t, -1, order), fb)
-    out = jnp.moveaxis(out, 0, -3)
-    return out.reshape(out.shape[:-3] + (nb * bs, out.shape[-1]))[..., :rows, :]
+def _sample_jvp_t(dt, f, t, *, axis, order):
+    slope = sample_p.bind(f, t, axis=axis, order=order + 1)
+    return slope * _along(dt, axis).astype(slope.dtype)
 
 
-mlir.register_lowering(sample_p, mlir.lower_fun(_in_blocks, multiple_results=False))
+def _spread_jvp_t(dt, ct, t, *, n, axis, order):
+    return spread_p.bind(ct * _along(dt, axis).astype(ct.dtype), t, n=n, axis=axis,
+                         order=order + 1)
 
 
-def _jvp_t(dt, f, t, *, axis, order, max_step):
-    slope = sample_p.bind(f, t, axis=axis, order=order + 1, max_step=max_step)
-    return slope * (dt[:, None] if axis == -2 else dt).astype(slope.dtype)
+def _sample_transpose(ct, f, t, *, axis, order):
+    if type(ct) is ad.Zero:
+        return ad.Zero(f.aval), None
+    return spread_p.bind(ct, t, n=f.aval.shape[axis], axis=axis, order=order), None
 
 
-ad.defjvp(sample_p, lambda df, f, t, **k: sample_p.bind(df, t, **k), _jvp_t)
-ad.primitive_transposes[sample_p] = _transpose
+def _spread_transpose(g, ct, t, *, n, axis, order):
+    if type(g) is ad.Zero:
+        return ad.Zero(ct.aval), None
+    return sample_p.bind(g, t, axis=axis, order=order), None
 
 
-def _batch(args, dims, **k):
-    f, t = args
-    bf, bt = dims
-    if bt is None:
-        return sample_p.bind(jnp.moveaxis(f, bf, 0), t, **k), 0
-    t = jnp.moveaxis(t, bt, 0)
-    if bf is None:
-        return lax.map(lambda ti: sample_p.bind(f, ti, **k), t), 0
-    return lax.map(lambda a: sample_p.bind(a[0], a[1], **k), (jnp.moveaxis(f, bf, 0), t)), 0
+ad.defjvp(sample_p, lambda df, f, t, **k: sample_p.bind(df, t, **k), _sample_jvp_t)
+ad.defjvp(spread_p, lambda dct, ct, t, **k: spread_p.bind(dct, t, **k), _spread_jvp_t)
+ad.primitive_transposes[sample_p] = _sample_transpose
+ad.primitive_transposes[spread_p] = _spread_transpose
 
 
-batching.primitive_batchers[sample_p] = _batch
+def _batcher(prim):
+    def batch(args, dims, **k):
+        x, t = args
+        bx, bt = dims
+        if bt is None:
+            return prim.bind(jnp.moveaxis(x, bx, 0), t, **k), 0
+        t = jnp.moveaxis(t, bt, 0)
+        if bx is None:
+            return lax.map(lambda ti: prim.bind(x, ti, **k), t), 0
+        return lax.map(lambda a: prim.bind(a[0], a[1], **k), (jnp.moveaxis(x, bx, 0), t)), 0
+    return batch
 
 
-def spline_sample(f, t, axis: int, *, max_step: float = 1.0):
+batching.primitive_batchers[sample_p] = _batcher(sample_p)
+batching.primitive_batchers[spread_p] = _batcher(spread_p)
+
+
+def spline_sample(f, t, axis: int):
     """The cubic spline with coefficients ``f`` along ``axis`` (−2 or −1), at the
-    fractional indices ``t`` (m,), increasing by at most ``max_step`` samples per point
-    (a magnification ≥ 1/max_step): shape of ``f`` with ``axis`` of length m. The
-    gradient with respect to ``f`` is NaN where ``t`` breaks that promise."""
+    fractional indices ``t`` (m,), which must not decrease: shape of ``f`` with ``axis``
+    of length m. The gradient with respect to ``f`` is NaN where ``t`` decreases."""
     if axis not in (-2, -1):
         raise ValueError(f"axis must be -2 or -1, got {axis}")
     f = jnp.asarray(f)
     t = jnp.asarray(t, f.real.dtype)
-    return sample_p.bind(f, t, axis=axis, order=0, max_step=float(max_step))
+    return sample_p.bind(f, t, axis=axis, order=0)
