@@ -10,14 +10,19 @@ interleaved repeats (``benchmarks.harness``; at least ``--repeats``, and at leas
 of forward calls at small sizes), and the ratio is the median over the rounds of each
 round's value_and_grad ÷ forward (the two calls side by side); memory is XLA's own
 figure for each compiled program (``memory_analysis()``: temporaries, and temporaries
-plus arguments and outputs). The issue's targets: ratio ≤ 2 and a gradient step's memory ≤ 3× the
-forward's, at 512²–4096².
+plus arguments and outputs), and the page faults of one call (``getrusage``): XLA
+allocates a call's temporaries afresh, and glibc maps a block of 32 MiB or more anew on
+every call, so the kernel zero-fills it page by page (:mod:`diffcam.core.memory`; run
+with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` for huge pages). The issue's targets:
+ratio ≤ 2 and a gradient step's memory ≤ 3× the forward's, at 512²–4096². The JSON is
+``grad_<backend>.json`` (``grad_<backend>_huge_pages.json`` with huge pages).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import time
 
 import jax
@@ -25,6 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.harness import markdown_table, time_interleaved, write_json
+from diffcam.core import memory
+from diffcam.core.backend import fft_backend
 from diffcam.model import Camera, psf
 
 LAM, DX, Z2, Z1 = 532e-9, 5e-6, 1e-3, 25e-3
@@ -44,6 +51,14 @@ def _memory_mb(compiled):
         return None, None
     total = m.temp_size_in_bytes + m.argument_size_in_bytes + m.output_size_in_bytes
     return m.temp_size_in_bytes / 2 ** 20, total / 2 ** 20
+
+
+def _faults_per_call(fn, calls=3):
+    """Minor page faults of one call (the process's count, so other threads' too)."""
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(calls):
+        jax.block_until_ready(fn())
+    return (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / calls
 
 
 def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
@@ -76,6 +91,8 @@ def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
                                                t["forward"]["times_s"])))
             rows.append({"N": n, "path": method, "forward_ms": f_ms, "value_and_grad_ms": g_ms,
                          "ratio": paired, "ratio_of_medians": g_ms / f_ms,
+                         "forward_faults": _faults_per_call(lambda: fwd(phase)),
+                         "grad_faults": _faults_per_call(lambda: vag(phase)),
                          "forward_temp_mb": ft, "grad_temp_mb": gt,
                          "forward_total_mb": fa, "grad_total_mb": ga,
                          "memory_ratio": None if fa is None else ga / fa,
@@ -85,7 +102,7 @@ def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
 
 
 COLUMNS = ["N", "path", "forward_ms", "value_and_grad_ms", "ratio", "ratio_of_medians",
-           "forward_temp_mb", "grad_temp_mb", "forward_total_mb", "grad_total_mb",
+           "forward_faults", "grad_faults", "forward_temp_mb", "grad_temp_mb", "forward_total_mb", "grad_total_mb",
            "memory_ratio", "loadavg"]
 
 
@@ -96,7 +113,9 @@ def main(argv=None):
     args = p.parse_args(argv)
     rows = run(args.sizes, args.repeats)
     print(markdown_table(rows, COLUMNS))
-    print(f"wrote {write_json('grad', rows, {'loss': 'sum(w * psf(phase, camera, 25 mm))'})}")
+    name = f"grad_{fft_backend()}" + ("_huge_pages" if memory.huge_pages() == "on" else "")
+    extra = {"loss": "sum(w * psf(phase, camera, 25 mm))", "memory": memory.status()}
+    print(f"{memory.status()}\nwrote {write_json(name, rows, extra)}")
 
 
 if __name__ == "__main__":
