@@ -139,7 +139,7 @@ def _spread(ct, t, *, n, axis, order):
     return lax.fori_loop(1, passes, lambda p, acc: acc + one_pass(p * _PASS), one_pass(0))
 
 
-def _with_length(x, t, axis, length):
+def _with_length(x, axis, length):
     shape = list(x.shape)
     shape[axis] = length
     return jax.core.ShapedArray(tuple(shape), x.dtype)
@@ -150,9 +150,9 @@ def _along(dt, axis):
 
 
 sample_p = Primitive("diffcam_spline_sample")
-spread_p = Primitive("diffcam_spline_spread")   # sample_p's transpose, and the reverse
-sample_p.def_abstract_eval(lambda f, t, *, axis, order: _with_length(f, t, axis, t.shape[0]))
-spread_p.def_abstract_eval(lambda ct, t, *, n, axis, order: _with_length(ct, t, axis, n))
+spread_p = Primitive("diffcam_spline_spread")   # the two are each other's transpose
+sample_p.def_abstract_eval(lambda f, t, *, axis, order: _with_length(f, axis, t.shape[0]))
+spread_p.def_abstract_eval(lambda ct, t, *, n, axis, order: _with_length(ct, axis, n))
 for _p, _rule in ((sample_p, _sample), (spread_p, _spread)):
     _p.def_impl(lambda *a, _p=_p, **k: jax.jit(partial(_p.bind, **k))(*a))
     mlir.register_lowering(_p, mlir.lower_fun(_rule, multiple_results=False))
