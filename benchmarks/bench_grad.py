@@ -102,8 +102,8 @@ def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
 
 
 COLUMNS = ["N", "path", "forward_ms", "value_and_grad_ms", "ratio", "ratio_of_medians",
-           "forward_faults", "grad_faults", "forward_temp_mb", "grad_temp_mb", "forward_total_mb", "grad_total_mb",
-           "memory_ratio", "loadavg"]
+           "forward_faults", "grad_faults", "forward_temp_mb", "grad_temp_mb",
+           "forward_total_mb", "grad_total_mb", "memory_ratio", "loadavg"]
 
 
 def main(argv=None):

@@ -242,8 +242,7 @@ def transfer_step_with_spectrum(u: Array, H: Array) -> tuple[Array, Array]:
         return ifft2(spectrum), spectrum
     u = _as_complex(u)
     H = jnp.asarray(H).astype(u.dtype)
-    field, spectrum = _rows_step_p.bind(*jnp.broadcast_arrays(u, H))
-    return field, spectrum
+    return tuple(_rows_step_p.bind(*jnp.broadcast_arrays(u, H)))
 
 
 def _in_row_blocks(u: Array, H: Array) -> tuple[Array, Array]:

@@ -33,7 +33,7 @@ from jax.interpreters import ad, batching, mlir
 
 __all__ = ["spline_sample", "cubic_sample", "bspline"]
 
-_LOOP = 4      # loop iterations of the sampling and its transpose (see _in_blocks)
+_LOOP = 4      # loop iterations of the sampling and its transpose (_gathered_in_blocks)
 _PASS = 5      # gathers per pass of the transpose: one pass for points 0.8–1 sample apart
 # the cubic B-spline β₃(x) = p(|x|), as polynomial coefficients of 1, a, a², a³:
 # p = 2/3 − a² + a³/2 on [0, 1) and (2 − a)³/6 on [1, 2)
@@ -83,29 +83,6 @@ def cubic_sample(f, t, axis: int, order: int = 0):
     return _gathered(f, *_taps(t, f.shape[axis], order, f.real.dtype), axis)
 
 
-def _in_blocks(fn, x, rows, axis):
-    """``fn(x, rows)`` computed in ``_LOOP`` blocks inside a loop, so that its result is one
-    buffer: XLA cannot fuse a loop's body into the loop's consumers. Fused, XLA copied
-    the 16 gathers of a 2-D sampling into every consumer (the real and the imaginary part
-    of |s|² each): the scaling-theorem PSF at 1024² took 80–117 ms instead of 25–35 ms,
-    depending on which inputs were constants. Along −2 the blocks split ``rows`` (arrays
-    whose first axis runs over the output rows); along −1, the rows of ``x``. What the
-    loop's body takes from outside is computed once, before the loop."""
-    n_rows = rows[0].shape[0] if axis == -2 else x.shape[-2]
-    nb = min(_LOOP, n_rows)
-    bs = -(-n_rows // nb)
-    if axis == -2:
-        blocks = tuple(jnp.pad(r, [(0, nb * bs - n_rows)] + [(0, 0)] * (r.ndim - 1),
-                               mode="edge").reshape((nb, bs) + r.shape[1:]) for r in rows)
-        out = lax.map(lambda rb: fn(x, rb), blocks)
-    else:
-        xb = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, nb * bs - n_rows), (0, 0)])
-        xb = jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])), -3, 0)
-        out = lax.map(lambda xb: fn(xb, rows), xb)
-    out = jnp.moveaxis(out, 0, -3)
-    return out.reshape(out.shape[:-3] + (nb * bs, out.shape[-1]))[..., :n_rows, :]
-
-
 def _gathered(x, index, weight, axis):
     """Σ_q x[index[:, q]]·weight[:, q], gathering along ``axis``: (k, q) → k outputs."""
     out = 0
@@ -115,9 +92,31 @@ def _gathered(x, index, weight, axis):
     return out
 
 
+def _gathered_in_blocks(x, index, weight, axis):
+    """:func:`_gathered` in ``_LOOP`` blocks inside a loop, so that its result is one
+    buffer: XLA cannot fuse a loop's body into the loop's consumers. Fused, XLA copied
+    the 16 gathers of a 2-D sampling into every consumer (the real and the imaginary part
+    of |s|² each): the scaling-theorem PSF at 1024² took 80–117 ms instead of 25–35 ms,
+    depending on which inputs were constants. Along −2 the blocks split the outputs
+    (``index`` and ``weight``); along −1, the rows of ``x``. Indices and weights are
+    computed once, before the loop."""
+    n_rows = index.shape[0] if axis == -2 else x.shape[-2]
+    nb = min(_LOOP, n_rows)
+    bs = -(-n_rows // nb)
+    if axis == -2:
+        blocks = tuple(jnp.pad(r, [(0, nb * bs - n_rows), (0, 0)], mode="edge")
+                       .reshape(nb, bs, r.shape[1]) for r in (index, weight))
+        out = lax.map(lambda b: _gathered(x, *b, axis), blocks)
+    else:
+        xb = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, nb * bs - n_rows), (0, 0)])
+        xb = jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])), -3, 0)
+        out = lax.map(lambda xb: _gathered(xb, index, weight, axis), xb)
+    out = jnp.moveaxis(out, 0, -3)
+    return out.reshape(out.shape[:-3] + (nb * bs, out.shape[-1]))[..., :n_rows, :]
+
+
 def _sample(f, t, *, axis, order):
-    taps = _taps(t, f.shape[axis], order, f.real.dtype)
-    return _in_blocks(lambda f, taps: _gathered(f, *taps, axis), f, taps, axis)
+    return _gathered_in_blocks(f, *_taps(t, f.shape[axis], order, f.real.dtype), axis)
 
 
 def _spread(ct, t, *, n, axis, order):
@@ -134,7 +133,7 @@ def _spread(ct, t, *, n, axis, order):
         i = a + first + jnp.arange(_PASS)
         index = jnp.minimum(i, m - 1)
         w = jnp.where(i < b, bspline(t[index] - j, order) * broken, 0).astype(ct.real.dtype)
-        return _in_blocks(lambda x, rows: _gathered(x, *rows, axis), ct, (index, w), axis)
+        return _gathered_in_blocks(ct, index, w, axis)
     passes = -(-jnp.max(b - a) // _PASS)
     return lax.fori_loop(1, passes, lambda p, acc: acc + one_pass(p * _PASS), one_pass(0))
 
