@@ -236,6 +236,33 @@ def test_direct_path_at_paper_real_camera_is_undersampled():
         check_inputs(phase, with_method(cam, "scaling"), 5e-3, 0.0, [LAM], False)
 
 
+def test_geometry_checks_remembered_only_for_the_same_camera_and_numbers():
+    """check_inputs remembers a camera and geometry that passed; a closer source, a
+    source off the frame, an accepted undersampling (its warning every time) and another
+    camera are all checked afresh."""
+    from diffcam.model.point_spread import check_inputs
+    n = 2048
+    cam = Camera(wavelength=LAM, z2=2e-3, dx=3.45e-6, aperture_radius=2.3e-3, shape=(n, n),
+                 method="direct")
+    phase = np.zeros((n, n), np.float32)
+    check_inputs(phase, cam, 30e-3, 0.0, [LAM], False)
+    check_inputs(phase, cam, 30e-3, 0.0, [LAM], False)      # remembered
+    with pytest.raises(SamplingError):
+        check_inputs(phase, cam, 29e-3, 0.0, [LAM], False)
+    with pytest.raises(DiffcamError, match="outside"):
+        check_inputs(phase, cam, 30e-3, 0.2, [LAM], False)
+    for _ in range(2):
+        with pytest.warns(UndersamplingWarning):
+            check_inputs(phase, cam, 22e-3, 0.0, [LAM], True)
+    small = Camera(wavelength=LAM, z2=1e-3, dx=3.45e-6, aperture_radius=0.1e-3,
+                   shape=(64, 64), method="direct", pad=0)
+    check_inputs(np.zeros((64, 64)), small, 30e-3, 0.0, [LAM], False)
+    tight = Camera(wavelength=LAM, z2=2e-3, dx=3.45e-6, aperture_radius=0.1e-3,
+                   shape=(64, 64), method="direct", pad=0)   # its transfer function aliases
+    with pytest.raises(SamplingError, match="aliases"):
+        check_inputs(np.zeros((64, 64)), tight, 30e-3, 0.0, [LAM], False)
+
+
 @pytest.mark.parametrize("weights, match", [([1.0, -0.5], ">= 0"), ([0.0, 0.0], "sum to zero")])
 def test_spectrum_weights(weights, match):
     cam = small_camera(64, radius=0.05e-3)

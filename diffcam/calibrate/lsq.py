@@ -65,6 +65,7 @@ from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError, check_field
 from diffcam.core.progress import progress_bar, tick
 from diffcam.core.grid import crop_to, pad_to
+from diffcam.core.phasor import expj
 
 __all__ = ["FitOptions", "fit_phase", "retrieve_lsq", "near_far_model", "PhaseGrid", "JaxoptLBFGS",
            "ConvergenceWarning", "fit_status", "warn_if_stalled", "LOSSES", "SOLVERS"]
@@ -202,7 +203,7 @@ def _linear_fit(pred, y, v, fit_background):
 
 def _phase_diffs(phase, support):
     """Wrap-safe finite differences e^{jθ(x+1)} − e^{jθ(x)} inside the support."""
-    e = jnp.exp(1j * phase)
+    e = expj(phase)
     dy = (e[1:, :] - e[:-1, :]) * (support[1:, :] * support[:-1, :])
     dx = (e[:, 1:] - e[:, :-1]) * (support[:, 1:] * support[:, :-1])
     return dy[:, :-1], dx[:-1, :]
@@ -452,7 +453,7 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
     with progress_bar(int(iterations), "least squares", progress):
         start, history, params, scale, background = jax.block_until_ready(
             _run_fit(problem, params, opt, int(iterations)))
-    phase = jnp.angle(jnp.exp(1j * phase_grid.expand(params["theta"])))
+    phase = jnp.angle(expj(phase_grid.expand(params["theta"])))
     phase.block_until_ready()
     status = fit_status(float(start), np.asarray(history))
     name = solver if isinstance(solver, str) else type(opt).__name__
@@ -460,7 +461,7 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
              "status": status, "start_loss": float(start),
              "scale": scale * norms, "background": background * norms,
              "extra": params["extra"], "wall_time": time.perf_counter() - t0}
-    return RetrievalResult(phase, support * jnp.exp(1j * phase), history, stats)
+    return RetrievalResult(phase, support * expj(phase), history, stats)
 
 
 def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],

@@ -45,6 +45,7 @@ from diffcam.core.backend import fft2, ifft2
 from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError, check_finite
 from diffcam.core.progress import progress_bar, tick
+from diffcam.core.phasor import expj
 from diffcam.optics.propagation import apply_transfer, transfer_function
 from diffcam.calibrate.near_far import CalibrationGeometry, check_captures, check_far_pitch
 from diffcam.calibrate.planes import check_planes
@@ -228,7 +229,7 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
     if init is None:  # with a plane one flat start converges; random ones can stall
         init = "flat" if planes and restarts == 1 else "random"
     phases = initial_phase(init, shape, key, restarts)
-    fields = _to_fft_order(near_amp * jnp.exp(1j * phases))
+    fields = _to_fft_order(near_amp * expj(phases))
     if H is not None:
         fields = jax.vmap(apply_transfer, (0, None))(fields, H)
     near_f, far_f = _to_fft_order(near_amp), _to_fft_order(far_amp)

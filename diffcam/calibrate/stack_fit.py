@@ -74,6 +74,7 @@ from jaxtyping import Float
 from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.core.backend import fft2, ifft2, irfft2, rfft2, transfer_step
+from diffcam.core.phasor import expj
 from diffcam.evaluate.metrics import pearson
 from diffcam.optics.propagation import fresnel_tf_factors
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
@@ -220,7 +221,7 @@ class StackModel(eqx.Module):
 
     def spectrum(self) -> Array:
         """FFT of the field g = A·e^{jθ} (shared by all planes)."""
-        return fft2(self.amplitude() * jnp.exp(1j * self.theta))
+        return fft2(self.amplitude() * expj(self.theta))
 
     def _sample(self, u, s):
         """u on the field grid → the fine sensor grid of a plane at s (magnified by
@@ -429,8 +430,8 @@ def _gs(amp, mods, knowns, kernels, theta, n_iter):
     planes (only where known), the planes visited in turn."""
     def body(_, th):
         for m, k, h in zip(mods, knowns, kernels):
-            u = transfer_step(amp * jnp.exp(1j * th), h)
-            u = jnp.where(k, m * jnp.exp(1j * jnp.angle(u)), u)
+            u = transfer_step(amp * expj(th), h)
+            u = jnp.where(k, m * expj(jnp.angle(u)), u)
             th = jnp.angle(transfer_step(u, jnp.conj(h)))
         return th
     return jax.lax.fori_loop(0, n_iter, body, theta)

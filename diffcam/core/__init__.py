@@ -1,4 +1,4 @@
 """Foundations every stage shares: the centred grid convention (:mod:`.grid`), errors and
 input checks (:mod:`.errors`), lengths with units at the command-line edge
-(:mod:`.units`), and the one seam between the physics and the FFT backend
-(:mod:`.backend`)."""
+(:mod:`.units`), the one seam between the physics and the FFT backend
+(:mod:`.backend`), and e^{jθ} at the cost of a few products (:mod:`.phasor`)."""

@@ -16,6 +16,7 @@ from jaxtyping import Complex, Float, Num
 from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_positive,
                                  fmt_length, is_concrete)
 from diffcam.core.grid import pitch_yx, radius2, yx
+from diffcam.core.phasor import expj
 from diffcam.optics.propagation import piston, spherical_chirp
 from diffcam.optics.sampling import check_point_source_sampling
 
@@ -170,4 +171,4 @@ def apply_phase(field: Num[Array, "... ny nx"], phase: Float[Array, "... ny nx"]
     if is_concrete(phase) and np.shape(phase)[-2:] != np.shape(field)[-2:]:
         raise DiffcamError(f"phase shape {np.shape(phase)} does not match the field's "
                            f"spatial shape {np.shape(field)[-2:]}.")
-    return field * jnp.exp(1j * jnp.asarray(phase))
+    return field * expj(jnp.asarray(phase))
