@@ -15,7 +15,7 @@ import argparse
 import importlib
 
 WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit", "cli_memory",
-             "overhead", "real_data", "fft", "grad"]
+             "overhead", "real_data", "fft", "grad", "fig6_seeds"]
 QUICK = {"propagate": ["--sizes", "512", "1024"],
          "psf": ["--sizes", "512", "--depths", "8", "--no-memory"],
          "retrieval": ["--sizes", "512", "--repeats", "2"],
@@ -25,6 +25,7 @@ QUICK = {"propagate": ["--sizes", "512", "1024"],
          "overhead": ["--sizes", "128", "--repeats", "5"],
          "real_data": ["--downsample", "4"],
          "grad": ["--sizes", "256", "--repeats", "3"],
+         "fig6_seeds": ["--seeds", "0"],
          "fft": ["--sizes", "512", "--repeats", "3", "--workload-sizes", "256", "--rounds", "1"]}
 
 
