@@ -50,6 +50,9 @@ def test_expj_other_dtypes_become_complex64():
     assert expj(jnp.ones(3, jnp.float16)).dtype == jnp.complex64
     np.testing.assert_allclose(np.asarray(expj(jnp.arange(4))), np.exp(1j * np.arange(4)),
                                atol=1.3e-7)
+    # an integer phase is a constant to differentiation: d/da Σ Re(a·e^{jk}) = Σ cos k
+    grad = jax.grad(lambda a: jnp.sum((a * expj(jnp.arange(4))).real))(1.0)
+    np.testing.assert_allclose(float(grad), np.cos(np.arange(4)).sum(), rtol=1e-6)
 
 
 def test_expj_propagates_nan_and_inf_like_the_exponential():
