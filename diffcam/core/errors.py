@@ -22,6 +22,7 @@ __all__ = [
     "UndersamplingWarning",
     "GeometryWarning",
     "is_concrete",
+    "found_false",
     "check_positive",
     "check_finite",
     "check_field",
@@ -98,13 +99,21 @@ def _show(value: Any) -> str:
 _all_finite = jax.jit(lambda a: jax.numpy.isfinite(a).all())
 
 
+def found_false(flag: Any) -> bool:
+    """Whether a jitted call's boolean flag (a device scalar) came back False; False for
+    a tracer, which cannot be read. Read with ``np.asarray``: 4 µs per fresh flag here,
+    where ``is_concrete`` and ``bool()`` took 20 (about a fifth of the Python around an
+    eager 128² propagation)."""
+    return not isinstance(flag, jax.core.Tracer) and not np.asarray(flag)
+
+
 def check_finite(name: str, arr: Any) -> None:
     """Raise ``DiffcamError`` if a concrete array holds NaN or Inf."""
     if not is_concrete(arr):
         return
     if isinstance(arr, jax.Array):  # one fused pass on the device, no copy to the host
         with jax.ensure_compile_time_eval():  # concrete even inside someone's jit trace
-            ok = bool(_all_finite(arr))
+            ok = bool(np.asarray(_all_finite(arr)))
             n_bad = 0 if ok else int(arr.size - jax.numpy.isfinite(arr).sum())
     else:
         finite = np.isfinite(_as_real(name, arr, "numeric", complex_ok=True))

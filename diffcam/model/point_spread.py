@@ -51,7 +51,7 @@ from jax import Array
 
 from diffcam.core.backend import fft2, ifft2, staged, transfer_step_with_spectrum
 from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, check_positive,
-                                 fmt_length, is_concrete, sampling_problem)
+                                 fmt_length, found_false, is_concrete, sampling_problem)
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.model.camera import (Camera, HeightMap, as_spectrum, diffuser_phase,
                                   real_dtype)
@@ -307,6 +307,6 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
     z1 = xp.asarray(z1, dtype)
     positions = xp.stack([xp.asarray(y1, dtype), xp.asarray(x1, dtype)])[None]
     out, finite = _psf(phase, camera, wavelengths, weights, z1, positions, normalise=normalise)
-    if is_concrete(finite) and not bool(finite):
+    if found_false(finite):
         check_finite("diffuser phase", phase.height if isinstance(phase, HeightMap) else phase)
     return out

@@ -43,8 +43,7 @@ from jax import Array, lax
 from jaxtyping import Complex, Num
 
 from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_positive,
-                                 is_concrete, fmt_length,
-                     sampling_problem)
+                                 found_false, is_concrete, fmt_length, sampling_problem)
 from diffcam.core.grid import (coord_at, crop_to, fft_freq_at, fft_freqs, fft2c, ifft2c, pad_by,
                    pitch_yx)
 from diffcam.core.backend import fft2, fft_size, ifft2, transfer_step, vector
@@ -271,7 +270,7 @@ def _run(method, field, dx, wavelength, z, pad, accept_undersampling, band_limit
     out, finite = _propagate_core(field, _geometry((dy, dxx, wavelength, z), piston(wavelength, z),
                                                    rdt),
                                   method=method, pad=pad, band_limit=band_limit)
-    if is_concrete(finite) and not bool(finite):
+    if found_false(finite):
         check_finite("field", field)    # raises, with the count of bad samples
     return out
 
@@ -374,7 +373,7 @@ def _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse):
     out, finite = _fourier_lens_core(
         field, _geometry((dy, dxx, wavelength, focal_length), piston(wavelength, focal_length),
                          rdt), inverse=inverse)
-    if is_concrete(finite) and not bool(finite):
+    if found_false(finite):
         check_finite("field", field)
     return out, out_pitch
 
