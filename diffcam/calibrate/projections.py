@@ -52,7 +52,7 @@ from diffcam.calibrate.planes import check_planes
 from diffcam.calibrate.result import RetrievalResult
 
 __all__ = ["retrieve_projections", "ProjectionOptions", "gerchberg_saxton", "hio", "raar", "initial_phase",
-           "METHODS"]
+           "fit_amplitude", "METHODS"]
 
 METHODS = ("gs", "hio", "raar")
 _AXES = (-2, -1)
@@ -66,7 +66,7 @@ def _to_centred(a):
     return jnp.fft.fftshift(a, axes=_AXES)
 
 
-def _fit_amplitude(u, amplitude):
+def fit_amplitude(u, amplitude):
     """u·(A/|u|), 0 where |u| = 0 (the safe divide keeps gradients and values finite)."""
     m = jnp.abs(u)
     return u * jnp.where(m > 0, amplitude / jnp.where(m > 0, m, 1.0), 0.0)
@@ -78,15 +78,15 @@ def _operators(near_amp, far_amp, planes):
     measurement constraints of a product space, reflected together by RAAR/HIO)."""
 
     def p_near(u):
-        return _fit_amplitude(u, near_amp)
+        return fit_amplitude(u, near_amp)
 
     def p_far(u):
-        return ifft2(_fit_amplitude(fft2(u, norm="ortho"), far_amp),
+        return ifft2(fit_amplitude(fft2(u, norm="ortho"), far_amp),
                              norm="ortho")
 
     def p_plane(u, amp, mask, H):
         v = apply_transfer(u, H)
-        v = jnp.where(mask > 0, _fit_amplitude(v, amp), v)
+        v = jnp.where(mask > 0, fit_amplitude(v, amp), v)
         return apply_transfer(v, jnp.conj(H))
 
     def p_measured(u):

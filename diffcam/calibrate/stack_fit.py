@@ -75,6 +75,7 @@ from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.core.backend import fft2, ifft2, irfft2, rfft2, transfer_step
 from diffcam.core.phasor import expj
+from diffcam.calibrate.projections import fit_amplitude
 from diffcam.evaluate.metrics import pearson
 from diffcam.optics.propagation import fresnel_tf_factors
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
@@ -431,7 +432,7 @@ def _gs(amp, mods, knowns, kernels, theta, n_iter):
     def body(_, th):
         for m, k, h in zip(mods, knowns, kernels):
             u = transfer_step(amp * expj(th), h)
-            u = jnp.where(k, m * expj(jnp.angle(u)), u)
+            u = jnp.where(k, fit_amplitude(u, m), u)
             th = jnp.angle(transfer_step(u, jnp.conj(h)))
         return th
     return jax.lax.fori_loop(0, n_iter, body, theta)
