@@ -14,6 +14,7 @@ from diffcam.model import Camera, HeightMap, psf, random_diffuser, with_method
 from diffcam.core.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
 from diffcam.core.grid import pad_to
 from diffcam.evaluate.metrics import pearson
+from diffcam.model.point_spread import check_inputs
 from diffcam.model.stack import psf_stack
 
 LAM = 532e-9
@@ -236,24 +237,37 @@ def test_direct_path_at_paper_real_camera_is_undersampled():
         check_inputs(phase, with_method(cam, "scaling"), 5e-3, 0.0, [LAM], False)
 
 
-def test_geometry_checks_remembered_only_for_the_same_camera_and_numbers():
-    """check_inputs remembers a camera and geometry that passed; a closer source, a
-    source off the frame, an accepted undersampling (its warning every time) and another
-    camera are all checked afresh."""
-    from diffcam.model.point_spread import check_inputs
-    n = 2048
-    cam = Camera(wavelength=LAM, z2=2e-3, dx=3.45e-6, aperture_radius=2.3e-3, shape=(n, n),
+def test_psf_remembers_a_source_that_passed_and_nothing_else():
+    """An eager psf remembers a camera and a source (plain numbers) that passed its
+    checks; a closer source, a source off the frame, an accepted undersampling (its
+    warning every time), a bad diffuser and another camera with the same numbers are
+    all checked afresh, every time."""
+    n, dx = 256, 10e-6
+    # the source's chirp is sampled at the aperture edge (0.78 mm) from z1 ≈ 29.3 mm on
+    cam = Camera(wavelength=LAM, z2=2e-3, dx=dx, aperture_radius=0.78e-3, shape=(n, n),
                  method="direct")
-    phase = np.zeros((n, n), np.float32)
-    check_inputs(phase, cam, 30e-3, 0.0, [LAM], False)
-    check_inputs(phase, cam, 30e-3, 0.0, [LAM], False)      # remembered
-    with pytest.raises(SamplingError):
-        check_inputs(phase, cam, 29e-3, 0.0, [LAM], False)
-    with pytest.raises(DiffcamError, match="outside"):
-        check_inputs(phase, cam, 30e-3, 0.2, [LAM], False)
+    phase = jnp.zeros((n, n), jnp.float32)
+    first = psf(phase, cam, 30e-3)
+    np.testing.assert_array_equal(psf(phase, cam, 30e-3), first)     # remembered
     for _ in range(2):
+        with pytest.raises(SamplingError):
+            psf(phase, cam, 29e-3)
+        with pytest.raises(DiffcamError, match="outside"):
+            psf(phase, cam, 30e-3, x1=0.2)
         with pytest.warns(UndersamplingWarning):
-            check_inputs(phase, cam, 22e-3, 0.0, [LAM], True)
+            psf(phase, cam, 22e-3, accept_undersampling=True)
+        with pytest.raises(DiffcamError, match="NaN"):
+            psf(phase.at[3, 3].set(jnp.nan), cam, 30e-3)
+        with pytest.raises(ShapeError, match="shape"):
+            psf(phase[1:], cam, 30e-3)
+    wider = Camera(wavelength=LAM, z2=2e-3, dx=dx, aperture_radius=1.0e-3, shape=(n, n),
+                   method="direct")                 # the same numbers alias at its edge
+    with pytest.raises(SamplingError):
+        psf(phase, wider, 30e-3)
+
+
+def test_check_inputs_transfer_function_sampling():
+    """The Fresnel transfer function's own sampling is checked for the padded grid."""
     small = Camera(wavelength=LAM, z2=1e-3, dx=3.45e-6, aperture_radius=0.1e-3,
                    shape=(64, 64), method="direct", pad=0)
     check_inputs(np.zeros((64, 64)), small, 30e-3, 0.0, [LAM], False)

@@ -377,6 +377,25 @@ def test_bad_input_errors_say_what_to_do():
     assert issubclass(SamplingError, ValueError)
 
 
+def test_remembered_geometry_still_checks_what_changes():
+    """An eager call remembers a geometry that passed its checks (plain numbers), not a
+    field's values, a failure, or a warning: each of those comes back on every call."""
+    u = _smooth_field((32, 32))
+    first = fresnel_tf(u, 1e-6, LAM, 1e-5)
+    np.testing.assert_array_equal(fresnel_tf(u, 1e-6, LAM, 1e-5), first)
+    with pytest.raises(DiffcamError, match="NaN"):      # same geometry, a bad field
+        fresnel_tf(u.at[3, 3].set(jnp.nan), 1e-6, LAM, 1e-5)
+    for _ in range(2):
+        with pytest.raises(SamplingError, match="fresnel_ir"):
+            fresnel_tf(u, 1e-6, LAM, 1.0)
+        with pytest.warns(UndersamplingWarning):
+            fresnel_tf(u, 1e-6, LAM, 1.0, accept_undersampling=True)
+    # the same numbers as NumPy or JAX scalars: checked, not remembered, equal results
+    np.testing.assert_allclose(fresnel_tf(u, np.float32(1e-6), jnp.float32(LAM), 1e-5),
+                               first, atol=1e-6)
+    np.testing.assert_array_equal(fresnel_tf(u, 1e-6, LAM, 0.0), u)
+
+
 def test_zero_distance_is_identity():
     """z = 0 returns the input for every method (no kernel, no division by z)."""
     u = _smooth_field((32, 32))

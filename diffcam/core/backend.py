@@ -319,6 +319,8 @@ def vector(f: Callable[[Array], Array], n: int, block: int = 512) -> Array:
     if not on_cpu():
         return f(lax.iota(jnp.int32, n))
 
+    block = min(block, n)
+
     def one_block(b):
         return f(b * block + lax.iota(jnp.int32, block))
     return lax.map(one_block, jnp.arange(-(-n // block), dtype=jnp.int32)).reshape(-1)[:n]

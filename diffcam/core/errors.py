@@ -61,6 +61,13 @@ def is_concrete(*values: Any) -> bool:
     return not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values))
 
 
+def plain_numbers(*values: Any) -> bool:
+    """True if every value is a Python number (not a bool) or a tuple of them: hashable,
+    and fixed once passed, so a check that passed for them can be remembered."""
+    return all(all(map(plain_numbers, v)) if isinstance(v, tuple)
+               else isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+
+
 def check_positive(name: str, value: Any, unit: str, *, allow_zero: bool = False,
                    allow_negative: bool = False) -> None:
     """Raise ``DiffcamError`` unless ``value`` (scalar or array) is finite and > 0.

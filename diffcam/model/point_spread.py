@@ -51,7 +51,8 @@ from jax import Array
 
 from diffcam.core.backend import fft2, ifft2, staged, transfer_step_with_spectrum
 from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, check_positive,
-                                 fmt_length, found_false, is_concrete, sampling_problem)
+                                 fmt_length, found_false, is_concrete, plain_numbers,
+                                 sampling_problem)
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.model.camera import (Camera, HeightMap, as_spectrum, diffuser_phase,
                                   real_dtype)
@@ -198,6 +199,20 @@ def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling,
     device-array diffuser to the caller (:func:`psf` computes it inside its jitted call);
     a NumPy one is checked here, before anything else can fail.
     """
+    _check_phase(phase, camera, finite)
+    check_positive("z1 (source distance)", z1, "m")
+    check_positive("lateral source offset |(y1, x1)|", offsets, "m", allow_zero=True)
+    if not is_concrete(z1, offsets, camera, wavelengths):
+        return
+    z1, offsets = np.asarray(z1), np.asarray(offsets)
+    _check_geometry(camera, float(np.min(z1)), float(np.max(z1)),
+                    float(np.max(np.abs(offsets))) if offsets.size else 0.0,
+                    np.atleast_1d(np.asarray(wavelengths, dtype=np.float64)).tolist(),
+                    accept_undersampling)
+
+
+def _check_phase(phase, camera, finite):
+    """The camera, the diffuser's shape, and (``finite``, or a NumPy diffuser) its NaN."""
     if not isinstance(camera, Camera):
         raise DiffcamError(f"camera must be a diffcam.model.camera.Camera, got {type(camera)}.")
     arr = phase.height if isinstance(phase, HeightMap) else phase
@@ -208,28 +223,6 @@ def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling,
                          f"build the Camera with shape={np.shape(arr)[-2:]}.")
     if finite or not isinstance(arr, jax.Array):
         check_finite(f"diffuser {what}", arr)
-    check_positive("z1 (source distance)", z1, "m")
-    check_positive("lateral source offset |(y1, x1)|", offsets, "m", allow_zero=True)
-    if not is_concrete(z1, offsets, camera, wavelengths):
-        return
-    z1, offsets = np.asarray(z1), np.asarray(offsets)
-    geometry = (float(np.min(z1)), float(np.max(z1)),
-                float(np.max(np.abs(offsets))) if offsets.size else 0.0,
-                tuple(np.atleast_1d(np.asarray(wavelengths, dtype=np.float64)).tolist()))
-    key = (id(camera),) + geometry
-    if _PASSED.get(key, lambda: None)() is camera:   # this camera, these numbers: passed
-        return
-    _check_geometry(camera, *geometry, accept_undersampling)
-    if not accept_undersampling:      # it raised on any problem, so it passed cleanly
-        if len(_PASSED) >= 256:
-            _PASSED.clear()
-        _PASSED[key] = weakref.ref(camera)
-
-
-# geometry that passed _check_geometry: (id(camera), z_min, z_max, rho, wavelengths) →
-# a weak reference to the camera (an id is reused only after its object is gone). The
-# checks cost 13 µs (warm, quiet machine), 3 % of an eager PSF at 128², more when busy
-_PASSED: dict = {}
 
 
 def _check_geometry(camera, z_min, z_max, rho, wavelengths, accept_undersampling):
@@ -292,6 +285,25 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
         SamplingError: ``method="direct"`` with an undersampled source chirp, or a
             transfer function that aliases.
     """
+    out, finite = _psf(phase, camera, *_arguments(phase, camera, z1, y1, x1, spectrum,
+                                                  accept_undersampling),
+                       normalise=normalise)
+    if found_false(finite):
+        check_finite("diffuser phase", phase.height if isinstance(phase, HeightMap) else phase)
+    return out
+
+
+def _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling):
+    """The checks, then what :func:`psf` passes to ``_psf`` after the phase and the
+    camera: ``(wavelengths, weights, z1, positions)``. Remembered, on the device, for a
+    camera and a plain-number source that passed (:data:`_PASSED`)."""
+    remember = spectrum is None and not accept_undersampling and plain_numbers(z1, y1, x1)
+    if remember:
+        key = (id(camera), z1, y1, x1)
+        passed = _PASSED.get(key)
+        if passed is not None and passed[0]() is camera:
+            _check_phase(phase, camera, finite=False)
+            return passed[1]
     dtype = real_dtype(camera)
     if spectrum is None:   # the camera's wavelength, taken inside the jitted call
         wavelengths = weights = None
@@ -306,7 +318,17 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
     xp = np if concrete else jnp
     z1 = xp.asarray(z1, dtype)
     positions = xp.stack([xp.asarray(y1, dtype), xp.asarray(x1, dtype)])[None]
-    out, finite = _psf(phase, camera, wavelengths, weights, z1, positions, normalise=normalise)
-    if found_false(finite):
-        check_finite("diffuser phase", phase.height if isinstance(phase, HeightMap) else phase)
-    return out
+    if not remember:
+        return wavelengths, weights, z1, positions
+    arguments = (None, None, jnp.asarray(z1), jnp.asarray(positions))
+    if len(_PASSED) >= 256:
+        _PASSED.clear()
+    _PASSED[key] = (weakref.ref(camera), arguments)
+    return arguments
+
+
+# sources that passed the checks: (id(camera), z1, y1, x1) → (a weak reference to the
+# camera, psf's arguments on the device); an id is reused only after its object is
+# gone. An eager 128² PSF then skips 70 µs of checks and conversions (of ~0.45 ms);
+# a changed camera is a new object (equinox modules are immutable)
+_PASSED: dict = {}
