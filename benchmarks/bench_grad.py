@@ -14,7 +14,15 @@ plus arguments and outputs), and the page faults of one call (``getrusage``): XL
 allocates a call's temporaries afresh, and glibc maps a block of 32 MiB or more anew on
 every call, so the kernel zero-fills it page by page (:mod:`diffcam.core.memory`; run
 with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` for huge pages). The issue's targets:
-ratio ≤ 2 and a gradient step's memory ≤ 3× the forward's, at 512²–4096². The JSON is
+ratio ≤ 2 and a gradient step's memory ≤ 3× the forward's, at 512²–4096².
+
+Where the ratio can go: the gradient with respect to the phase carries the cotangent
+back through the propagation to the diffuser, so every reverse pass contains at least
+one transfer step (FFT, product, inverse FFT) on the padded grid, the forward's own
+FFT work. Each round also times that step alone (input donated), giving
+``floor`` = 1 + step ÷ forward (paired per round): no implementation of this gradient
+has a ratio below it, and ``reverse_over_step`` = (value_and_grad − forward) ÷ step
+says how close the reverse pass comes to that least work. The JSON is
 ``grad_<backend>.json`` (``grad_<backend>_huge_pages.json`` with huge pages).
 """
 

@@ -3,7 +3,10 @@ fused in one ``jax.jit`` (issue: within 1.5× at 128²–512²).
 
     python -m benchmarks.bench_overhead [--sizes 128 256 512] [--repeats 30]
 
-Rows (interleaved with their fused twin, medians, compile excluded):
+Rows (compile excluded), each timed interleaved with its fused twin: a sample is as
+many calls as take about 20 ms, each call waited for, and the ratio is the median over
+the rounds of each round's call ÷ fused (paired, so the machine's drift cancels; small
+grids run in a fraction of a millisecond, where single calls swing by tens of per cent):
 
 * ``psf``: one eager :func:`diffcam.psf` call (checks included) vs ``jax.jit`` of it;
 * ``psf_stack``: per PSF, :func:`diffcam.psf_stack` over 32 depths (host chunks, checks)
@@ -18,15 +21,17 @@ from __future__ import annotations
 
 import argparse
 import os
+import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.harness import markdown_table, time_interleaved, write_json
+from benchmarks.harness import block, markdown_table, time_interleaved, write_json
 
 LAM, DX, Z2 = 532e-9, 5e-6, 1e-3
 TARGET = 1.5
+SAMPLE_S = 0.02   # each timed sample: calls adding up to about this many seconds
 
 
 def _camera(n):
@@ -70,15 +75,32 @@ def rows_for(n: int, repeats: int) -> list[dict]:
     }
     rows = []
     for name, (call, fused, per) in pairs.items():
-        t = time_interleaved({"call": call, "fused": fused}, repeats=repeats)
-        a, b = t["call"]["median_s"], t["fused"]["median_s"]
-        rows.append({"N": n, "workload": name, "call_ms": a / per * 1e3,
-                     "fused_ms": b / per * 1e3, "ratio": a / b, "ok": a / b <= TARGET,
-                     "loadavg": os.getloadavg()[0]})
+        block(call())                           # compiles
+        start = time.perf_counter()
+        block(call())
+        calls = max(1, int(SAMPLE_S / (time.perf_counter() - start)))
+        t = time_interleaved({"call": _calls(call, calls), "fused": _calls(fused, calls)},
+                             repeats=repeats)
+        a, b = (np.asarray(t[k]["times_s"]) / (calls * per) for k in ("call", "fused"))
+        ratio = float(np.median(a / b))    # paired: each round's two samples side by side
+        rows.append({"N": n, "workload": name, "call_ms": np.median(a) * 1e3,
+                     "fused_ms": np.median(b) * 1e3, "ratio": ratio, "ok": ratio <= TARGET,
+                     "calls_per_sample": calls, "loadavg": os.getloadavg()[0]})
     return rows
 
 
-COLUMNS = ["N", "workload", "call_ms", "fused_ms", "ratio", "ok", "loadavg"]
+def _calls(fn, calls):
+    """``calls`` calls of ``fn``, each waited for (an eager call waits for its own
+    checks; the fused twin gets no head start from queueing calls)."""
+    def run():
+        for _ in range(calls):
+            out = block(fn())
+        return out
+    return run
+
+
+COLUMNS = ["N", "workload", "call_ms", "fused_ms", "ratio", "ok", "calls_per_sample",
+           "loadavg"]
 
 
 def main(argv=None):
