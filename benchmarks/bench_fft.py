@@ -14,6 +14,9 @@ pyFFTW (``benchmarks.harness.time_against``):
 * ``loop step``: the same step jitted with its input donated, called as ``u = step(u)``
   (a field propagated in a loop): XLA writes the output over the input's buffer instead
   of a fresh one (a fresh 4096² buffer is 32768 page faults here);
+* ``fresh step``: the ``step`` programs again, against pyFFTW writing its step into a
+  new array per call (``pyfftw.empty_aligned``, the input kept): the like-for-like
+  reference for a step that returns a fresh array;
 * pyFFTW: ``FFTW`` objects planned with ``FFTW_MEASURE`` on every thread, the step's
   product in place in numpy (normalisation left to the product, as diffcam folds it);
   scipy.fft with ``workers`` = every thread; numpy.fft (one thread).
@@ -82,6 +85,13 @@ def transform_rows(n: int, repeats: int) -> list[dict]:
     forward = pyfftw.FFTW(a, b, axes=(0, 1), threads=threads, flags=("FFTW_MEASURE",))
     inverse = pyfftw.FFTW(b, a, axes=(0, 1), direction="FFTW_BACKWARD", threads=threads,
                           flags=("FFTW_MEASURE",), normalise_idft=False)
+    # "fresh step": pyFFTW's step into a new array per call (the input kept), what the
+    # jitted step returning a fresh array does: both pay for new memory (plans of their
+    # own, since calling a plan with new arrays rebinds it)
+    c = pyfftw.empty_aligned((n, n), "complex64")
+    fresh_forward = pyfftw.FFTW(a, c, axes=(0, 1), threads=threads, flags=("FFTW_MEASURE",))
+    in_place = pyfftw.FFTW(c, c, axes=(0, 1), direction="FFTW_BACKWARD", threads=threads,
+                           flags=("FFTW_MEASURE",), normalise_idft=False)
     a[:] = u
 
     def pyfftw_pair():
@@ -93,6 +103,12 @@ def transform_rows(n: int, repeats: int) -> list[dict]:
         np.multiply(b, H, out=b)
         return inverse()
 
+    def pyfftw_fresh_step():
+        out = pyfftw.empty_aligned((n, n), "complex64")
+        fresh_forward(a, out)
+        np.multiply(out, H, out=out)
+        return in_place(out, out)
+
     # "loop step": u = step(u), the input donated (a field propagated in a loop), so the
     # output reuses its buffer as pyFFTW reuses its arrays
     fields = {name: jnp.array(uj) for name in ("fftw", "xla")}
@@ -102,13 +118,15 @@ def transform_rows(n: int, repeats: int) -> list[dict]:
         return fields[name]
 
     rows = []
-    for kind in ("pair", "step", "loop step"):
+    for kind in ("pair", "step", "loop step", "fresh step"):
+        program = "step" if kind == "fresh step" else kind
         candidates = {
-            "diffcam FFTW": (lambda p=programs["fftw", kind]: p(uj)) if kind != "loop step"
-                            else (lambda: loop_step("fftw")),
-            "diffcam XLA": (lambda p=programs["xla", kind]: p(uj)) if kind != "loop step"
-                           else (lambda: loop_step("xla")),
-            "pyFFTW": pyfftw_pair if kind == "pair" else pyfftw_step,
+            "diffcam FFTW": (lambda p=programs["fftw", program]: p(uj))
+                            if kind != "loop step" else (lambda: loop_step("fftw")),
+            "diffcam XLA": (lambda p=programs["xla", program]: p(uj))
+                           if kind != "loop step" else (lambda: loop_step("xla")),
+            "pyFFTW": {"pair": pyfftw_pair, "fresh step": pyfftw_fresh_step}.get(
+                kind, pyfftw_step),
             "scipy.fft": (lambda: scipy.fft.ifft2(scipy.fft.fft2(u, workers=threads),
                                                   workers=threads)) if kind == "pair" else
                          (lambda: scipy.fft.ifft2(scipy.fft.fft2(u, workers=threads) * H,
@@ -116,7 +134,7 @@ def transform_rows(n: int, repeats: int) -> list[dict]:
             "numpy.fft": (lambda: np.fft.ifft2(np.fft.fft2(u))) if kind == "pair" else
                          (lambda: np.fft.ifft2(np.fft.fft2(u) * H)),
         }
-        if kind == "loop step":  # the libraries' step already reuses (pyFFTW) or not
+        if kind in ("loop step", "fresh step"):   # scipy and numpy: in "step" already
             del candidates["scipy.fft"], candidates["numpy.fft"]
         # each candidate in alternation with pyFFTW alone, its ratio to that run's
         # pyFFTW (a paired ratio: this machine's speed drifts by tens of per cent)
