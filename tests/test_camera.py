@@ -243,12 +243,15 @@ def test_psf_remembers_a_source_that_passed_and_nothing_else():
     warning every time), a bad diffuser and another camera with the same numbers are
     all checked afresh, every time."""
     n, dx = 256, 10e-6
-    # the source's chirp is sampled at the aperture edge (0.78 mm) from z1 ≈ 29.3 mm on
-    cam = Camera(wavelength=LAM, z2=2e-3, dx=dx, aperture_radius=0.78e-3, shape=(n, n),
+    # the source's chirp is sampled at the aperture edge (0.785 mm) from z1 ≈ 29.5 mm on
+    # (a radius between lattice points: on one, rounding decides which pixels are in)
+    cam = Camera(wavelength=LAM, z2=2e-3, dx=dx, aperture_radius=0.785e-3, shape=(n, n),
                  method="direct")
     phase = jnp.zeros((n, n), jnp.float32)
     first = psf(phase, cam, 30e-3)
     np.testing.assert_array_equal(psf(phase, cam, 30e-3), first)     # remembered
+    compiled = jax.jit(lambda p: psf(p, cam, 30e-3)).lower(phase).compile()   # in AOT
+    np.testing.assert_allclose(compiled(phase), first, rtol=1e-5, atol=1e-7)
     for _ in range(2):
         with pytest.raises(SamplingError):
             psf(phase, cam, 29e-3)

@@ -394,6 +394,9 @@ def test_remembered_geometry_still_checks_what_changes():
     np.testing.assert_allclose(fresnel_tf(u, np.float32(1e-6), jnp.float32(LAM), 1e-5),
                                first, atol=1e-6)
     np.testing.assert_array_equal(fresnel_tf(u, 1e-6, LAM, 0.0), u)
+    # a remembered geometry inside someone's ahead-of-time compiled program
+    compiled = jax.jit(lambda f: fresnel_tf(f, 1e-6, LAM, 1e-5)).lower(u).compile()
+    np.testing.assert_allclose(compiled(u), first, atol=1e-6)
 
 
 def test_zero_distance_is_identity():

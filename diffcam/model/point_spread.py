@@ -295,8 +295,8 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
 
 def _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling):
     """The checks, then what :func:`psf` passes to ``_psf`` after the phase and the
-    camera: ``(wavelengths, weights, z1, positions)``. Remembered, on the device, for a
-    camera and a plain-number source that passed (:data:`_PASSED`)."""
+    camera: ``(wavelengths, weights, z1, positions)``. Remembered for a camera and a
+    plain-number source that passed (:data:`_PASSED`)."""
     remember = spectrum is None and not accept_undersampling and plain_numbers(z1, y1, x1)
     if remember:
         key = (id(camera), z1, y1, x1)
@@ -320,7 +320,7 @@ def _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling):
     positions = xp.stack([xp.asarray(y1, dtype), xp.asarray(x1, dtype)])[None]
     if not remember:
         return wavelengths, weights, z1, positions
-    arguments = (None, None, jnp.asarray(z1), jnp.asarray(positions))
+    arguments = (None, None, z1, positions)   # NumPy, as the propagators' (AOT-safe)
     if len(_PASSED) >= 256:
         _PASSED.clear()
     _PASSED[key] = (weakref.ref(camera), arguments)
@@ -328,7 +328,7 @@ def _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling):
 
 
 # sources that passed the checks: (id(camera), z1, y1, x1) → (a weak reference to the
-# camera, psf's arguments on the device); an id is reused only after its object is
+# camera, psf's arguments); an id is reused only after its object is
 # gone. An eager 128² PSF then skips 70 µs of checks and conversions (of ~0.45 ms);
 # a changed camera is a new object (equinox modules are immutable)
 _PASSED: dict = {}

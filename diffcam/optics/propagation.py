@@ -293,13 +293,14 @@ def _prepare(method, shape, cdt, dx, wavelength, z, pad, accept_undersampling):
 
 @functools.lru_cache(maxsize=256)
 def _prepare_plain(*args):
-    """:func:`_prepare` remembered for plain-number geometry, its vector kept on the
-    device: an eager call with a geometry that passed before skips the checks and the
-    host-to-device copy (35 µs of Python and 10 µs of copy, against 150 µs of device
-    work for a 128² step). Not used with ``accept_undersampling``, whose warnings must
-    repeat; a geometry that fails raises every time (errors are not remembered)."""
-    prepared = _prepare(*args)
-    return None if prepared is None else (prepared[0], jnp.asarray(prepared[1]))
+    """:func:`_prepare` remembered for plain-number geometry: an eager call with a
+    geometry that passed before skips the checks (35 µs of Python against 150 µs of
+    device work for a 128² step). Not used with ``accept_undersampling``, whose warnings
+    must repeat; a geometry that fails raises every time (errors are not remembered).
+    The vector stays a NumPy array: a device array kept here and reused inside someone's
+    trace becomes an argument of their program that its ahead-of-time compiled form
+    does not pass (jax 0.10: "compiled for 2 inputs but called with 1")."""
+    return _prepare(*args)
 
 
 def _geometry(lengths, p, dtype):
