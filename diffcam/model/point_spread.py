@@ -328,7 +328,7 @@ def _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling):
 
 
 # sources that passed the checks: (id(camera), z1, y1, x1) → (a weak reference to the
-# camera, psf's arguments); an id is reused only after its object is
-# gone. An eager 128² PSF then skips 70 µs of checks and conversions (of ~0.45 ms);
-# a changed camera is a new object (equinox modules are immutable)
+# camera, psf's arguments); an id is reused only after its object is gone, and a changed
+# camera is a new object (equinox modules are immutable). An eager 128² PSF then skips
+# 70 µs of checks and conversions (of ~0.45 ms)
 _PASSED: dict = {}

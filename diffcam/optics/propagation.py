@@ -32,9 +32,8 @@ intensity).
 
 from __future__ import annotations
 
-import functools
 import math
-from functools import partial
+from functools import lru_cache, partial
 from typing import NamedTuple
 
 import jax
@@ -291,7 +290,7 @@ def _prepare(method, shape, cdt, dx, wavelength, z, pad, accept_undersampling):
     return pad, _geometry((*pitch_yx(dx), wavelength, z), piston(wavelength, z), rdt)
 
 
-@functools.lru_cache(maxsize=256)
+@lru_cache(maxsize=256)
 def _prepare_plain(*args):
     """:func:`_prepare` remembered for plain-number geometry: an eager call with a
     geometry that passed before skips the checks (35 µs of Python against 150 µs of
