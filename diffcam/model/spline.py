@@ -70,8 +70,7 @@ def _taps(t, n, order, dtype):
     computed from another rounding of t differs only in its last bits (:func:`bspline`
     is continuous). Beyond the grid the search stops at −1 or n − 1, whose taps still
     cover every grid sample within reach."""
-    i0 = jnp.searchsorted(jnp.arange(n, dtype=t.dtype), t, side="right",
-                          method="scan_unrolled").astype(jnp.int32)   # no while loop
+    i0 = jnp.searchsorted(jnp.arange(n, dtype=t.dtype), t, side="right").astype(jnp.int32)
     idx = (i0 - 2)[:, None] + jnp.arange(4)
     w = jnp.where((idx >= 0) & (idx < n), bspline(t[:, None] - idx, order), 0.0)
     return jnp.clip(idx, 0, n - 1), w.astype(dtype)
@@ -126,10 +125,8 @@ def _spread(ct, t, *, n, axis, order):
     ``_PASS`` gathers, as many as the most crowded index needs."""
     m = t.shape[0]
     j = jnp.arange(n, dtype=t.dtype)[:, None]
-    a = jnp.searchsorted(t, j[:, 0] - 2, side="right",
-                         method="scan_unrolled")[:, None]   # first tᵢ > j − 2
-    b = jnp.searchsorted(t, j[:, 0] + 2, side="left",
-                         method="scan_unrolled")[:, None]    # first tᵢ ≥ j + 2
+    a = jnp.searchsorted(t, j[:, 0] - 2, side="right")[:, None]   # first tᵢ > j − 2
+    b = jnp.searchsorted(t, j[:, 0] + 2, side="left")[:, None]    # first tᵢ ≥ j + 2
     broken = jnp.where(jnp.all(jnp.diff(t) >= 0), 1.0, jnp.nan).astype(t.dtype)
 
     def one_pass(first):
