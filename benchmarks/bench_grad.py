@@ -70,7 +70,8 @@ def _transfer_step(camera):
     its input donated: the least work any reverse pass of either path must do (the
     cotangent goes back through the propagation to the diffuser), so no gradient can
     cost less than forward + step."""
-    kernel = transfer_function(camera.padded_shape, camera.dx, LAM, Z2, "fresnel_tf")
+    kernel = transfer_function(camera.padded_shape, camera.dx, camera.wavelength, camera.z2,
+                               "fresnel_tf")
     step = jax.jit(apply_transfer, donate_argnums=0)
     field = [jnp.ones(camera.padded_shape, jnp.complex64)]
 

@@ -77,6 +77,7 @@ from diffcam.core.backend import fft2, ifft2, irfft2, rfft2, transfer_step
 from diffcam.core.phasor import expj
 from diffcam.calibrate.projections import fit_amplitude
 from diffcam.evaluate.metrics import pearson
+from diffcam.optics.elements import apply_phase
 from diffcam.optics.propagation import fresnel_tf_factors
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
                                            register_magnification,
@@ -222,7 +223,7 @@ class StackModel(eqx.Module):
 
     def spectrum(self) -> Array:
         """FFT of the field g = A·e^{jθ} (shared by all planes)."""
-        return fft2(self.amplitude() * expj(self.theta))
+        return fft2(apply_phase(self.amplitude(), self.theta))
 
     def _sample(self, u, s):
         """u on the field grid → the fine sensor grid of a plane at s (magnified by
