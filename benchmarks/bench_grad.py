@@ -25,7 +25,13 @@ has a ratio below it. ``forward_over_step`` and ``reverse_over_step`` =
 (value_and_grad − forward) ÷ step put both passes in units of that step: the reverse
 pass is the forward's chain transposed (the same FFTs, a product for each product, the
 spline's transpose for the spline), so it costs what the forward costs less the
-forward's own non-linear work, and the ratio sits near 2 when that work is small. The JSON is
+forward's own non-linear work, and the ratio sits near 2 when that work is small.
+
+On the direct path each round also times a reference written by hand (``hand_ratio``:
+its value_and_grad ÷ diffcam's forward): the same forward, then the adjoint chain
+with this loss folded in, which a library cannot do (it does not know the loss), so
+the normalisation's transpose costs no reduction of its own. ``hand_grad_error`` is its
+largest difference from diffcam's gradient, relative to the largest entry. The JSON is
 ``grad_<backend>.json`` (``grad_<backend>_huge_pages.json`` with huge pages).
 """
 
@@ -42,8 +48,11 @@ import numpy as np
 
 from benchmarks.harness import markdown_table, time_interleaved, write_json
 from diffcam.core import memory
-from diffcam.core.backend import fft_backend
+from diffcam.core.backend import fft_backend, transfer_step
+from diffcam.core.grid import crop_to, pad_to
+from diffcam.core.phasor import expj
 from diffcam.model import Camera, psf
+from diffcam.optics.elements import apply_phase, spherical_wave
 from diffcam.optics.propagation import apply_transfer, transfer_function
 
 LAM, DX, Z2, Z1 = 532e-9, 5e-6, 1e-3, 25e-3
@@ -81,6 +90,30 @@ def _transfer_step(camera):
     return call
 
 
+def _hand_written(camera, w):
+    """value_and_grad of Σ w·PSF on the direct path, by hand: the PSF is |c|²/Σ|c|² with
+    c the crop of P·f, f = C·e^{jθ}·U1 and P the transfer step, so the gradient is
+    C·Im(e^{−jθ}·U1*·P^H(2(w − L)c/S)), L the loss and S = Σ|c|²; P^H is the step with
+    H* (the Fresnel kernel is unitary up to its scale)."""
+    kernel = transfer_function(camera.padded_shape, camera.dx, camera.wavelength, camera.z2,
+                               "fresnel_tf")
+
+    def value_and_grad(phase):
+        cy, cx = spherical_wave(camera.padded_shape, camera.dx, camera.wavelength, Z1)
+        aperture = camera.aperture()
+        u = transfer_step(pad_to(apply_phase(aperture, phase), camera.padded_shape)
+                          * (cy * cx), kernel)
+        c = crop_to(u, camera.out_shape)
+        intensity = c.real ** 2 + c.imag ** 2
+        total = jnp.sum(intensity)
+        value = jnp.sum(w * intensity) / total
+        back = transfer_step(pad_to(2 * (w - value) / total * c, camera.padded_shape),
+                             jnp.conj(kernel))
+        back = crop_to(back * jnp.conj(cy * cx), camera.shape)
+        return value, aperture * jnp.imag(jnp.conj(expj(phase)) * back)
+    return value_and_grad
+
+
 def _faults_per_call(fn, calls=3):
     """Minor page faults of one call (the process's count, so other threads' too)."""
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -109,9 +142,19 @@ def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
             jax.block_until_ready(fwd(phase))
             once = time.perf_counter() - start
             step = _transfer_step(cam)
-            t = time_interleaved({"forward": lambda: fwd(phase),
-                                  "value_and_grad": lambda: vag(phase), "step": step},
-                                 repeats=max(repeats, int(MIN_SECONDS / once)), budget_s=180)
+            calls = {"forward": lambda: fwd(phase), "value_and_grad": lambda: vag(phase),
+                     "step": step}
+            hand = {}
+            if method == "direct":
+                by_hand = jax.jit(_hand_written(cam, w)).lower(phase).compile()
+                calls["hand"] = lambda: by_hand(phase)
+                ours, theirs = vag(phase)[1], by_hand(phase)[1]
+                hand = {"hand_grad_error": float(jnp.max(jnp.abs(theirs - ours))
+                                                 / jnp.max(jnp.abs(ours))),
+                        "hand_temp_mb": _memory_mb(by_hand)[0],
+                        "hand_faults": _faults_per_call(lambda: by_hand(phase))}
+            t = time_interleaved(calls, repeats=max(repeats, int(MIN_SECONDS / once)),
+                                 budget_s=180)
             (ft, fa), (gt, ga) = _memory_mb(fwd), _memory_mb(vag)
             f_ms, g_ms = 1e3 * t["forward"]["median_s"], 1e3 * t["value_and_grad"]["median_s"]
             # the median of each round's ratio (a forward and a gradient call side by
@@ -120,6 +163,8 @@ def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
                                     ("forward", "value_and_grad", "step"))
             paired = float(np.median(vag_s / fwd_s))
             floor = float(np.median(1 + step_s / fwd_s))
+            if "hand" in t:
+                hand["hand_ratio"] = float(np.median(np.asarray(t["hand"]["times_s"]) / fwd_s))
             rows.append({"N": n, "path": method, "forward_ms": f_ms, "value_and_grad_ms": g_ms,
                          "ratio": paired, "ratio_of_medians": g_ms / f_ms,
                          "step_ms": 1e3 * t["step"]["median_s"], "floor": floor,
@@ -130,15 +175,17 @@ def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
                          "forward_temp_mb": ft, "grad_temp_mb": gt,
                          "forward_total_mb": fa, "grad_total_mb": ga,
                          "memory_ratio": None if fa is None else ga / fa,
-                         "repeats": t["forward"]["repeats"], "loadavg": os.getloadavg()[0]})
+                         **hand, "repeats": t["forward"]["repeats"],
+                         "loadavg": os.getloadavg()[0]})
             print(markdown_table(rows[-1:], COLUMNS), flush=True)
     return rows
 
 
-COLUMNS = ["N", "path", "forward_ms", "value_and_grad_ms", "ratio", "step_ms", "floor",
-           "forward_over_step", "reverse_over_step", "ratio_of_medians",
+COLUMNS = ["N", "path", "forward_ms", "value_and_grad_ms", "ratio", "hand_ratio", "step_ms",
+           "floor", "forward_over_step", "reverse_over_step", "ratio_of_medians",
            "forward_faults", "grad_faults", "forward_temp_mb", "grad_temp_mb",
-           "forward_total_mb", "grad_total_mb", "memory_ratio", "loadavg"]
+           "forward_total_mb", "grad_total_mb", "memory_ratio", "hand_temp_mb", "hand_faults",
+           "hand_grad_error", "loadavg"]
 
 
 def main(argv=None):
