@@ -291,7 +291,9 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
             ``camera.wavelength``.
         normalise: unit sum over the returned crop (default); ``False`` returns the
             physical irradiance of a unit point source (1/M² of the scaling theorem
-            and 1/(λz1)² of the source included), per m² of sensor.
+            and 1/(λz1)² of the source included), per m² of sensor. Its values reach
+            10¹⁶ for close sources and their sum 10²²: a float32 loss that squares
+            such a sum (a quotient's derivative does) overflows, so scale it first.
         accept_undersampling: turn sampling errors into warnings.
 
     Returns:
