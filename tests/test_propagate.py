@@ -397,6 +397,9 @@ def test_remembered_geometry_still_checks_what_changes():
     # a remembered geometry inside someone's ahead-of-time compiled program
     compiled = jax.jit(lambda f: fresnel_tf(f, 1e-6, LAM, 1e-5)).lower(u).compile()
     np.testing.assert_allclose(compiled(u), first, atol=1e-6)
+    # ... and with the field a device array closed over (the vector kept on the device)
+    closed = jax.jit(lambda: fresnel_tf(u, 1e-6, LAM, 1e-5)).lower().compile()
+    np.testing.assert_allclose(closed(), first, atol=1e-6)
 
 
 def test_zero_distance_is_identity():
