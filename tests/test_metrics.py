@@ -15,6 +15,25 @@ A = RNG.random((48, 70))
 B = 0.7 * A + 0.3 * RNG.random((48, 70))
 
 
+@pytest.mark.parametrize("scale", [1e-25, 1e-12, 1e10, 1e16, 1e18])
+def test_pearson_and_alignment_in_float32_at_any_scale(scale):
+    """Pearson (against numpy.corrcoef in float64) and the least-squares alignment hold in
+    float32 for images of any scale: a PSF in W/m² is ~1e16, whose products' sums
+    overflowed (Pearson read 0), and tiny values underflowed (NaN)."""
+    rng = np.random.default_rng(0)
+    a = rng.random((64, 64))
+    b = a + 0.5 * rng.random((64, 64))
+    truth = np.corrcoef(a.ravel(), b.ravel())[0, 1]
+    sa, sb = (np.asarray(x * scale, np.float32) for x in (a, b))
+    assert abs(float(pearson(sa, sb)) - truth) < 1e-5
+    assert abs(float(pearson(sa, b.astype(np.float32))) - truth) < 1e-5
+    for mode, offset in (("scale", 0.0), ("affine", 1.0)):
+        fitted = np.asarray(align_to(3 * sa + offset * scale, sb, mode), np.float64)
+        unit = np.asarray(align_to(np.float32(3) * a.astype(np.float32) + offset,
+                                   b.astype(np.float32), mode), np.float64)
+        np.testing.assert_allclose(fitted / scale, unit, rtol=1e-5, atol=1e-6)
+
+
 def test_pearson_equals_numpy_corrcoef(x64):
     """Paper Eq. 14 equals numpy.corrcoef to 1e-12; batched over a leading axis; masked
     version equals corrcoef of the masked samples."""

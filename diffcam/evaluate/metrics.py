@@ -41,6 +41,20 @@ def _mean(x, mask):
     return jnp.sum(x * mask, axis=_SPACE, keepdims=True) / jnp.sum(mask)
 
 
+def _peak(x):
+    """The largest magnitude of ``x`` on the space axes (1 where it is 0), a constant to
+    derivatives: the scale by which Pearson and the least-squares fits below divide
+    each image before summing products.
+
+    Those are ratios of sums of products, in which the scale cancels. In float32 the
+    sums overflow for values above ~10⁹ (a PSF in W/m², ``normalise=False``, is ~10¹⁶)
+    and underflow below ~10⁻¹⁰, and Pearson read 0 or NaN. Divided by its peak, an
+    image's products sum to at most its sample count. The results do not depend on the
+    peak, so it holds no derivative."""
+    peak = jnp.max(jnp.abs(x), axis=_SPACE, keepdims=True)
+    return jax.lax.stop_gradient(jnp.where(peak > 0, peak, 1.0))
+
+
 def align_to(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx"],
              mode: str = "affine", mask=None) -> Float[Array, "... ny nx"]:
     """``a·estimate + b`` (``mode="affine"``) or ``a·estimate`` (``"scale"``) fitted to
@@ -48,15 +62,13 @@ def align_to(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... n
     if mode not in ("affine", "scale"):
         raise DiffcamError(f"align must be None, 'scale' or 'affine', got {mode!r}.")
     w = 1.0 if mask is None else mask
-    if mode == "scale":
-        a = (jnp.sum(w * estimate * reference, axis=_SPACE, keepdims=True)
-             / jnp.sum(w * estimate * estimate, axis=_SPACE, keepdims=True))
-        return a * estimate
-    em, rm = _mean(estimate, mask), _mean(reference, mask)
-    de, dr = estimate - em, reference - rm
-    a = jnp.sum(w * de * dr, axis=_SPACE, keepdims=True) / jnp.sum(w * de * de, axis=_SPACE,
-                                                                  keepdims=True)
-    return a * de + rm
+    rm = 0.0 if mode == "scale" else _mean(reference, mask)
+    de = estimate if mode == "scale" else estimate - _mean(estimate, mask)
+    dr = reference - rm
+    e, r = de / _peak(de), dr / _peak(dr)
+    a = jnp.sum(w * e * r, axis=_SPACE, keepdims=True) / jnp.sum(w * e * e, axis=_SPACE,
+                                                                keepdims=True)
+    return _peak(dr) * a * e + rm
 
 
 def _aligned(estimate, reference, align, mask=None):
@@ -80,6 +92,7 @@ def pearson(a: Float[Array, "... ny nx"], b: Float[Array, "... ny nx"], *, mask=
         mask = jnp.asarray(mask, dtype=a.dtype)
     w = 1.0 if mask is None else mask
     da, db = a - _mean(a, mask), b - _mean(b, mask)
+    da, db = da / _peak(da), db / _peak(db)
     num = jnp.sum(w * da * db, axis=_SPACE)
     den = jnp.sqrt(jnp.sum(w * da * da, axis=_SPACE) * jnp.sum(w * db * db, axis=_SPACE))
     return num / den
