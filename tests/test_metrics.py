@@ -16,10 +16,11 @@ B = 0.7 * A + 0.3 * RNG.random((48, 70))
 
 
 @pytest.mark.parametrize("scale", [1e-25, 1e-12, 1e10, 1e16, 1e18])
-def test_pearson_and_alignment_in_float32_at_any_scale(scale):
-    """Pearson (against numpy.corrcoef in float64) and the least-squares alignment hold in
-    float32 for images of any scale: a PSF in W/m² is ~1e16, whose products' sums
-    overflowed (Pearson read 0), and tiny values underflowed (NaN)."""
+def test_metrics_in_float32_at_any_scale(scale):
+    """Pearson (against numpy.corrcoef in float64), SSIM and PSNR (against scikit-image
+    in float64) and the least-squares alignment hold in float32 for images of any
+    scale: a PSF in W/m² is ~1e16, whose products' sums overflowed (Pearson read 0,
+    SSIM NaN), and tiny values underflowed (NaN)."""
     rng = np.random.default_rng(0)
     a = rng.random((64, 64))
     b = a + 0.5 * rng.random((64, 64))
@@ -27,6 +28,9 @@ def test_pearson_and_alignment_in_float32_at_any_scale(scale):
     sa, sb = (np.asarray(x * scale, np.float32) for x in (a, b))
     assert abs(float(pearson(sa, sb)) - truth) < 1e-5
     assert abs(float(pearson(sa, b.astype(np.float32))) - truth) < 1e-5
+    data_range = float(b.max() - b.min())
+    assert abs(float(ssim(sa, sb)) - structural_similarity(a, b, data_range=data_range)) < 1e-4
+    assert abs(float(psnr(sa, sb)) - peak_signal_noise_ratio(b, a, data_range=data_range)) < 1e-3
     for mode, offset in (("scale", 0.0), ("affine", 1.0)):
         fitted = np.asarray(align_to(3 * sa + offset * scale, sb, mode), np.float64)
         unit = np.asarray(align_to(np.float32(3) * a.astype(np.float32) + offset,

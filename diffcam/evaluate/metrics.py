@@ -122,8 +122,9 @@ def psnr(estimate, reference, *, data_range=None, align: str | None = None
     ``data_range`` defaults to the reference's max − min (as
     ``skimage.metrics.peak_signal_noise_ratio`` does for float images only when told).
     """
-    dr = _data_range(reference, data_range)
-    return 10 * jnp.log10(dr ** 2 / mse(estimate, reference, align=align))
+    dr = _data_range(reference, data_range)    # in units of it: see ssim
+    return -10 * jnp.log10(mse(jnp.asarray(estimate) / dr, jnp.asarray(reference) / dr,
+                               align=align))
 
 
 def _separable_filter(x, weights):
@@ -171,7 +172,9 @@ def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx
     x = _aligned(estimate, reference, align)
     y = jnp.asarray(reference)
     dtype = jnp.result_type(x.dtype, y.dtype, jnp.float32)
-    x, y = x.astype(dtype), y.astype(dtype)
+    # in units of the data range, which leaves SSIM unchanged (c1, c2 scale with it):
+    # the window's products of raw images leave float32's range (NaN above ~1e10)
+    x, y = x.astype(dtype) / dr, y.astype(dtype) / dr
     weights = [float(w) for w in weights]
     filt = lambda im: _separable_filter(im, weights)  # noqa: E731
     n_window = win ** 2
@@ -180,7 +183,7 @@ def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx
     vx = cov_norm * (filt(x * x) - ux * ux)
     vy = cov_norm * (filt(y * y) - uy * uy)
     vxy = cov_norm * (filt(x * y) - ux * uy)
-    c1, c2 = (K1 * dr) ** 2, (K2 * dr) ** 2
+    c1, c2 = K1 ** 2, K2 ** 2
     s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux ** 2 + uy ** 2 + c1) * (vx + vy + c2))
     r = (win - 1) // 2
     return jnp.mean(s[..., r:ny - r, r:nx - r], axis=_SPACE)
