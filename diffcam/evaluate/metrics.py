@@ -65,10 +65,11 @@ def align_to(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... n
     rm = 0.0 if mode == "scale" else _mean(reference, mask)
     de = estimate if mode == "scale" else estimate - _mean(estimate, mask)
     dr = reference - rm
-    e, r = de / _peak(de), dr / _peak(dr)
+    scale = _peak(dr)
+    e, r = de / _peak(de), dr / scale
     a = jnp.sum(w * e * r, axis=_SPACE, keepdims=True) / jnp.sum(w * e * e, axis=_SPACE,
                                                                 keepdims=True)
-    return _peak(dr) * a * e + rm
+    return scale * a * e + rm
 
 
 def _aligned(estimate, reference, align, mask=None):
