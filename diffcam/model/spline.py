@@ -104,27 +104,40 @@ def _gathered(x, index, weight, axis):
     return out
 
 
-def _gathered_in_blocks(x, index, weight, axis):
+def _gathered_in_blocks(x, index, weight, axis, rows=None):
     """:func:`_gathered` in ``_LOOP`` blocks inside a loop, so that its result is one
     buffer: XLA cannot fuse a loop's body into the loop's consumers. Fused, XLA copied
     the 16 gathers of a 2-D sampling into every consumer (the real and the imaginary part
     of |s|² each): the scaling-theorem PSF at 1024² took 80–117 ms instead of 25–35 ms,
     depending on which inputs were constants. Along −2 the blocks split the outputs
-    (``index`` and ``weight``); along −1, the rows of ``x``. Indices and weights are
-    computed once, before the loop."""
+    (``index`` and ``weight``); along −1, the rows of ``x`` (``rows``: those blocks,
+    :func:`_row_blocks`, when the caller gathers from one ``x`` more than once).
+    Indices and weights are computed once, before the loop."""
     n_rows = index.shape[0] if axis == -2 else x.shape[-2]
-    nb = min(_LOOP, n_rows)
-    bs = -(-n_rows // nb)
+    nb, bs = _blocking(n_rows)
     if axis == -2:
         blocks = tuple(jnp.pad(r, [(0, nb * bs - n_rows), (0, 0)], mode="edge")
                        .reshape(nb, bs, r.shape[1]) for r in (index, weight))
         out = lax.map(lambda b: _gathered(x, *b, axis), blocks)
     else:
-        xb = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, nb * bs - n_rows), (0, 0)])
-        xb = jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])), -3, 0)
-        out = lax.map(lambda xb: _gathered(xb, index, weight, axis), xb)
+        rows = _row_blocks(x) if rows is None else rows
+        out = lax.map(lambda xb: _gathered(xb, index, weight, axis), rows)
     out = jnp.moveaxis(out, 0, -3)
     return out.reshape(out.shape[:-3] + (nb * bs, out.shape[-1]))[..., :n_rows, :]
+
+
+def _blocking(n_rows):
+    """(blocks, rows per block) of :func:`_gathered_in_blocks`."""
+    nb = min(_LOOP, n_rows)
+    return nb, -(-n_rows // nb)
+
+
+def _row_blocks(x):
+    """The rows of ``x`` in :func:`_blocking`'s blocks, blocks first: (nb, …, bs, nx)."""
+    n_rows = x.shape[-2]
+    nb, bs = _blocking(n_rows)
+    xb = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, nb * bs - n_rows), (0, 0)])
+    return jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])), -3, 0)
 
 
 def _sample(f, t, *, axis, order):
@@ -140,12 +153,15 @@ def _spread(ct, t, *, n, axis, order):
     a = _search(t, j[:, 0] - 2, "right")[:, None]   # first tᵢ > j − 2
     b = _search(t, j[:, 0] + 2, "left")[:, None]    # first tᵢ ≥ j + 2
     broken = jnp.where(jnp.all(jnp.diff(t) >= 0), 1.0, jnp.nan).astype(t.dtype)
+    # every pass gathers from one copy of the cotangent's row blocks (a second pass
+    # blocked its own: one more N² buffer, though the loop rarely runs)
+    rows = _row_blocks(ct) if axis == -1 else None
 
     def one_pass(first):
         i = a + first + jnp.arange(_PASS)
         index = jnp.minimum(i, m - 1)
         w = jnp.where(i < b, bspline(t[index] - j, order) * broken, 0).astype(ct.real.dtype)
-        return _gathered_in_blocks(ct, index, w, axis)
+        return _gathered_in_blocks(ct, index, w, axis, rows)
     passes = -(-jnp.max(b - a) // _PASS)
     return lax.fori_loop(1, passes, lambda p, acc: acc + one_pass(p * _PASS), one_pass(0))
 

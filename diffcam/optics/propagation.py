@@ -53,6 +53,7 @@ from diffcam.core.phasor import expj
 __all__ = [
     "fresnel_tf",
     "fresnel_tf_factors",
+    "transfer_factors",
     "fresnel_ir",
     "angular_spectrum",
     "fourier_lens",
@@ -228,6 +229,16 @@ def _kernel(shape, dy, dx, wavelength, z, p, method, band_limit):
     kernel = fresnel_tf_factors if method == "fresnel_tf" else _fresnel_ir_kernel
     hy, hx = kernel(shape, dy, dx, wavelength, z)
     return (p * hy) * hx
+
+
+def transfer_factors(shape, dx, wavelength, z):
+    """The Fresnel transfer function of :func:`transfer_function` (``"fresnel_tf"``) as
+    its two 1-D factors, ``(ny, 1)`` with the piston and ``(1, nx)``: for a chain that
+    multiplies by each in turn, so that reverse mode keeps two vectors for the product's
+    transpose rather than the N² kernel."""
+    dy, dxx = pitch_yx(dx)
+    hy, hx = fresnel_tf_factors(shape, dy, dxx, wavelength, z)
+    return piston(wavelength, z) * hy, hx
 
 
 @jax.jit
