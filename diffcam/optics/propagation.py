@@ -233,9 +233,9 @@ def _kernel(shape, dy, dx, wavelength, z, p, method, band_limit):
 
 def transfer_factors(shape, dx, wavelength, z):
     """The Fresnel transfer function of :func:`transfer_function` (``"fresnel_tf"``) as
-    its two 1-D factors, ``(ny, 1)`` with the piston and ``(1, nx)``: for a chain that
-    multiplies by each in turn, so that reverse mode keeps two vectors for the product's
-    transpose rather than the N² kernel."""
+    its two 1-D factors, ``(ny, 1)`` with the piston and ``(1, nx)``, for a caller that
+    forms their product itself (the scaling-theorem PSF, under ``jax.checkpoint``, so
+    that reverse mode keeps the vectors rather than the N² kernel)."""
     dy, dxx = pitch_yx(dx)
     hy, hx = fresnel_tf_factors(shape, dy, dxx, wavelength, z)
     return piston(wavelength, z) * hy, hx
