@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from diffcam.core.errors import DiffcamError, SamplingError
+from diffcam.core.grid import radius2
 from diffcam.optics.elements import (apply_phase, circular_aperture, point_source_field,
                             rectangular_aperture, thin_lens)
 from conftest import assert_grad_matches_fd
@@ -24,6 +25,27 @@ def test_circular_aperture_area_and_offset():
     ys, xs = np.nonzero(shifted)
     assert np.isclose((ys.mean() - n // 2) * dx, 10e-6, atol=0.1e-6)
     assert np.isclose((xs.mean() - n // 2) * dx, -20e-6, atol=0.1e-6)
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_hard_aperture_is_the_square_root_rule_on_the_rim(precision):
+    """The hard edge, decided on r² without a square root, keeps exactly the samples
+    with sqrt(r²) ≤ radius rounded in the working precision (its definition), including
+    samples on the rim (radii 5, 13, 25, 65 pitches pass through grid points: 3-4-5,
+    5-12-13, 7-24-25, 16-63-65) and radii a rounding away from them."""
+    n, dx = 160, 5e-6
+    with jax.enable_x64(precision == "float64"):
+        r2 = np.asarray(radius2((n, n), jnp.asarray(dx, precision)))
+        for k in (5, 13, 25, 65, 40.3, 77.77):
+            for radius in (k * dx, np.nextafter(k * dx, 0), np.nextafter(k * dx, 1)):
+                r = np.asarray(radius, precision)
+                rule = (r - np.sqrt(r2)) >= 0          # what the edge means, in numpy
+                mask = np.asarray(circular_aperture((n, n), jnp.asarray(dx, precision),
+                                                    radius)) > 0
+                assert np.array_equal(mask, rule), (precision, k, radius)
+    # a step in the radius: derivative 0, as before (no error from the rule's search)
+    area = lambda r: jnp.sum(circular_aperture((n, n), dx, r))  # noqa: E731
+    assert float(jax.grad(area)(40.3 * dx)) == 0.0
 
 
 def test_rectangular_aperture_counts_samples():
