@@ -18,6 +18,13 @@ would break the search: the transpose then returns NaN rather than a wrong gradi
 the derivative with respect to ``t`` samples (spreads) with the weights' derivative
 (orders up to 3; the cubic's 4th derivative is 0), so geometry gradients and higher
 orders work.
+
+Memory: along −2 whole rows are gathered in one fused operation, along −1 blocks of
+rows in a loop (:func:`_by_row_blocks`), which overwrite their own rows when the length
+is kept. A 2-D sampling of a field the caller no longer needs (the scaling-theorem PSF,
+and its transpose) then needs one N² buffer, not three: the scaling PSF's temporaries
+at 1024² went from 32 to 16 MB, its gradient's from 48 to 24 MB, both bit for bit the
+same.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ from jax.interpreters import ad, batching, mlir
 
 __all__ = ["spline_sample", "cubic_sample", "bspline"]
 
-_LOOP = 4      # loop iterations of the sampling and its transpose (_gathered_in_blocks)
+_LOOP = 4      # row blocks of the sampling along −1 and of its transpose (_by_row_blocks)
 _PASS = 5      # gathers per pass of the transpose: one pass for points 0.8–1 sample apart
 # the cubic B-spline β₃(x) = p(|x|), as polynomial coefficients of 1, a, a², a³:
 # p = 2/3 − a² + a³/2 on [0, 1) and (2 − a)³/6 on [1, 2)
@@ -104,44 +111,43 @@ def _gathered(x, index, weight, axis):
     return out
 
 
-def _gathered_in_blocks(x, index, weight, axis, rows=None):
-    """:func:`_gathered` in ``_LOOP`` blocks inside a loop, so that its result is one
-    buffer: XLA cannot fuse a loop's body into the loop's consumers. Fused, XLA copied
-    the 16 gathers of a 2-D sampling into every consumer (the real and the imaginary part
-    of |s|² each): the scaling-theorem PSF at 1024² took 80–117 ms instead of 25–35 ms,
-    depending on which inputs were constants. Along −2 the blocks split the outputs
-    (``index`` and ``weight``); along −1, the rows of ``x`` (``rows``: those blocks,
-    :func:`_row_blocks`, when the caller gathers from one ``x`` more than once).
-    Indices and weights are computed once, before the loop."""
-    n_rows = index.shape[0] if axis == -2 else x.shape[-2]
-    nb, bs = _blocking(n_rows)
-    if axis == -2:
-        blocks = tuple(jnp.pad(r, [(0, nb * bs - n_rows), (0, 0)], mode="edge")
-                       .reshape(nb, bs, r.shape[1]) for r in (index, weight))
-        out = lax.map(lambda b: _gathered(x, *b, axis), blocks)
-    else:
-        rows = _row_blocks(x) if rows is None else rows
-        out = lax.map(lambda xb: _gathered(xb, index, weight, axis), rows)
-    out = jnp.moveaxis(out, 0, -3)
-    return out.reshape(out.shape[:-3] + (nb * bs, out.shape[-1]))[..., :n_rows, :]
-
-
-def _blocking(n_rows):
-    """(blocks, rows per block) of :func:`_gathered_in_blocks`."""
-    nb = min(_LOOP, n_rows)
-    return nb, -(-n_rows // nb)
-
-
-def _row_blocks(x):
-    """The rows of ``x`` in :func:`_blocking`'s blocks, blocks first: (nb, …, bs, nx)."""
+def _by_row_blocks(rows_fn, x, length):
+    """``rows_fn`` — rows of ``x`` (…, k, nx) to rows (…, k, ``length``) — on ``_LOOP``
+    blocks of rows inside a loop. A loop's result is one buffer: XLA cannot fuse a loop's
+    body into its consumers, and fused, it copied the 16 gathers of a 2-D sampling into
+    every consumer (the real and the imaginary part of |s|² each: the scaling-theorem PSF
+    at 1024² took 80–117 ms instead of 25–35 ms). When the rows keep their length, each
+    block overwrites itself in ``x``'s buffer, which XLA reuses when ``x`` is not needed
+    after: no second N² buffer and none to fill with zeros first (a loop's output would
+    be one, zero-filled: at 2048² the sampling took 24 ms instead of 40); otherwise the
+    blocks go to a new buffer."""
     n_rows = x.shape[-2]
-    nb, bs = _blocking(n_rows)
+    nb = min(_LOOP, n_rows)
+    if length == x.shape[-1]:
+        bs = n_rows // nb
+
+        def block(k, out):
+            rows = lax.dynamic_slice_in_dim(out, k * bs, bs, axis=-2)
+            return lax.dynamic_update_slice_in_dim(out, rows_fn(rows), k * bs, axis=-2)
+        out = lax.fori_loop(0, nb, block, x)
+        if nb * bs < n_rows:   # the rows left over, one block of fewer rows
+            out = out.at[..., nb * bs:, :].set(rows_fn(out[..., nb * bs:, :]))
+        return out
+    bs = -(-n_rows // nb)
     xb = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, nb * bs - n_rows), (0, 0)])
-    return jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])), -3, 0)
+    out = lax.map(rows_fn, jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])),
+                                        -3, 0))
+    out = jnp.moveaxis(out, 0, -3)
+    return out.reshape(out.shape[:-3] + (nb * bs, length))[..., :n_rows, :]
 
 
 def _sample(f, t, *, axis, order):
-    return _gathered_in_blocks(f, *_taps(t, f.shape[axis], order, f.real.dtype), axis)
+    """Along −2, whole rows gathered in one fused operation (its consumer, the sampling
+    along −1 or the transfer step's FFT, holds its result); along −1, in row blocks."""
+    index, weight = _taps(t, f.shape[axis], order, f.real.dtype)
+    if axis == -2:
+        return _gathered(f, index, weight, axis)
+    return _by_row_blocks(lambda rows: _gathered(rows, index, weight, axis), f, t.shape[0])
 
 
 def _spread(ct, t, *, n, axis, order):
@@ -153,17 +159,18 @@ def _spread(ct, t, *, n, axis, order):
     a = _search(t, j[:, 0] - 2, "right")[:, None]   # first tᵢ > j − 2
     b = _search(t, j[:, 0] + 2, "left")[:, None]    # first tᵢ ≥ j + 2
     broken = jnp.where(jnp.all(jnp.diff(t) >= 0), 1.0, jnp.nan).astype(t.dtype)
-    # every pass gathers from one copy of the cotangent's row blocks (a second pass
-    # blocked its own: one more N² buffer, though the loop rarely runs)
-    rows = _row_blocks(ct) if axis == -1 else None
+    passes = -(-jnp.max(b - a) // _PASS)
 
-    def one_pass(first):
+    def one_pass(x, first):
         i = a + first + jnp.arange(_PASS)
         index = jnp.minimum(i, m - 1)
         w = jnp.where(i < b, bspline(t[index] - j, order) * broken, 0).astype(ct.real.dtype)
-        return _gathered_in_blocks(ct, index, w, axis, rows)
-    passes = -(-jnp.max(b - a) // _PASS)
-    return lax.fori_loop(1, passes, lambda p, acc: acc + one_pass(p * _PASS), one_pass(0))
+        return _gathered(x, index, w, axis)
+
+    def every_pass(x):
+        return lax.fori_loop(1, passes, lambda p, acc: acc + one_pass(x, p * _PASS),
+                             one_pass(x, 0))
+    return every_pass(ct) if axis == -2 else _by_row_blocks(every_pass, ct, n)
 
 
 def _with_length(x, axis, length):
