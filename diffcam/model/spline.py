@@ -111,43 +111,57 @@ def _gathered(x, index, weight, axis):
     return out
 
 
-def _by_row_blocks(rows_fn, x, length):
-    """``rows_fn`` — rows of ``x`` (…, k, nx) to rows (…, k, ``length``) — on ``_LOOP``
-    blocks of rows inside a loop. A loop's result is one buffer: XLA cannot fuse a loop's
-    body into its consumers, and fused, it copied the 16 gathers of a 2-D sampling into
-    every consumer (the real and the imaginary part of |s|² each: the scaling-theorem PSF
-    at 1024² took 80–117 ms instead of 25–35 ms). When the rows keep their length, each
-    block overwrites itself in ``x``'s buffer, which XLA reuses when ``x`` is not needed
-    after: no second N² buffer and none to fill with zeros first (a loop's output would
-    be one, zero-filled: at 2048² the sampling took 24 ms instead of 40); otherwise the
-    blocks go to a new buffer."""
+def _by_row_blocks(term, x, length, terms=1):
+    """Σ_p ``term(rows, p)`` over ``p < terms`` (a static 1 or traced), ``term`` taking
+    rows of ``x`` (…, k, nx) to rows (…, k, ``length``), on ``_LOOP`` blocks of rows
+    inside a loop. A loop's result is one buffer: XLA cannot fuse a loop's body into its
+    consumers, and fused, it copied the 16 gathers of a 2-D sampling into every consumer
+    (the real and the imaginary part of |s|² each: the scaling-theorem PSF at 1024² took
+    80–117 ms instead of 25–35 ms).
+
+    When the rows keep their length, each block overwrites itself in ``x``'s buffer,
+    which XLA reuses when ``x`` is not needed after: no second N² buffer, and none to
+    fill with zeros first (a loop's output is one: at 2048² the sampling took 24 ms
+    instead of 40). The first term is written in place, the others added to it; a loop
+    over the terms that carried the block's sum cost a transposed copy of it (at 4096²
+    the transpose took 136 ms instead of 87). Otherwise the blocks go to a new buffer,
+    one term at a time."""
     n_rows = x.shape[-2]
     nb = min(_LOOP, n_rows)
+    one = isinstance(terms, int) and terms == 1
     if length == x.shape[-1]:
-        bs = n_rows // nb
+        def block(start, size, out):
+            rows = lax.dynamic_slice_in_dim(out, start, size, axis=-2)
+            out = lax.dynamic_update_slice_in_dim(out, term(rows, 0), start, axis=-2)
 
-        def block(k, out):
-            rows = lax.dynamic_slice_in_dim(out, k * bs, bs, axis=-2)
-            return lax.dynamic_update_slice_in_dim(out, rows_fn(rows), k * bs, axis=-2)
-        out = lax.fori_loop(0, nb, block, x)
+            def add(p, out):
+                total = lax.dynamic_slice_in_dim(out, start, size, axis=-2) + term(rows, p)
+                return lax.dynamic_update_slice_in_dim(out, total, start, axis=-2)
+            return out if one else lax.fori_loop(1, terms, add, out)
+        bs = n_rows // nb
+        out = lax.fori_loop(0, nb, lambda k, out: block(k * bs, bs, out), x)
         if nb * bs < n_rows:   # the rows left over, one block of fewer rows
-            out = out.at[..., nb * bs:, :].set(rows_fn(out[..., nb * bs:, :]))
+            out = block(nb * bs, n_rows - nb * bs, out)
         return out
     bs = -(-n_rows // nb)
     xb = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(0, nb * bs - n_rows), (0, 0)])
-    out = lax.map(rows_fn, jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])),
-                                        -3, 0))
-    out = jnp.moveaxis(out, 0, -3)
-    return out.reshape(out.shape[:-3] + (nb * bs, length))[..., :n_rows, :]
+    xb = jnp.moveaxis(xb.reshape(x.shape[:-2] + (nb, bs, x.shape[-1])), -3, 0)
+
+    def every_block(p):
+        out = jnp.moveaxis(lax.map(lambda rows: term(rows, p), xb), 0, -3)
+        return out.reshape(out.shape[:-3] + (nb * bs, length))[..., :n_rows, :]
+    first = every_block(0)
+    return first if one else lax.fori_loop(1, terms, lambda p, acc: acc + every_block(p),
+                                           first)
 
 
 def _sample(f, t, *, axis, order):
-    """Along −2, whole rows gathered in one fused operation (its consumer, the sampling
-    along −1 or the transfer step's FFT, holds its result); along −1, in row blocks."""
+    """Along −2, whole rows gathered in one fused operation, whose result the PSF's
+    sampling along −1 takes over as its buffer; along −1, in row blocks."""
     index, weight = _taps(t, f.shape[axis], order, f.real.dtype)
     if axis == -2:
         return _gathered(f, index, weight, axis)
-    return _by_row_blocks(lambda rows: _gathered(rows, index, weight, axis), f, t.shape[0])
+    return _by_row_blocks(lambda rows, _: _gathered(rows, index, weight, axis), f, t.shape[0])
 
 
 def _spread(ct, t, *, n, axis, order):
@@ -161,16 +175,14 @@ def _spread(ct, t, *, n, axis, order):
     broken = jnp.where(jnp.all(jnp.diff(t) >= 0), 1.0, jnp.nan).astype(t.dtype)
     passes = -(-jnp.max(b - a) // _PASS)
 
-    def one_pass(x, first):
-        i = a + first + jnp.arange(_PASS)
+    def one_pass(x, p):
+        i = a + p * _PASS + jnp.arange(_PASS)
         index = jnp.minimum(i, m - 1)
         w = jnp.where(i < b, bspline(t[index] - j, order) * broken, 0).astype(ct.real.dtype)
         return _gathered(x, index, w, axis)
-
-    def every_pass(x):
-        return lax.fori_loop(1, passes, lambda p, acc: acc + one_pass(x, p * _PASS),
-                             one_pass(x, 0))
-    return every_pass(ct) if axis == -2 else _by_row_blocks(every_pass, ct, n)
+    if axis == -1:
+        return _by_row_blocks(one_pass, ct, n, passes)
+    return lax.fori_loop(1, passes, lambda p, acc: acc + one_pass(ct, p), one_pass(ct, 0))
 
 
 def _with_length(x, axis, length):
