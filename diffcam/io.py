@@ -37,6 +37,7 @@ import sys
 import threading
 import warnings
 import zipfile
+from functools import partial
 from pathlib import Path
 from typing import Iterator, NamedTuple, Sequence
 
@@ -626,8 +627,16 @@ def _redeliver_dropped(kind: type[BaseException], again) -> Iterator[None]:
 
 
 def _send_again(signum: int) -> None:
-    """Send ``signum`` to this process in 50 ms (after the code that dropped it)."""
-    timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+    """Send ``signum`` to the main thread in 50 ms (after the code that dropped it).
+
+    To the thread, not the process: the kernel may hand a process's signal to any of
+    its threads (XLA's among them), and a blocking call in the main thread then runs to
+    its end before Python's handler runs (a test's 2 s sleep, once in a full run)."""
+    if hasattr(signal, "pthread_kill"):
+        send = partial(signal.pthread_kill, threading.main_thread().ident, signum)
+    else:  # Windows
+        send = partial(os.kill, os.getpid(), signum)
+    timer = threading.Timer(0.05, send)
     timer.daemon = True
     timer.start()
 
