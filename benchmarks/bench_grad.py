@@ -31,7 +31,10 @@ A reference written by hand is timed after, in rounds of its own beside the forw
 (``hand_ratio``: its value_and_grad ÷ diffcam's forward): the same forward, then the adjoint chain with this loss folded
 in, which a library cannot do (it does not know the loss), so the normalisation's
 transpose costs no reduction of its own. On the scaling path it uses diffcam's spline
-transpose: it shows what the chain costs, not what another transpose would. ``hand_grad_error`` is its
+transpose: it shows what the chain costs, not what another transpose would.
+``plain_ratio`` is JAX's own value_and_grad of that reference's forward chain, written
+as plain JAX (÷ diffcam's forward, in the same rounds): what reverse mode makes of the
+chain without diffcam's ``psf`` around it. ``hand_grad_error`` is its
 largest difference from diffcam's gradient, relative to the largest entry. The JSON is
 ``grad_<backend>.json`` (``grad_<backend>_huge_pages.json`` with huge pages).
 """
@@ -105,10 +108,7 @@ def _hand_written(camera, w):
     kernel times the spline prefilter (formed from its vectors in each step) and S the magnifying
     spline sampling, so b = P'^H·Sᵀ(c's cotangent), Sᵀ the library's spline transpose
     (``jax.linear_transpose``): the chain is written out, the transposes are diffcam's."""
-    if camera.method == "scaling":
-        forward, back = _scaling_chain(camera)
-    else:
-        forward, back = _direct_chain(camera)
+    forward, back = _chain(camera)
 
     def value_and_grad(phase):
         aperture = camera.aperture()
@@ -119,6 +119,23 @@ def _hand_written(camera, w):
         b = crop_to(back(2 * (w - value) / total * c, state), camera.shape)
         return value, aperture * jnp.imag(jnp.conj(expj(phase)) * b)
     return value_and_grad
+
+
+def _plain_autodiff(camera, w):
+    """JAX's own value_and_grad of the hand-written reference's forward chain: what
+    reverse mode makes of the same chain written as plain JAX, without diffcam's
+    ``psf`` around it."""
+    forward, _ = _chain(camera)
+
+    def loss(phase):
+        c, _ = forward(pad_to(apply_phase(camera.aperture(), phase), camera.padded_shape))
+        intensity = c.real ** 2 + c.imag ** 2
+        return jnp.sum(w * intensity) / jnp.sum(intensity)
+    return jax.value_and_grad(loss)
+
+
+def _chain(camera):
+    return _scaling_chain(camera) if camera.method == "scaling" else _direct_chain(camera)
 
 
 def _direct_chain(camera):
@@ -162,17 +179,21 @@ def _scaling_chain(camera):
 
 
 def _hand_reference(camera, w, phase, fwd, vag, rounds):
-    """The hand-written gradient's figures, measured after diffcam's rounds, in rounds of
-    its own beside the forward, so that diffcam's rounds are those of a run without it."""
+    """The references' figures (the hand-written gradient, and JAX's gradient of the same
+    chain), measured after diffcam's rounds, in rounds of their own beside the forward,
+    so that diffcam's rounds are those of a run without them."""
     by_hand = jax.jit(_hand_written(camera, w)).lower(phase).compile()
+    plain = jax.jit(_plain_autodiff(camera, w)).lower(phase).compile()
     ours, theirs = vag(phase)[1], by_hand(phase)[1]
     error = float(jnp.max(jnp.abs(theirs - ours)) / jnp.max(jnp.abs(ours)))
     del ours, theirs
-    t = time_interleaved({"forward": lambda: fwd(phase), "hand": lambda: by_hand(phase)},
-                         repeats=rounds, budget_s=120)
-    return {"hand_ratio": float(np.median(np.asarray(t["hand"]["times_s"])
-                                          / np.asarray(t["forward"]["times_s"]))),
+    t = time_interleaved({"forward": lambda: fwd(phase), "hand": lambda: by_hand(phase),
+                          "plain": lambda: plain(phase)}, repeats=rounds, budget_s=150)
+    forward_s = np.asarray(t["forward"]["times_s"])
+    return {"hand_ratio": float(np.median(np.asarray(t["hand"]["times_s"]) / forward_s)),
+            "plain_ratio": float(np.median(np.asarray(t["plain"]["times_s"]) / forward_s)),
             "hand_grad_error": error, "hand_temp_mb": _memory_mb(by_hand)[0],
+            "plain_temp_mb": _memory_mb(plain)[0],
             "hand_faults": _faults_per_call(lambda: by_hand(phase))}
 
 
@@ -233,11 +254,11 @@ def run(sizes=(512, 1024, 2048, 4096), repeats=7) -> list[dict]:
     return rows
 
 
-COLUMNS = ["N", "path", "forward_ms", "value_and_grad_ms", "ratio", "hand_ratio", "step_ms",
-           "floor", "forward_over_step", "reverse_over_step", "ratio_of_medians",
+COLUMNS = ["N", "path", "forward_ms", "value_and_grad_ms", "ratio", "hand_ratio", "plain_ratio",
+           "step_ms", "floor", "forward_over_step", "reverse_over_step", "ratio_of_medians",
            "forward_faults", "grad_faults", "forward_temp_mb", "grad_temp_mb",
-           "forward_total_mb", "grad_total_mb", "memory_ratio", "hand_temp_mb", "hand_faults",
-           "hand_grad_error", "loadavg"]
+           "forward_total_mb", "grad_total_mb", "memory_ratio", "hand_temp_mb", "plain_temp_mb",
+           "hand_faults", "hand_grad_error", "loadavg"]
 
 
 def main(argv=None):
