@@ -28,15 +28,16 @@ spline's transpose for the spline), so it costs what the forward costs less the
 forward's own non-linear work, and the ratio sits near 2 when that work is small.
 
 A reference written by hand is timed after, in rounds of its own beside the forward
-(``hand_ratio``: its value_and_grad ÷ diffcam's forward): the same forward, then the adjoint chain with this loss folded
-in, which a library cannot do (it does not know the loss), so the normalisation's
-transpose costs no reduction of its own. On the scaling path it uses diffcam's spline
-transpose: it shows what the chain costs, not what another transpose would.
-``plain_ratio`` is JAX's own value_and_grad of that reference's forward chain, written
-as plain JAX (÷ diffcam's forward, in the same rounds): what reverse mode makes of the
-chain without diffcam's ``psf`` around it. ``hand_grad_error`` is its
-largest difference from diffcam's gradient, relative to the largest entry. The JSON is
-``grad_<backend>.json`` (``grad_<backend>_huge_pages.json`` with huge pages).
+(``hand_ratio``: its value_and_grad ÷ diffcam's forward): the same forward, then the
+adjoint chain with this loss folded in, which a library cannot do (it does not know the
+loss), so the normalisation's transpose costs no reduction of its own. On the scaling
+path it uses diffcam's spline transpose: it shows what the chain costs, not what
+another transpose would. ``hand_grad_error`` is its largest difference from diffcam's
+gradient, relative to the largest entry. ``plain_ratio`` is JAX's own value_and_grad
+of the reference's forward chain, written as plain JAX (÷ diffcam's forward, in the
+same rounds): what reverse mode makes of the chain without diffcam's ``psf`` around
+it. The JSON is ``grad_<backend>.json`` (``grad_<backend>_huge_pages.json`` with huge
+pages).
 """
 
 from __future__ import annotations
@@ -56,11 +57,10 @@ from diffcam.core.backend import fft_backend, transfer_step
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.core.phasor import expj
 from diffcam.model import Camera, psf
-from diffcam.model.sensor import bspline_prefilter
+from diffcam.model.point_spread import sample_points, zeff_factors
 from diffcam.model.spline import spline_sample
 from diffcam.optics.elements import apply_phase, spherical_wave
-from diffcam.optics.propagation import (apply_transfer, effective_distance, magnification,
-                                        transfer_factors, transfer_function)
+from diffcam.optics.propagation import apply_transfer, transfer_function
 
 LAM, DX, Z2, Z1 = 532e-9, 5e-6, 1e-3, 25e-3
 MIN_SECONDS = 2.0
@@ -109,15 +109,12 @@ def _hand_written(camera, w):
     spline sampling, so b = P'^H·Sᵀ(c's cotangent), Sᵀ the library's spline transpose
     (``jax.linear_transpose``): the chain is written out, the transposes are diffcam's."""
     forward, back = _chain(camera)
+    loss = _loss(camera, w, forward)
 
     def value_and_grad(phase):
-        aperture = camera.aperture()
-        c, state = forward(pad_to(apply_phase(aperture, phase), camera.padded_shape))
-        intensity = c.real ** 2 + c.imag ** 2
-        total = jnp.sum(intensity)
-        value = jnp.sum(w * intensity) / total
+        value, (c, state, total) = loss(phase)
         b = crop_to(back(2 * (w - value) / total * c, state), camera.shape)
-        return value, aperture * jnp.imag(jnp.conj(expj(phase)) * b)
+        return value, camera.aperture() * jnp.imag(jnp.conj(expj(phase)) * b)
     return value_and_grad
 
 
@@ -125,13 +122,18 @@ def _plain_autodiff(camera, w):
     """JAX's own value_and_grad of the hand-written reference's forward chain: what
     reverse mode makes of the same chain written as plain JAX, without diffcam's
     ``psf`` around it."""
-    forward, _ = _chain(camera)
+    loss = _loss(camera, w, _chain(camera)[0])
+    return jax.value_and_grad(lambda phase: loss(phase)[0])
 
+
+def _loss(camera, w, forward):
+    """phase → (Σ w·|c|²/Σ|c|², (c, the chain's state, Σ|c|²)), c = forward(C·e^{jθ})."""
     def loss(phase):
-        c, _ = forward(pad_to(apply_phase(camera.aperture(), phase), camera.padded_shape))
+        c, state = forward(pad_to(apply_phase(camera.aperture(), phase), camera.padded_shape))
         intensity = c.real ** 2 + c.imag ** 2
-        return jnp.sum(w * intensity) / jnp.sum(intensity)
-    return jax.value_and_grad(loss)
+        total = jnp.sum(intensity)
+        return jnp.sum(w * intensity) / total, (c, state, total)
+    return loss
 
 
 def _chain(camera):
@@ -153,13 +155,10 @@ def _direct_chain(camera):
 
 
 def _scaling_chain(camera):
-    (ny, nx), (my, mx) = camera.padded_shape, camera.out_shape
-    factors = (*transfer_factors(camera.padded_shape, camera.dx, camera.wavelength,
-                                 effective_distance(Z1, camera.z2)),
-               bspline_prefilter(ny)[:, None], bspline_prefilter(nx)[None, :])
-    mag = magnification(Z1, camera.z2)
-    ty = (jnp.arange(my) - my // 2) / mag + ny // 2
-    tx = (jnp.arange(mx) - mx // 2) / mag + nx // 2
+    """P' and S from diffcam's own geometry (``zeff_factors``, ``sample_points``)."""
+    shape = camera.padded_shape
+    factors = zeff_factors(shape, camera, camera.wavelength, Z1)
+    ty, tx = sample_points(shape, camera, Z1)
 
     def sample(field):
         return spline_sample(spline_sample(field, ty, -2), tx, -1)

@@ -39,7 +39,7 @@ def test_bspline_is_the_cubic_b_spline():
     np.testing.assert_allclose(jax.vmap(jax.grad(bspline))(x), bspline(x, 1), atol=1e-6)
 
 
-@pytest.mark.parametrize("m", [57, 40], ids=["to a new buffer", "in place"])
+@pytest.mark.parametrize("m", [57, 40], ids=["more points than samples", "as many"])
 @pytest.mark.parametrize("axis", [-2, -1])
 def test_transpose_is_the_adjoint(axis, m, x64):
     """⟨S f, g⟩ = ⟨f, Sᵀ g⟩ for the written-out transpose, batched, points partly off
@@ -55,7 +55,7 @@ def test_transpose_is_the_adjoint(axis, m, x64):
     np.testing.assert_allclose(jnp.sum(s * g), jnp.sum(f * st_g), rtol=1e-12)
 
 
-@pytest.mark.parametrize("m", [61, 50], ids=["to a new buffer", "in place"])
+@pytest.mark.parametrize("m", [61, 50], ids=["more points than samples", "as many"])
 def test_derivatives_equal_jax_on_the_plain_gathers(m, x64):
     """Gradients in f and t, forward mode, a Hessian in t and vmap over the points of
     a 2-D magnification equal JAX's own derivatives of the same gathers."""

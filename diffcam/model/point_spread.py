@@ -64,7 +64,8 @@ from diffcam.optics.propagation import (critical_distance, effective_distance,
                                         transfer_function)
 from diffcam.optics.sampling import check_point_source_sampling
 
-__all__ = ["psf", "diffuser_fields", "fields_for_fft", "irradiance", "check_inputs"]
+__all__ = ["psf", "diffuser_fields", "fields_for_fft", "irradiance", "zeff_factors",
+           "sample_points", "check_inputs"]
 
 
 # --------------------------------------------------------------- Eq. 7, step by step
@@ -91,15 +92,20 @@ def _source_fields(diffuser, camera, wavelength, z1, positions):
     return jax.vmap(one)(positions)
 
 
+def zeff_factors(shape, camera, wavelength, z1):
+    """The scaling theorem's transfer function on a grid of ``shape`` (the padded one),
+    times the separable spline prefilter, as four vectors (hy, hx, by, bx): the product
+    (hy·hx)·(by·bx) multiplies the diffuser's spectrum (:func:`_zeff_spectrum`)."""
+    ny, nx = shape
+    hy, hx = transfer_factors(camera.padded_shape, camera.dx, wavelength,
+                              effective_distance(z1, camera.z2))
+    return hy, hx, bspline_prefilter(ny)[:, None], bspline_prefilter(nx)[None, :]
+
+
 def _zeff_spectrum(diffuser_hat, camera, wavelength, z1):
     """Spectrum of the cubic B-spline coefficients of P_zeff{C·e^{jθd}}: its inverse FFT is
     the field the scaling theorem magnifies (the separable spline prefilter rides on the
     transfer function). (1, ny, nx): the positions only move the sampling."""
-    ny, nx = diffuser_hat.shape[-2:]
-    hy, hx = transfer_factors(camera.padded_shape, camera.dx, wavelength,
-                              effective_distance(z1, camera.z2))
-    by, bx = bspline_prefilter(ny)[:, None], bspline_prefilter(nx)[None, :]
-
     # Under jax.checkpoint, reverse mode keeps the four vectors and forms the N² product
     # again inside the multiply's transpose; without it, XLA kept the product as an
     # array (8 MB and 3 ms of a 1024² gradient). Multiplying by the vectors one after
@@ -108,21 +114,29 @@ def _zeff_spectrum(diffuser_hat, camera, wavelength, z1):
     @jax.checkpoint
     def filtered(d, hy, hx, by, bx):
         return d * ((hy * hx) * (by * bx))
-    return filtered(diffuser_hat, hy, hx, by, bx)[None]
+    factors = zeff_factors(diffuser_hat.shape[-2:], camera, wavelength, z1)
+    return filtered(diffuser_hat, *factors)[None]
+
+
+def sample_points(shape, camera, z1, y1=0.0, x1=0.0):
+    """Where the scaling theorem samples the z_eff field on a grid of ``shape``: the
+    sensor-grid points, magnified by M about the image of the source (y1, x1), in
+    fractional sample indices (ty, tx); both increase (spline_sample's promise)."""
+    z2 = camera.z2
+    mag = magnification(z1, z2)
+    ny, nx = shape
+    cy, cx = camera.out_shape
+    shift = z2 / (z1 + z2) / camera.dx  # source offset → sample offset, per metre
+    ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
+    tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
+    return ty, tx
 
 
 def _magnified(field, camera, z1, y1, x1):
     """|·|² of the z_eff field magnified by M about the image of the source, at the
     sensor-grid points: the irradiance but for the constant 1/(Mλz1)² of the scaling
     theorem (:func:`_source_constant`)."""
-    z2 = camera.z2
-    mag = magnification(z1, z2)
-    ny, nx = field.shape[-2:]
-    cy, cx = camera.out_shape
-    shift = z2 / (z1 + z2) / camera.dx  # source offset → sample offset, per metre
-    ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
-    tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
-    # the sample points increase with the output index (spline_sample's promise)
+    ty, tx = sample_points(field.shape[-2:], camera, z1, y1, x1)
     s = spline_sample(spline_sample(field, ty, -2), tx, -1)
     return s.real ** 2 + s.imag ** 2
 
