@@ -199,6 +199,31 @@ def test_acceleration_and_tv_variants():
     assert tv_total(tv.image) < tv_total(plain.image)
 
 
+@pytest.mark.parametrize("scale", [1e-15, 1e15])
+@pytest.mark.parametrize("variant", [{}, {"accelerate": True}, {"tv_weight": 0.01},
+                                     {"volume": True}])
+def test_rl_result_scales_with_the_image_and_the_psf(x64, scale, variant):
+    """RL is homogeneous: A(s·x) = s·A(x), so an image in any units (irradiance in W,
+    counts, a unit sum) gives the same estimate in those units, and a PSF s times larger
+    an estimate s times smaller. Half of the scene is dark, where ``eps`` meets ``A x``."""
+    rng = np.random.default_rng(11)
+    scene = rng.random((24, 28)) * (np.arange(28) < 14)
+    psf = rng.random((5, 5)) ** 2
+    options = dict(variant)
+    if options.pop("volume", False):
+        psf = np.stack([psf, psf.T[::-1]])
+        image = np.asarray(convolution_model(jnp.asarray(psf), scene.shape, "same",
+                                             volume=True)(np.stack([scene, scene[::-1]])))
+        solve = lambda b, h: richardson_lucy_3d(b, h, 20, boundary="same", **options)  # noqa: E731
+    else:
+        image = np.asarray(convolution_model(jnp.asarray(psf), scene.shape, "same")(scene))
+        solve = lambda b, h: richardson_lucy(b, h, 20, **options)  # noqa: E731
+    image = np.maximum(image, 0)
+    reference = np.asarray(solve(image, psf).image)
+    assert _rel(np.asarray(solve(image * scale, psf).image) / scale, reference) < 1e-10
+    assert _rel(np.asarray(solve(image, psf * scale).image) * scale, reference) < 1e-10
+
+
 def test_early_stopping_inside_jit():
     image, psf = _problem(seed=7)
     out = richardson_lucy(image, psf, 500, tol=1e-3)

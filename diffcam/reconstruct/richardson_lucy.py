@@ -12,6 +12,8 @@ model) keeps flux: ``sum(A x) = sum(b)`` after every step. It is the maximum-lik
 (EM) iteration for Poisson data; it keeps ``x >= 0`` when ``b, psf, x0 >= 0`` and lowers
 the I-divergence ``Σ b log(b / Ax) - b + Ax`` at every step. Scene points that no sensor
 pixel sees (``Aᵀ1 <= 1e-5·max Aᵀ1``, the rim of the ``"crop"`` object grid) stay 0.
+``eps`` is a fraction of ``max b``, so the estimate scales with the image whatever its
+units (an absolute 1e-12 drove the estimate of an image of values ~1e-14 to zero).
 
 ``convention="skimage"`` reproduces ``skimage.restoration.richardson_lucy(image, psf,
 num_iter, clip=False, filter_epsilon)``: start 0.5, no sensitivity division, the forward
@@ -91,9 +93,11 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
         tol: stop when the objective changes by less than ``tol`` (relative) in one
             iteration; None runs all ``iterations`` iterations and is the only setting that
             supports reverse-mode ``grad``.
-        eps: added to ``A x`` before dividing, as scikit-image does.
+        eps: added to ``A x`` before dividing, as a fraction of the image's largest
+            value, so the result does not depend on the image's units (an absolute
+            value, as scikit-image's, with ``convention="skimage"``).
         filter_epsilon: where ``A x + eps < filter_epsilon`` the ratio is set to 0
-            (scikit-image's argument); None or 0 disables it.
+            (scikit-image's argument, relative like ``eps``); None or 0 disables it.
         progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
 
     Returns:
@@ -245,6 +249,10 @@ def _rl_solve(b, psf, x0, weights: _Weights, config: _Config) -> Reconstruction:
     b = jnp.maximum(b, 0)  # rounding-level negatives passed validation
     forward, back, sensitivity, seen, x0 = _operators(b, psf, x0, config)
     eps, filter_epsilon = weights.eps, weights.filter_epsilon
+    if config.convention != "skimage":  # fractions of the image's peak: any units work
+        peak = jnp.max(b)
+        peak = jnp.where(peak > 0, peak, 1)
+        eps, filter_epsilon = eps * peak, filter_epsilon * peak
     use_tv, use_filter, accelerate = config.use_tv, config.use_filter, config.accelerate
     inv_sensitivity = jnp.where(seen, 1 / jnp.where(seen, sensitivity, 1), 0)
     if use_tv:
