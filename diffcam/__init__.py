@@ -22,8 +22,8 @@ Units are SI everywhere (metres, radians); grids are centred (index N//2 is the 
 
 from diffcam import calibrate, core, evaluate, model, optics, reconstruct
 from diffcam.calibrate import retrieve_phase
-from diffcam.core.errors import (DiffcamError, GeometryWarning, SamplingError, ShapeError,
-                                 UndersamplingWarning)
+from diffcam.core.errors import (ConvergenceWarning, DiffcamError, GeometryWarning,
+                                 SamplingError, ShapeError, UndersamplingWarning)
 from diffcam.evaluate import magnify_psf, pearson, psf_fidelity, psnr, ssim
 from diffcam.model import (Camera, HeightMap, Spectrum, load_stack, psf, psf_stack,
                            random_diffuser, save_stack)
@@ -40,6 +40,6 @@ __all__ = [
     "fresnel_tf", "fresnel_ir", "angular_spectrum", "fourier_lens",
     "circular_aperture", "point_source_field", "thin_lens", "apply_phase", "plan_sampling",
     "pearson", "ssim", "psnr", "psf_fidelity", "DiffcamError", "SamplingError", "ShapeError",
-    "UndersamplingWarning", "GeometryWarning", "calibrate", "core", "evaluate", "model", "optics",
-    "reconstruct",
+    "UndersamplingWarning", "GeometryWarning", "ConvergenceWarning", "calibrate", "core",
+    "evaluate", "model", "optics", "reconstruct",
 ]

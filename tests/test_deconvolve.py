@@ -5,6 +5,8 @@ References: scikit-image's ``richardson_lucy`` (the skimage convention, bit for 
 (Wiener) and ``scipy.optimize.nnls`` (ADMM without TV).
 """
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,11 +17,13 @@ from jax.test_util import check_grads
 from skimage.restoration import richardson_lucy as skimage_rl
 
 from diffcam.core.backend import fft_size
-from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.errors import ConvergenceWarning, DiffcamError, ShapeError
 from diffcam.reconstruct import (Reconstruction, admm_tv, admm_tv_3d, convolution_model,
                                  focus_sweep, richardson_lucy, richardson_lucy_3d,
                                  wiener)
 from diffcam.reconstruct.operators import divergence, gradient
+
+from conftest import assert_float32_gradient_matches_float64
 
 
 @pytest.fixture
@@ -224,6 +228,25 @@ def test_rl_result_scales_with_the_image_and_the_psf(x64, scale, variant):
     assert _rel(np.asarray(solve(image, psf * scale).image) * scale, reference) < 1e-10
 
 
+@pytest.mark.parametrize("options, oscillates", [
+    ({}, False), ({"accelerate": True}, False), ({"tv_weight": 1e-3}, False),
+    ({"tv_weight": 0.05}, True)], ids=["plain", "accelerated", "tv-1e-3", "tv-0.05"])
+def test_tv_rl_that_oscillates_says_so(options, oscillates):
+    """Plain RL lowers its objective at every step (EM); TV-RL with a large weight does
+    not settle, and the objective history that shows it comes with a warning."""
+    rng = np.random.default_rng(1)
+    image, psf = rng.random((48, 56)) + 0.1, rng.random((9, 9)) ** 2
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = richardson_lucy(image, psf, 200, progress=False, **options)
+    objective = np.asarray(out.objective, np.float64)
+    rise = np.max(np.diff(objective) / objective[1:])
+    warned = [w for w in caught if issubclass(w.category, ConvergenceWarning)]
+    assert (rise > 1e-3) == oscillates and bool(warned) == oscillates
+    if oscillates:
+        assert "tv_weight=0.05" in str(warned[0].message)
+
+
 def test_early_stopping_inside_jit():
     image, psf = _problem(seed=7)
     out = richardson_lucy(image, psf, 500, tol=1e-3)
@@ -247,6 +270,26 @@ def test_batched_psfs_and_vmap_agree():
         assert _rel(batched.image[k], single.image) < 1e-5
     mapped = jax.vmap(lambda h: richardson_lucy(image, h, 10).image)(jnp.asarray(psfs))
     assert _rel(mapped, batched.image) < 1e-5
+
+
+@pytest.mark.parametrize("solver, options", [
+    (richardson_lucy, {}), (richardson_lucy, {"accelerate": True}),
+    (richardson_lucy, {"tv_weight": 1e-3}), (admm_tv, {}), (wiener, {})],
+    ids=["rl", "rl-accelerated", "rl-tv", "admm", "wiener"])
+def test_float32_gradient_through_a_solver_agrees_with_float64(solver, options):
+    """The PSF gradient of a loss on the estimate, through 30 iterations, in float32
+    equals the float64 one: nothing on the way leaves float32's range or amplifies its
+    rounding."""
+    image, psf = _problem(shape=(24, 28), psf_shape=(5, 5), seed=9)
+    if solver is not wiener:
+        options = {"iterations": 30, "progress": False, **options}
+
+    def gradient(dtype):
+        def loss(h):
+            x = solver(jnp.asarray(image, dtype), h, **options).image
+            return jnp.sum(x ** 2) / jnp.sum(x) ** 2
+        return jax.grad(loss)(jnp.asarray(psf, dtype))
+    assert_float32_gradient_matches_float64(gradient)
 
 
 @pytest.mark.usefixtures("debug_nans")

@@ -62,7 +62,7 @@ from diffcam.calibrate.near_far import (CalibrationGeometry, NearFarModel, check
 from diffcam.calibrate.projections import initial_phase, retrieve_projections
 from diffcam.calibrate.result import RetrievalResult
 from diffcam.core.options import Options
-from diffcam.core.errors import DiffcamError, ShapeError, check_field
+from diffcam.core.errors import ConvergenceWarning, DiffcamError, ShapeError, check_field
 from diffcam.core.progress import progress_bar, tick
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.core.phasor import expj
@@ -74,10 +74,6 @@ LOSSES = ("amplitude", "intensity", "weighted_intensity", "poisson")
 _EPS = 1e-6
 # variance floor of the "weighted_intensity" loss, in units of the image's mean intensity
 _VARIANCE_FLOOR = 1.0
-
-
-class ConvergenceWarning(UserWarning):
-    """A fit whose loss stopped falling far above zero (a local minimum or stagnation)."""
 
 
 class JaxoptLBFGS(eqx.Module):

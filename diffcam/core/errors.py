@@ -21,6 +21,7 @@ __all__ = [
     "ShapeError",
     "UndersamplingWarning",
     "GeometryWarning",
+    "ConvergenceWarning",
     "is_concrete",
     "found_false",
     "check_positive",
@@ -49,6 +50,11 @@ class UndersamplingWarning(UserWarning):
 class GeometryWarning(UserWarning):
     """The captures disagree with the geometry they were resampled with: a pitch, a focal
     length or a wavelength is probably wrong (the result would be a confident wrong phase)."""
+
+
+class ConvergenceWarning(UserWarning):
+    """An iteration that did not settle: a fit whose loss stopped falling far above zero,
+    or a regularised deconvolution whose objective rose (it oscillates)."""
 
 
 _PLAIN = (int, float, complex, bool, str, np.ndarray, np.generic, type(None))
