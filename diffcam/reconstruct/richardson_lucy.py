@@ -213,7 +213,8 @@ def _warn_if_oscillating(objective, tv_weight) -> None:
     NaN after an early stop) rose between two iterations by more than
     :data:`_RISE` of its value. Plain RL lowers it at every step; TV-RL with a large
     weight oscillates and its estimate keeps changing (module docstring)."""
-    rise = np.nanmax(np.diff(objective, axis=-1) / np.abs(objective[..., 1:]), initial=0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # an objective of exactly 0
+        rise = np.nanmax(np.diff(objective, axis=-1) / np.abs(objective[..., 1:]), initial=0)
     if rise > _RISE:
         warnings.warn(
             f"TV-regularised Richardson–Lucy did not settle: its objective rose by "
