@@ -35,7 +35,7 @@ Variants:
   guaranteed to lower its objective, and with a larger ``λ`` it does not settle: on
   random 48×56 problems the objective rose by up to 1.7e-4 of its value in one step at
   ``λ = 0.02`` and 1.5e-2 at 0.05 (never at 1e-3–1e-2), and at 0.05 float32 and float64
-  runs of 100 iterations ended 5–20 % apart. A rise above 1e-4 issues a
+  runs of 100 iterations ended 7–19 % apart (24×28). A rise above 1e-4 issues a
   ``ConvergenceWarning`` (eager calls). Gradients through TV-RL are ill-conditioned from
   ``λ = 1e-2`` over tens of iterations (float32 and float64 ones disagree).
 """
