@@ -2,11 +2,16 @@
 Linux, glibc).
 
 XLA allocates every output and temporary of a jitted call afresh. glibc serves a block
-of 32 MiB or more (a 2048² complex64 field is 32 MiB, 4096² is 128 MiB) with ``mmap``
-and hands it back with ``munmap`` when it is freed, so the next call's block is new
-memory again, which the kernel zero-fills on first touch, one page fault per page. With
-4 KiB pages that is 8192 faults per 2048² field and 32768 per 4096² field. With huge
-pages (2 MiB) it is 16 and 64.
+above its mmap threshold with ``mmap`` and hands it back with ``munmap`` when it is
+freed, so the next call's block is new memory again, which the kernel zero-fills on
+first touch, one page fault per page. The threshold starts at 128 KiB and rises to the
+size of each mapped block that is freed, up to 32 MiB on 64-bit systems (``mallopt(3)``,
+``M_MMAP_THRESHOLD``). So after a process's first calls, smaller blocks come from the
+heap and are reused, while a block of 32 MiB or more (a 2048² complex64 field is
+32 MiB, 4096² is 128 MiB) is mapped afresh on every call. The heap's free top is also
+given back to the kernel above ``M_TRIM_THRESHOLD`` (twice the mmap threshold once that
+has moved), and faults again when reused. With 4 KiB pages a fresh field costs 8192
+faults at 2048² and 32768 at 4096². With huge pages (2 MiB) it is 16 and 64.
 
 Measured on the project's 2-core VM (FFTW backend, one Fresnel step, ratio to pyFFTW's
 planned FFTW, which writes into arrays it owns; ``docs/fft.md``): 1.27× at 2048² and
