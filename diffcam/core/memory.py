@@ -1,5 +1,5 @@
-"""Fresh buffers and their page faults: whether this process gets huge pages (CPU,
-Linux, glibc).
+"""Fresh buffers and their page faults: whether this process gets huge pages and keeps
+freed blocks for reuse (CPU, Linux, glibc).
 
 XLA allocates every output and temporary of a jitted call afresh. glibc serves a block
 above its mmap threshold with ``mmap`` and hands it back with ``munmap`` when it is
@@ -26,8 +26,33 @@ before starting Python, or in a Jupyter kernel's ``env``:
 
     GLIBC_TUNABLES=glibc.malloc.hugetlb=1 diffcam demo
 
-Huge pages change speed, never results. :func:`status` (printed by ``diffcam -v``)
-says whether they are in use.
+Huge pages still fault, once per 2 MiB, and glibc still returns every large block to
+the kernel, which must supply (and zero) the next one. :data:`KEEP` stops that: one
+malloc arena for all threads, no ``mmap`` for blocks, no trimming of the heap. A freed
+block stays in the process, and once the heap has grown to what a program needs, its
+calls cost no page fault and almost no kernel time. Set both together, before Python
+starts:
+
+    GLIBC_TUNABLES=glibc.malloc.hugetlb=1:glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=17179869184 python run.py
+
+Measured on the same VM with the 4096² scaling PSF's ``value_and_grad`` (FFTW;
+``benchmarks/RESULTS.md``, ninth session). With huge pages alone, calls took 505–970 ms,
+about one in four slow, with 50–350 ms of system time each. With both settings, once
+the heap had grown, calls took 494–545 ms with 1.5–5 ms of system time and no fault.
+
+The price is memory, and a slow start:
+- XLA's aligned requests do not fit exactly into a freed block of their own size, so
+  the heap grows by about one block per call for the first calls (eight 72 MiB blocks
+  before it settled, in a probe). The calls that grow it are slow (about 850 ms of
+  system time for 384 MB here).
+- The process then keeps its largest footprint until it exits: a peak of 2.6 GB
+  against 1.3 GB for the 4096² gradient.
+
+So it suits a long run of one size (a fit of many gradient steps), not a session that
+tries many sizes.
+
+Neither setting changes a result. :func:`status` (printed by ``diffcam -v``) says
+which is in use.
 """
 
 from __future__ import annotations
@@ -35,11 +60,14 @@ from __future__ import annotations
 import os
 import platform
 import re
+from itertools import takewhile
 from pathlib import Path
 
-__all__ = ["huge_pages", "status", "TUNABLE"]
+__all__ = ["huge_pages", "keeps_memory", "status", "TUNABLE", "KEEP"]
 
 TUNABLE = "glibc.malloc.hugetlb=1"
+KEEP = ("glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:"
+        "glibc.malloc.trim_threshold=17179869184")
 _THP = Path("/sys/kernel/mm/transparent_hugepage/enabled")
 
 
@@ -63,15 +91,22 @@ def _glibc_version() -> tuple[int, int] | None:
     return major, minor
 
 
-def _start_environment() -> dict[str, str]:
-    """The environment this process started with (what glibc read), not ``os.environ``,
-    which Python code may have changed since."""
+def _tunables() -> dict[str, str]:
+    """The glibc tunables this process started with, ``{name: value}``: read from the
+    environment it started with (``/proc/self/environ``, what glibc read), not from
+    ``os.environ``, which Python code may have changed since. glibc parses
+    ``GLIBC_TUNABLES`` in place there, ending each tunable with a NUL, so the tunables
+    after the first follow it as entries of their own."""
     try:
-        raw = Path("/proc/self/environ").read_bytes()
+        items = Path("/proc/self/environ").read_bytes().decode(errors="replace").split("\0")
     except OSError:
-        return dict(os.environ)
-    pairs = (item.split(b"=", 1) for item in raw.split(b"\0") if b"=" in item)
-    return {k.decode(errors="replace"): v.decode(errors="replace") for k, v in pairs}
+        items = [f"GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '')}"]
+    for k, item in enumerate(items):
+        if item.startswith("GLIBC_TUNABLES="):
+            after = takewhile(lambda i: i.startswith("glibc."), items[k + 1:])
+            parts = ":".join([item[len("GLIBC_TUNABLES="):], *after]).split(":")
+            return dict(p.split("=", 1) for p in parts if "=" in p)
+    return {}
 
 
 def huge_pages() -> str:
@@ -86,17 +121,32 @@ def huge_pages() -> str:
     version = _glibc_version()
     if version is None or version < (2, 35):
         return "unavailable"
-    tunables = _start_environment().get("GLIBC_TUNABLES", "")
-    asked = re.search(r"(^|:)glibc\.malloc\.hugetlb=([12])($|:)", tunables)
-    return "on" if asked else "off"
+    return "on" if _tunables().get("glibc.malloc.hugetlb") in ("1", "2") else "off"
+
+
+def keeps_memory() -> bool:
+    """True when this process started with :data:`KEEP` (or stricter): freed blocks
+    stay in the process for the next call (glibc only)."""
+    if _glibc_version() is None:
+        return False
+    t = _tunables()
+    try:
+        return (int(t.get("glibc.malloc.mmap_max", -1)) == 0
+                and int(t.get("glibc.malloc.arena_max", 0)) == 1
+                and int(t.get("glibc.malloc.trim_threshold", 0), 0) >= 1 << 30)
+    except ValueError:
+        return False
 
 
 def status() -> str:
     """One line for logs and reports."""
     state = huge_pages()
+    pages = "huge pages for large blocks" if state == "on" else "4 KiB pages"
+    if keeps_memory():
+        return f"memory: {pages}, freed blocks kept for reuse"
     if state == "on":
-        return "memory: huge pages for large blocks"
+        return f"memory: {pages}"
     if state == "off":
-        return (f"memory: 4 KiB pages (GLIBC_TUNABLES={TUNABLE} before starting Python "
+        return (f"memory: {pages} (GLIBC_TUNABLES={TUNABLE} before starting Python "
                 f"cuts the page faults of fresh buffers: diffcam.core.memory)")
-    return "memory: 4 KiB pages"
+    return f"memory: {pages}"
