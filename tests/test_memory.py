@@ -58,9 +58,10 @@ def test_keeping_freed_blocks_takes_every_page_fault_out():
     """With KEEP the 72 MiB output a call frees becomes a later call's buffer: once the
     heap has grown (a block a call at first: XLA's aligned requests do not fit a freed
     block of their own size), calls fault no page at all."""
-    kept, plain = _probe(memory.KEEP, calls=24), _probe(None)
+    kept, plain = _probe(memory.KEEP, calls=48), _probe(None)
     assert kept["keeps"] and "kept for reuse" in kept["status"]
-    assert max(kept["faults"][-6:]) <= 0.001 * kept["pages"]
+    # alone it settles within ~6 calls, beside another busy process within ~20
+    assert max(kept["faults"][-12:]) <= 0.001 * kept["pages"], kept["faults"]
     assert not plain["keeps"] and "kept" not in plain["status"]
 
 
