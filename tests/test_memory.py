@@ -37,10 +37,16 @@ def _probe(tunables, calls=6):
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.fixture(scope="module")
+def plain():
+    """The probe with glibc's defaults."""
+    return _probe(None)
+
+
 @pytest.mark.skipif(memory.huge_pages() == "unavailable" or memory._thp_mode() == "always",
                     reason="needs glibc >= 2.35 and transparent huge pages in madvise mode")
-def test_the_tunable_takes_the_page_faults_out_of_fresh_buffers():
-    plain, huge = _probe(None), _probe(memory.TUNABLE)
+def test_the_tunable_takes_the_page_faults_out_of_fresh_buffers(plain):
+    huge = _probe(memory.TUNABLE)
     assert plain["state"] == "off" and memory.TUNABLE in plain["status"]
     assert huge["state"] == "on" and "huge pages" in huge["status"]
     # 4 KiB pages: every call's fresh 72 MiB output faults each of its pages in
@@ -54,11 +60,11 @@ def test_the_tunable_takes_the_page_faults_out_of_fresh_buffers():
 
 @pytest.mark.skipif((memory._glibc_version() or (0, 0)) < (2, 26),
                     reason="needs glibc's tunables (glibc >= 2.26)")
-def test_keeping_freed_blocks_takes_every_page_fault_out():
+def test_keeping_freed_blocks_takes_every_page_fault_out(plain):
     """With KEEP the 72 MiB output a call frees becomes a later call's buffer: once the
     heap has grown (a block a call at first: XLA's aligned requests do not fit a freed
     block of their own size), calls fault no page at all."""
-    kept, plain = _probe(memory.KEEP, calls=48), _probe(None)
+    kept = _probe(memory.KEEP, calls=48)
     assert kept["keeps"] and "kept for reuse" in kept["status"]
     # alone it settles within ~6 calls, beside another busy process within ~20
     assert max(kept["faults"][-12:]) <= 0.001 * kept["pages"], kept["faults"]
