@@ -77,3 +77,21 @@ def test_the_state_is_read_from_the_start_environment(monkeypatch):
     before = memory.huge_pages()
     monkeypatch.setenv("GLIBC_TUNABLES", memory.TUNABLE)
     assert memory.huge_pages() == before
+
+
+@pytest.mark.parametrize("tunables, keeps", [
+    ({}, False),
+    ({"glibc.malloc.mmap_max": "0", "glibc.malloc.arena_max": "1"}, False),
+    ({"glibc.malloc.mmap_max": "0", "glibc.malloc.arena_max": "1",
+      "glibc.malloc.trim_threshold": "0x40000000"}, True),
+    ({"glibc.malloc.mmap_max": "0", "glibc.malloc.arena_max": "2",
+      "glibc.malloc.trim_threshold": "17179869184"}, False),
+    ({"glibc.malloc.mmap_max": "zero"}, False)])
+def test_keeping_is_all_three_tunables(monkeypatch, tunables, keeps):
+    """KEEP needs all three settings (a partial or unreadable one reports no reuse,
+    and never raises: ``diffcam -v`` prints the status)."""
+    monkeypatch.setattr(memory, "_tunables", lambda: tunables)
+    if memory._glibc_version() is None:
+        keeps = False
+    assert memory.keeps_memory() is keeps
+    assert ("kept for reuse" in memory.status()) is keeps

@@ -132,9 +132,9 @@ def keeps_memory() -> bool:
         return False
     t = _tunables()
     try:
-        return (int(t.get("glibc.malloc.mmap_max", -1)) == 0
-                and int(t.get("glibc.malloc.arena_max", 0)) == 1
-                and int(t.get("glibc.malloc.trim_threshold", 0), 0) >= 1 << 30)
+        return (int(t.get("glibc.malloc.mmap_max", "-1"), 0) == 0
+                and int(t.get("glibc.malloc.arena_max", "0"), 0) == 1
+                and int(t.get("glibc.malloc.trim_threshold", "0"), 0) >= 1 << 30)
     except ValueError:
         return False
 
