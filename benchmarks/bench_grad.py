@@ -157,7 +157,7 @@ def _direct_chain(camera):
 def _scaling_chain(camera):
     """P' and S from diffcam's own geometry (``zeff_factors``, ``sample_points``)."""
     shape = camera.padded_shape
-    factors = zeff_factors(shape, camera, camera.wavelength, Z1)
+    factors = zeff_factors(camera, camera.wavelength, Z1)
     ty, tx = sample_points(shape, camera, Z1)
 
     def sample(field):

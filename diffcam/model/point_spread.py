@@ -92,11 +92,11 @@ def _source_fields(diffuser, camera, wavelength, z1, positions):
     return jax.vmap(one)(positions)
 
 
-def zeff_factors(shape, camera, wavelength, z1):
-    """The scaling theorem's transfer function on a grid of ``shape`` (the padded one),
-    times the separable spline prefilter, as four vectors (hy, hx, by, bx): the product
+def zeff_factors(camera, wavelength, z1):
+    """The scaling theorem's transfer function on the camera's padded grid, times the
+    separable spline prefilter, as four vectors (hy, hx, by, bx): the product
     (hy·hx)·(by·bx) multiplies the diffuser's spectrum (:func:`_zeff_spectrum`)."""
-    ny, nx = shape
+    ny, nx = camera.padded_shape
     hy, hx = transfer_factors(camera.padded_shape, camera.dx, wavelength,
                               effective_distance(z1, camera.z2))
     return hy, hx, bspline_prefilter(ny)[:, None], bspline_prefilter(nx)[None, :]
@@ -114,7 +114,7 @@ def _zeff_spectrum(diffuser_hat, camera, wavelength, z1):
     @jax.checkpoint
     def filtered(d, hy, hx, by, bx):
         return d * ((hy * hx) * (by * bx))
-    factors = zeff_factors(diffuser_hat.shape[-2:], camera, wavelength, z1)
+    factors = zeff_factors(camera, wavelength, z1)
     return filtered(diffuser_hat, *factors)[None]
 
 
