@@ -44,8 +44,8 @@ The price is memory, and a slow start:
 - XLA's aligned requests do not fit exactly into a freed block of their own size, so
   the heap grows by about one block per call for the first calls. In a probe, eight
   72 MiB blocks were added before it settled; beside another busy process, the growth
-  went on for up to 19 calls. The calls that grow it are slow (about 850 ms of system
-  time for 384 MB here).
+  went on for up to 19 calls, and an occasional later call grew it once more. The
+  calls that grow it are slow (about 850 ms of system time for 384 MB here).
 - The process then keeps its largest footprint until it exits: a peak of 2.6 GB
   against 1.3 GB for the 4096² gradient.
 
