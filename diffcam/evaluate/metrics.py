@@ -4,9 +4,16 @@ All are pure JAX, jit-able and differentiable; they reduce over the last two (sp
 axes and broadcast over leading batch axes, so a stack of PSFs is scored in one call.
 ``align="scale"`` or ``"affine"`` first fits ``a·estimate (+ b)`` to the reference by
 least squares: use it when the two images carry arbitrary exposure or normalisation.
+
+The composite scores (:func:`ssim`, :func:`registration_shift`, :func:`psf_fidelity`,
+:func:`phase_scores`) check their inputs, then run as one compiled program: called
+eagerly, op by op, they cost 10–30 ms a call and up to 2 s for the first, against
+1.5–4 ms and one compilation (256², and 96² stacks for ``psf_fidelity``).
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -170,13 +177,23 @@ def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx
     if ny < win or nx < win:
         raise ShapeError(f"images of {ny}×{nx} are smaller than the {win}×{win} SSIM window.")
     dr = _data_range(reference, data_range)
+    return _ssim(jnp.asarray(estimate), jnp.asarray(reference), dr,
+                 tuple(float(w) for w in weights), float(K1), float(K2),
+                 bool(use_sample_covariance), align)
+
+
+@partial(jax.jit, static_argnames=("weights", "K1", "K2", "use_sample_covariance", "align"))
+def _ssim(estimate, reference, dr, weights, K1, K2, use_sample_covariance, align):
+    """:func:`ssim` after its checks, one program (eagerly, op by op, it took 14 ms a
+    call at 256², against about 1 ms)."""
+    win = len(weights)
+    ny, nx = reference.shape[-2:]
     x = _aligned(estimate, reference, align)
     y = jnp.asarray(reference)
     dtype = jnp.result_type(x.dtype, y.dtype, jnp.float32)
     # in units of the data range, which leaves SSIM unchanged (c1, c2 scale with it):
     # the window's products of raw images leave float32's range (NaN above ~1e10)
     x, y = x.astype(dtype) / dr, y.astype(dtype) / dr
-    weights = [float(w) for w in weights]
     filt = lambda im: _separable_filter(im, weights)  # noqa: E731
     n_window = win ** 2
     cov_norm = n_window / (n_window - 1) if use_sample_covariance else 1.0
@@ -255,6 +272,15 @@ def phase_scores(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... n
     twin), ``raw`` (plain Pearson of θest and θtrue),
     ``mse`` (rad², piston-aligned) and ``mse_twin_resolved`` (the smaller of the MSEs of
     the estimate and its twin)."""
+    _check_pair(estimate, truth, "estimate", "truth")
+    mask = None if mask is None else jnp.asarray(mask)
+    return _phase_scores(jnp.asarray(estimate), jnp.asarray(truth), mask)
+
+
+@jax.jit
+def _phase_scores(estimate, truth, mask):
+    """:func:`phase_scores` after its checks, one program (eagerly, 12 ms a call at
+    256²)."""
     mse_twin = phase_mse(twin_phase(estimate), truth, mask=mask)
     mse_est = phase_mse(estimate, truth, mask=mask)
     return {
@@ -307,8 +333,15 @@ def registration_shift(moving: Float[Array, "... ny nx"], reference: Float[Array
     _check_pair(moving, reference, "moving", "reference")
     if not isinstance(upsample, int) or upsample < 1:
         raise DiffcamError(f"upsample must be a positive int, got {upsample!r}.")
-    a = fft2(jnp.asarray(reference))
-    b = fft2(jnp.asarray(moving))
+    return _registration_shift(jnp.asarray(moving), jnp.asarray(reference), upsample)
+
+
+@partial(jax.jit, static_argnames="upsample")
+def _registration_shift(moving, reference, upsample):
+    """:func:`registration_shift` after its checks, one program (eagerly it took 15 ms a
+    call at 256², and 1.5 s for the first)."""
+    a = fft2(reference)
+    b = fft2(moving)
     a, b = jnp.broadcast_arrays(a, b)
     product = a * jnp.conj(b)
     product = product / jnp.maximum(jnp.abs(product), jnp.finfo(product.real.dtype).tiny)
@@ -349,7 +382,14 @@ def psf_fidelity(model: Float[Array, "... ny nx"], measured: Float[Array, "... n
         (zero when ``register=False``).
     """
     _check_pair(model, measured, "model", "measured")
-    model, measured = jnp.asarray(model), jnp.asarray(measured)
+    return _fidelity(jnp.asarray(model), jnp.asarray(measured), register, upsample)
+
+
+@partial(jax.jit, static_argnames=("register", "upsample"))
+def _fidelity(model, measured, register, upsample):
+    """:func:`psf_fidelity` after its checks, as one program: called eagerly, its
+    registration, shift and scores ran op by op (2.2 s for the first call on a pair
+    of 96² stacks, 28 ms for each call after it, against 1.5 ms compiled)."""
     model, measured = jnp.broadcast_arrays(model, measured)
     if register:
         shift = registration_shift(model, measured, upsample=upsample)
