@@ -225,3 +225,28 @@ def test_wisdom_is_kept_between_runs(tmp_path, monkeypatch):
     assert b"fftw" in single.lower()
     assert fftw.load().shim.diffcam_fftw_import_wisdom(0, ctypes.c_char_p(single)) == 1
     assert fftw.load().shim.diffcam_fftw_import_wisdom(0, ctypes.c_char_p(b"garbage")) == 0
+
+
+@pytest.mark.parametrize("user", [None, "1234"])
+def test_openmp_team_spins_briefly_and_the_environment_is_left_alone(user):
+    """FFTW's OpenMP runtime, in its own report (``OMP_DISPLAY_ENV``), spins
+    ``OPENMP_SPIN`` iterations before a thread sleeps, unless the user set
+    ``GOMP_SPINCOUNT``; the process's environment is as it was (child processes do not
+    inherit the setting). A fresh process: the runtime reads it once, as it loads."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT",
+                                                          "OMP_WAIT_POLICY")}
+    env.update(OMP_DISPLAY_ENV="verbose", DIFFCAM_FFT="fftw")
+    if user is not None:
+        env["GOMP_SPINCOUNT"] = user
+    code = ("import os; from diffcam.core import fftw; fftw.load(); "
+            "print(os.environ.get('GOMP_SPINCOUNT'))")
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    expected = user or str(fftw.OPENMP_SPIN)
+    assert f"GOMP_SPINCOUNT = '{expected}'" in r.stderr, r.stderr
+    assert r.stdout.split()[-1] == str(user), r.stdout

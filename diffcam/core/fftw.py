@@ -36,6 +36,7 @@ the front. Use it through :mod:`diffcam.core.backend`, which picks the backend.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import ctypes
 import ctypes.util
 import functools
@@ -148,6 +149,31 @@ def _compile() -> Path:
     return target
 
 
+# How long a thread of FFTW's OpenMP team spins for more work before it sleeps, in
+# libgomp's busy-wait iterations (its default is 300,000). Within a transform the team
+# must not sleep: with no spin (GOMP_SPINCOUNT=0) Richardson–Lucy's iterations at 1024²
+# took 15.7 ms against 11.5. After a transform it should: a spinning thread holds a core
+# that XLA's next operations need, and psf_stack took 15.8 ms a PSF at 1024² against
+# 12.4 with 30,000 (medians of 4–5 processes; benchmarks/RESULTS.md, bench_fft).
+OPENMP_SPIN = 30_000
+
+
+@contextlib.contextmanager
+def _openmp_spin():
+    """``GOMP_SPINCOUNT`` = :data:`OPENMP_SPIN` while FFTW's OpenMP runtime loads (it
+    reads the variable once, then), unless the user set it or ``OMP_WAIT_POLICY``. The
+    environment is restored after, so child processes do not inherit it. A runtime
+    already loaded by another library keeps its settings."""
+    if "GOMP_SPINCOUNT" in os.environ or "OMP_WAIT_POLICY" in os.environ:
+        yield
+        return
+    os.environ["GOMP_SPINCOUNT"] = str(OPENMP_SPIN)
+    try:
+        yield
+    finally:
+        del os.environ["GOMP_SPINCOUNT"]
+
+
 class _Backend:
     """The loaded FFI library and FFTW, bound and registered with XLA."""
 
@@ -159,34 +185,40 @@ class _Backend:
         self.threads_supported = True
         self.keep = []  # the FFTW libraries, loaded for the process's lifetime
         self.files = {}
-        for precision in (0, 1):
-            main, threads = _fftw_files(precision)
-            self.files[precision] = main
-            lib = ctypes.CDLL(main, mode=ctypes.RTLD_GLOBAL)
-            self.keep.append(lib)
-            table = []
-            for name in _FUNCTIONS:
-                if name == "plan_with_nthreads":
-                    continue
-                table.append(ctypes.cast(getattr(lib, _PREFIX[precision] + name),
-                                         ctypes.c_void_p).value)
-            with_threads = self.shim.diffcam_fftw_no_threads
-            if threads is not None:
-                tlib = ctypes.CDLL(threads, mode=ctypes.RTLD_GLOBAL)
-                self.keep.append(tlib)
-                if getattr(tlib, _PREFIX[precision] + "init_threads")():
-                    with_threads = getattr(tlib, _PREFIX[precision] + "plan_with_nthreads")
-            if with_threads is self.shim.diffcam_fftw_no_threads:
-                self.threads_supported = False
-            table.insert(_FUNCTIONS.index("plan_with_nthreads"),
-                         ctypes.cast(with_threads, ctypes.c_void_p).value)
-            array = (ctypes.c_void_p * len(table))(*table)
-            if self.shim.diffcam_fftw_bind(precision, array) != 0:
-                raise DiffcamError("binding FFTW failed")
+        with _openmp_spin():
+            for precision in (0, 1):
+                self._bind(precision)
         for name in ("C2C", "R2C", "C2R"):
             jax.ffi.register_ffi_target(f"diffcam_fftw_{name.lower()}",
                                         jax.ffi.pycapsule(getattr(self.shim, f"DiffcamFftw{name}")),
                                         platform="cpu")
+
+    def _bind(self, precision: int) -> None:
+        """Load FFTW of one precision (0: single, 1: double) and hand the addresses of
+        its functions to the FFI library."""
+        main, threads = _fftw_files(precision)
+        self.files[precision] = main
+        lib = ctypes.CDLL(main, mode=ctypes.RTLD_GLOBAL)
+        self.keep.append(lib)
+        table = []
+        for name in _FUNCTIONS:
+            if name == "plan_with_nthreads":
+                continue
+            table.append(ctypes.cast(getattr(lib, _PREFIX[precision] + name),
+                                     ctypes.c_void_p).value)
+        with_threads = self.shim.diffcam_fftw_no_threads
+        if threads is not None:
+            tlib = ctypes.CDLL(threads, mode=ctypes.RTLD_GLOBAL)
+            self.keep.append(tlib)
+            if getattr(tlib, _PREFIX[precision] + "init_threads")():
+                with_threads = getattr(tlib, _PREFIX[precision] + "plan_with_nthreads")
+        if with_threads is self.shim.diffcam_fftw_no_threads:
+            self.threads_supported = False
+        table.insert(_FUNCTIONS.index("plan_with_nthreads"),
+                     ctypes.cast(with_threads, ctypes.c_void_p).value)
+        array = (ctypes.c_void_p * len(table))(*table)
+        if self.shim.diffcam_fftw_bind(precision, array) != 0:
+            raise DiffcamError("binding FFTW failed")
 
 
 @functools.cache
