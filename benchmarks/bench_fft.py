@@ -55,11 +55,13 @@ def _threads() -> int:
 def transform_rows(n: int, repeats: int) -> list[dict]:
     import jax
     import jax.numpy as jnp
-    import pyfftw
-    import scipy.fft
 
-    from diffcam.core import backend
+    from diffcam.core import backend, fftw
     from diffcam.optics.propagation import fresnel_tf
+
+    fftw.load()  # first: pyFFTW shares FFTW's OpenMP runtime, which keeps the settings
+    import pyfftw  # it read as it loaded (fftw.OPENMP_SPIN)
+    import scipy.fft
 
     rng = np.random.default_rng(0)
     u = (rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))).astype(np.complex64)
