@@ -388,12 +388,16 @@ def test_corrupt_phase_files(tmp_path, start, length, byte):
 
 # ------------------------------------------------------- interrupted command line
 
+@pytest.mark.slow
 def test_interrupted_cli_leaves_the_old_output(tmp_path):
     """`diffcam psf` writing thousands of PSFs over an existing file, interrupted by
     SIGINT or SIGTERM at several moments of its run (start-up, computing, writing): it
     exits without a traceback (130 after SIGINT, killed by SIGTERM or by a SIGINT that
-    came as it exited, or 0 if it had finished), the old file keeps its bytes unless the complete new stack replaced it,
-    and no temporary file is left."""
+    came as it exited, or 0 if it had finished), the old file keeps its bytes unless the
+    complete new stack replaced it, and no temporary file is left.
+
+    Among the slow tests (five end-to-end runs of the command, 20–24 s): the default
+    tests keep `test_sigterm_while_writing` and the signal tests below."""
     _phase_file(tmp_path / "phase.npz")
     base = [sys.executable, "-m", "diffcam", "psf", str(tmp_path / "phase.npz"),
             "--z1", "20mm:30mm:2um", "--z2", "1mm", "-o"]

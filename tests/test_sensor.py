@@ -61,8 +61,8 @@ def test_resample_jit_grad_vmap(x64):
         gm = jax.grad(f)(1.1)
         fd = (f(1.1 + 1e-5) - f(1.1 - 1e-5)) / 2e-5
         np.testing.assert_allclose(gm, fd, rtol=1e-4)
-        batch = jax.vmap(lambda m: resample(g, 1.0, 1.0, (64, 64), m, kind=kind,
-                                            max_width=2.0))(jnp.array([1.0, 1.2]))
+        batch = jax.jit(jax.vmap(lambda m: resample(g, 1.0, 1.0, (64, 64), m, kind=kind,
+                                                    max_width=2.0)))(jnp.array([1.0, 1.2]))
         assert batch.shape == (2, 64, 64)
     with pytest.raises(DiffcamError, match="max_width"):
         jax.jit(lambda m: resample(g, 1.0, 1.0, (64, 64), m))(1.1)
