@@ -1,4 +1,6 @@
-"""The command line, run as a user runs it (a subprocess)."""
+"""The command line, run as a user runs it (a subprocess). The error cases call
+``main()`` in the test's process instead (a subprocess each cost 1.5 s of start-up);
+`test_plan_reports_and_rejects_bad_units` checks errors through the real command."""
 
 import json
 import os
@@ -17,10 +19,8 @@ def _diffcam(*args, cwd=None):
 
 
 def _fails_cleanly(capsys, args, message, out):
-    """``diffcam ARGS`` called in the test's process (the error cases: a subprocess
-    each cost 1.5 s of start-up; `test_plan_reports_and_rejects_bad_units` checks the
-    same through the real command): exit 2, one line on stderr that says ``message``,
-    and no output or temporary file left behind."""
+    """``diffcam ARGS -o OUT`` in the test's process: exit 2, one error line on stderr
+    that says ``message``, and no output or temporary file left behind."""
     from diffcam.apps.cli import main
 
     capsys.readouterr()
@@ -31,7 +31,8 @@ def _fails_cleanly(capsys, args, message, out):
     err = capsys.readouterr().err
     errors = [line for line in err.splitlines() if "error:" in line]
     assert status == 2 and len(errors) == 1 and message in errors[0], (args, err)
-    assert not out.exists() and not list(out.parent.glob(f".{out.stem}-*"))
+    assert not out.exists() and not list(out.parent.glob(f".{out.stem}.*")), \
+        "an output or a temporary file (diffcam.io: .name.tmp-*) was left"
 
 
 @pytest.mark.slow
