@@ -11,11 +11,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pytest  # noqa: E402
 
-# every notebook takes 20-60 s even reduced (04_real_data: 20-24 s): run with the slow
-# tests, which .ci/run runs too
-_SLOW = {"01_fig3_phase_retrieval", "02_fig5_fig6_psf_and_reconstruction",
-         "03_fig9_depth_sweep", "04_real_data"}
-NOTEBOOKS = [pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if p.stem in _SLOW else [])
+# every notebook takes 20-60 s even reduced (04_real_data: 20-24 s): they run with the
+# slow tests, which .ci/run runs too
+NOTEBOOKS = [pytest.param(p, id=p.stem, marks=[pytest.mark.slow])
              for p in sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.py"))]
 
 

@@ -145,8 +145,6 @@ def status() -> str:
     pages = "huge pages for large blocks" if state == "on" else "4 KiB pages"
     if keeps_memory():
         return f"memory: {pages}, freed blocks kept for reuse"
-    if state == "on":
-        return f"memory: {pages}"
     if state == "off":
         return (f"memory: {pages} (GLIBC_TUNABLES={TUNABLE} before starting Python "
                 f"cuts the page faults of fresh buffers: diffcam.core.memory)")

@@ -97,7 +97,7 @@ def zeff_factors(camera, wavelength, z1):
     separable spline prefilter, as four vectors (hy, hx, by, bx): the product
     (hy·hx)·(by·bx) multiplies the diffuser's spectrum (:func:`_zeff_spectrum`)."""
     ny, nx = camera.padded_shape
-    hy, hx = transfer_factors(camera.padded_shape, camera.dx, wavelength,
+    hy, hx = transfer_factors((ny, nx), camera.dx, wavelength,
                               effective_distance(z1, camera.z2))
     return hy, hx, bspline_prefilter(ny)[:, None], bspline_prefilter(nx)[None, :]
 
