@@ -109,6 +109,18 @@ def test_prediction_reproduces_given_planes_and_carries_residuals(synthetic_stac
     assert float(pearson(alone, fit.predict([6])[0])) < 0.9999
 
 
+@pytest.mark.parametrize("planes, match", [
+    (2.7, "count or a sequence"), ("12", "count or a sequence"), (True, "count or a sequence"),
+    ([1.5], "integers"), ([3, True], "integers"), (0, "no planes"), ([], "no planes"),
+    (10 ** 7, "at most 4096"), ([5000], "magnification law reaches zero"),
+])
+def test_predict_refuses_bad_planes(synthetic_fit, planes, match):
+    """Fractions, strings and bools are not planes; a count is bounded before any work; a
+    plane where the fitted linear magnification law is ≤ 0 would render nonsense."""
+    with pytest.raises(DiffcamError, match=match):
+        synthetic_fit.predict(planes)
+
+
 def test_blend_baseline_mixes_bracketing_planes():
     """``blend=True``: at a given plane that plane; between two given planes the weighted
     mean of both magnified to t; outside the given range the nearest plane alone."""
@@ -144,6 +156,57 @@ def test_load_refuses_bad_files(tmp_path):
         load_stack_fit(other)
     with pytest.raises(DiffcamError, match="no such file"):
         load_stack_fit(tmp_path / "missing.npz")
+
+
+def test_load_refuses_older_format_with_what_to_do(synthetic_fit, tmp_path):
+    """A file of an earlier model format (per-sample phase) fails with one line that
+    says to fit again, not with a missing-array error."""
+    import json as _json
+    import zipfile
+
+    path = tmp_path / "fit.npz"
+    synthetic_fit.save(path)
+    with np.load(path) as f:
+        arrays = {k: f[k] for k in f.files}
+    meta = _json.loads(str(arrays["metadata"][()]))
+    meta["version"] = 2
+    arrays["metadata"] = np.array(_json.dumps(meta))
+    old = tmp_path / "old.npz"
+    np.savez(old, **{k: v for k, v in arrays.items() if not k.startswith("field_")})
+    assert zipfile.is_zipfile(old)
+    with pytest.raises(DiffcamError, match="fit the stack again") as err:
+        load_stack_fit(old)
+    assert "\n" not in str(err.value)
+
+
+def test_z2_and_magnification_are_one_unknown():
+    """The Fresnel scaling theorem's family: a diffuser magnified by a, seen from a·z2 by
+    sources whose magnification is M/a, gives the same PSF as the original at every
+    depth — computed with the engine's own PSF (paper Eq. 7, direct path). So a stack
+    fixes z2·M(t), never z2 and z1 apart (what :func:`fit_stack` reports)."""
+    import jax.numpy as jnp
+
+    import diffcam as dc
+
+    n, dx, lam, z2, a = 256, 4e-6, 532e-9, 1e-3, 0.8
+    yy, xx = (np.mgrid[0:n, 0:n] - n // 2) * dx
+
+    def phase(scale):   # a smooth diffuser, magnified by ``scale``
+        y, x = yy / scale, xx / scale
+        return (3 * np.sin(2 * np.pi * x / 90e-6) * np.cos(2 * np.pi * y / 70e-6)
+                + 2 * np.cos(2 * np.pi * (x + y) / 130e-6))
+
+    for z1 in (6e-3, 15e-3):
+        m = 1 + z2 / z1
+        z1_scaled = a * z2 / (m / a - 1)        # magnification M/a at distance a·z2
+        cam = dc.Camera(wavelength=lam, z2=z2, dx=dx, aperture_radius=0.3e-3,
+                        shape=(n, n), pad=n // 2, edge="soft")
+        big = dc.Camera(wavelength=lam, z2=a * z2, dx=dx, aperture_radius=a * 0.3e-3,
+                        shape=(n, n), pad=n // 2, edge="soft")
+        h = np.asarray(dc.psf(jnp.asarray(phase(1.0), jnp.float32), cam, z1))
+        g = np.asarray(dc.psf(jnp.asarray(phase(a), jnp.float32), big, z1_scaled))
+        assert float(pearson(h, g)) > 0.999, z1
+        assert abs(z2 * m - a * z2 * (1 + a * z2 / z1_scaled)) < 1e-12   # z2·M kept
 
 
 def _blobs(shape=(96, 128), seed=1):
@@ -222,6 +285,9 @@ def test_saturated_pixels_are_counted():
         fit_stack(stack, [2, 5], progress=False)
     with pytest.raises(DiffcamError, match="saturated"):
         fit_stack(_stack(), [2, 5], saturation=100.0, progress=False)
+    for level in (float("nan"), float("inf"), "abc", True):
+        with pytest.raises(DiffcamError, match="saturation must be"):
+            fit_stack(_stack(), [2, 5], saturation=level, progress=False)
 
 
 def test_options_validate():
@@ -232,6 +298,9 @@ def test_options_validate():
     with pytest.raises(DiffcamError, match="max_steps"):
         StackFitOptions(max_steps=0)
     assert StackFitOptions.of(zetas=64).zetas == (64.0,)
+    for bad in (math.inf, math.nan, -1.0):
+        with pytest.raises(DiffcamError, match="step_field must be a finite step"):
+            StackFitOptions(step_field=bad)
 
 
 @pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack_fit.StackFitWarning")
@@ -251,7 +320,7 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     assert "stopped: max_steps (4)" in out and "scaling baseline" in out
     fit = load_stack_fit(model)
     assert fit.planes == (4, 12) and fit.steps == 4
-    assert fit.identifiable["lambda_z_eff_m2"] > 0 and "z_eff_m" not in fit.identifiable
+    assert fit.identifiable["lambda_z2_M_reference_m2"] > 0 and "z2_M_reference_m" not in fit.identifiable
     pred = tmp_path / "pred.tif"
     assert main(["predict", str(model), "--planes", "0:10", "-o", str(pred)]) == 0
     images = tifffile.imread(pred)

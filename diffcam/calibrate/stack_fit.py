@@ -9,18 +9,23 @@ measured plane.
 The model (:class:`StackModel`; all lengths in **pixels** and plane indices, since a
 real stack rarely records its pitch or depths):
 
-* one complex diffuser-side field g = A·e^{jθ} on a grid ``oversample`` (2) times finer
-  than the sensor pixel of a virtual plane between the given ones (magnification
+* one complex diffuser-side field g on a grid ``oversample`` (2) times finer than the
+  sensor pixel of a virtual plane between the given ones (magnification
   m0 = √(s_min·s_max) relative to the reference), so every given plane is rendered
-  through the same resampling: θ free per sample, A = exp(cubic upsampling of a coarse
-  log-amplitude grid) times a fixed raised-cosine taper at the grid edge (no energy
-  can wrap around the FFT);
+  through the same resampling. g is band-limited: a cubic B-spline with one complex
+  coefficient every ``stride`` (2) fine samples, i.e. one per pixel (sampled by
+  :func:`diffcam.model.spline.spline_sample`), times a fixed raised-cosine taper at the
+  grid edge (no energy can wrap around the FFT);
 * plane t sees g propagated (Fresnel transfer function) by ζ(t) = ζ_ref·s(t)^(−κ) and
-  magnified by s(t) = M(t)/M(ref) about a fitted centre (the Fresnel scaling theorem),
-  M linear in the plane index (from the registered pair), κ fitted (the scaling
-  theorem says κ = 1; the fit settles near 0.06, see the prototype's report);
-* |·|², a Gaussian blur of σ fine samples, ``oversample``×``oversample`` binning to
-  pixels. Gain and offset are free: the loss is 1 − Pearson per plane.
+  magnified by s(t) = M(t)/M(ref) about a fitted centre, M linear in the plane index
+  (from the registered pair). κ = 1 is the Fresnel scaling theorem: a point at z1 is
+  imaged with magnification M = 1 + z2/z1 from the effective distance
+  z_eff = z1·z2/(z1 + z2) = z2/M, so the registered magnifications fix how the
+  distance changes with depth and only ζ_ref is fitted. κ = 0 is the frozen-distance
+  ablation;
+* |·|², a Gaussian blur of σ fine samples (the source's size and bandwidth),
+  ``oversample``×``oversample`` binning to pixels. Gain and offset are free: the loss
+  is 1 − Pearson per plane.
 
 Forward, per plane: G = FFT(g) once; u_t = IFFT(G·e^{−jπζ(t)(fx² + fy²)}) (f in cycles
 per fine sample, so ζ is in fine samples²: ζ = λ·z_eff/dx_fine²); u_t sampled at the
@@ -41,25 +46,30 @@ sub-pixel detail the per-sample phase cannot interpolate at unseen pixels.
 
 The fit (:func:`fit_stack`): register the reference plane (the first given one) with
 the given plane farthest from it; for each candidate ζ_ref run Gerchberg–Saxton between
-the given planes and keep the best start; then Adam with per-group step sizes on
+the given planes, take the least-squares spline coefficients of its field, and keep
+the best start; then Adam with per-group step sizes on
 Σ_k (1 − Pearson over the training pixels of plane k). A fraction of the pixels of every
 given plane (fixed seed) is held out for validation; the parameters with the best
 validation Pearson are kept, and the fit stops when validation has not improved for
 ``patience`` steps, at ``max_steps`` or at the time budget. Planes that are not given
 never enter.
 
-What is identifiable: only ζ = λ·z_eff/dx² (and the magnification law, the centre, the
-blur). With the pixel pitch the result reports λ·z_eff; with the wavelength too, z_eff.
-It never guesses z1 or z2.
+What is identifiable: ζ = λ·z_eff/dx² (and the magnification law, the centre, the
+blur). z2 and the absolute magnification are not: under the Fresnel scaling theorem a
+diffuser scaled by a, seen with magnification M·a from z2/a, gives the same PSFs at
+every depth, so the planes fix z_eff(t) = z2/M(t) but not z2. With the pixel pitch the
+result reports λ·z_eff; with the wavelength too, z_eff.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import time
 import warnings
+from functools import partial
 from pathlib import Path
 from typing import Mapping, NamedTuple, Sequence
 
@@ -75,9 +85,9 @@ from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.core.backend import fft2, ifft2, irfft2, rfft2, transfer_step
 from diffcam.core.phasor import expj
+from diffcam.model.spline import spline_sample
 from diffcam.calibrate.projections import fit_amplitude
 from diffcam.evaluate.metrics import pearson
-from diffcam.optics.elements import apply_phase
 from diffcam.optics.propagation import fresnel_tf_factors
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
                                            register_magnification,
@@ -87,8 +97,8 @@ __all__ = ["StackModel", "StackFitOptions", "StackFit", "StackFitWarning", "fit_
            "load_stack_fit", "prepare_planes", "FORMAT", "FORMAT_VERSION"]
 
 FORMAT = "diffcam-stack-fit"
-FORMAT_VERSION = 2
-_ARRAYS = ("theta", "log_amplitude", "log_zeta", "log_s", "centre", "log_sigma", "kappa")
+FORMAT_VERSION = 3
+_ARRAYS = ("field_real", "field_imag", "log_zeta", "log_s", "centre", "log_sigma", "kappa")
 
 
 class StackFitWarning(UserWarning):
@@ -158,9 +168,10 @@ def _gauss_blur(img, sigma, margin: int = 8):
     return out[margin:-margin, margin:-margin]
 
 
-def _fresnel(field, zeta):
-    """The Fresnel transfer function over ζ = λz/dx² (fine samples²) on the field grid."""
-    hy, hx = fresnel_tf_factors(field, 1.0, 1.0, zeta, 1.0)
+def _fresnel(grid, zeta):
+    """The Fresnel transfer function over ζ = λz/dx² (fine samples²) on the field grid:
+    in sample units (dx = λ = 1) the distance is ζ."""
+    hy, hx = fresnel_tf_factors(grid, 1.0, 1.0, 1.0, zeta)
     return hy * hx
 
 
@@ -169,26 +180,28 @@ def _fresnel(field, zeta):
 class StackModel(eqx.Module):
     """The wave model of a PSF stack (see the module docstring), as a pytree.
 
-    Array leaves (fitted): ``theta`` (ny, nx) radians on the field grid;
-    ``log_amplitude`` the coarse log-amplitude grid (every ``stride`` fine samples);
-    ``log_zeta`` log ζ_ref (ζ in fine samples²); ``log_s`` log M(anchor)/M(reference);
-    ``centre`` the magnification centre (y, x), pixels; ``log_sigma`` log of the blur's
-    std, fine samples; ``kappa`` the depth-law exponent ζ(t) = ζ_ref·s(t)^(−κ).
+    Array leaves (fitted): ``field_real``, ``field_imag`` the cubic B-spline coefficients
+    of the diffuser-side field g, one per ``stride`` fine samples; ``log_zeta`` log ζ_ref
+    (ζ in fine samples²); ``log_s`` log M(anchor)/M(reference); ``centre`` the
+    magnification centre (y, x), pixels; ``log_sigma`` log of the blur's std, fine
+    samples; ``kappa`` the depth-law exponent ζ(t) = ζ_ref·s(t)^(−κ) (1: the Fresnel
+    scaling theorem, z_eff = z2/M).
 
     Static fields (hashable: changing one recompiles): ``frame`` (H, W) pixels, ``pad``
-    fine samples added before the frame on each axis, ``field`` (ny, nx) the field grid,
-    ``stride``, ``reference`` and ``anchor`` plane indices (the magnification law runs
-    through them), ``oversample`` fine samples per pixel, ``frozen`` (κ ≡ 0: the
-    frozen-distance ablation), ``grid_magnification`` m0: the field grid is the fine
-    sensor grid of a virtual plane at s = m0.
+    fine samples added before the frame on each axis, ``grid`` (ny, nx) the fine field
+    grid, ``stride`` fine samples per field coefficient, ``reference`` and ``anchor``
+    plane indices (the magnification law runs through them), ``oversample`` fine
+    samples per pixel, ``frozen`` (κ ≡ 0: the frozen-distance ablation),
+    ``grid_magnification`` m0: the field grid is the fine sensor grid of a virtual plane
+    at s = m0.
 
     Field sample n ↔ pixel coordinate (n − pad − (o − 1)/2)/o of that virtual plane,
     o = ``oversample`` (pixel k's centre at k); plane t sees it magnified by s(t)/m0
     about ``centre``.
     """
 
-    theta: Float[Array, "ny nx"]
-    log_amplitude: Float[Array, "cy cx"]
+    field_real: Float[Array, "cy cx"]
+    field_imag: Float[Array, "cy cx"]
     log_zeta: Float[Array, ""]
     log_s: Float[Array, ""]
     centre: Float[Array, "2"]
@@ -196,7 +209,7 @@ class StackModel(eqx.Module):
     kappa: Float[Array, ""]
     frame: tuple[int, int] = eqx.field(static=True)
     pad: int = eqx.field(static=True)
-    field: tuple[int, int] = eqx.field(static=True)
+    grid: tuple[int, int] = eqx.field(static=True)
     stride: int = eqx.field(static=True)
     reference: int = eqx.field(static=True)
     anchor: int = eqx.field(static=True)
@@ -215,15 +228,18 @@ class StackModel(eqx.Module):
         kappa = 0.0 if self.frozen else self.kappa
         return jnp.exp(self.log_zeta) * self.magnification(t) ** (-kappa)
 
-    def amplitude(self) -> Float[Array, "ny nx"]:
-        """A = exp(cubic-upsampled log-amplitude) × the edge taper."""
-        taper = np.outer(_taper(self.field[0], self.pad), _taper(self.field[1], self.pad))
-        la = jax.image.resize(self.log_amplitude, self.field, "cubic")
-        return jnp.exp(la) * jnp.asarray(taper, la.dtype)
+    def field(self) -> Array:
+        """g on the fine grid: the cubic B-spline of the coefficients (band-limited at one
+        coefficient per ``stride`` samples) times the edge taper."""
+        taper = np.outer(_taper(self.grid[0], self.pad), _taper(self.grid[1], self.pad))
+        ty, tx = _coefficient_points(self.grid, self.stride)
+        c = self.field_real + 1j * self.field_imag
+        g = spline_sample(spline_sample(c, ty, -2), tx, -1)
+        return g * jnp.asarray(taper, jnp.float32)
 
     def spectrum(self) -> Array:
-        """FFT of the field g = A·e^{jθ} (shared by all planes)."""
-        return fft2(apply_phase(self.amplitude(), self.theta))
+        """FFT of the field g (shared by all planes)."""
+        return fft2(self.field())
 
     def _sample(self, u, s):
         """u on the field grid → the fine sensor grid of a plane at s (magnified by
@@ -241,7 +257,7 @@ class StackModel(eqx.Module):
     def render_plane(self, spec, t) -> Float[Array, "h w"]:
         """Pixel image of plane ``t`` (arbitrary gain) from ``spec`` = :meth:`spectrum`."""
         o, (h, w) = self.oversample, self.frame
-        u = ifft2(spec * _fresnel(self.field, self.distance(t)))
+        u = ifft2(spec * _fresnel(self.grid, self.distance(t)))
         v = self._sample(u, self.magnification(t))
         inten = jnp.real(v) ** 2 + jnp.imag(v) ** 2
         inten = _gauss_blur(inten, jnp.exp(self.log_sigma))
@@ -261,6 +277,25 @@ class StackModel(eqx.Module):
 
 
 CHUNK = 4     # planes per call of the compiled renderer
+MAX_PLANES = 4096
+"""Most planes one :meth:`StackFit.predict` call returns (a 270×320 frame: 1.4 GB);
+raise it for the session by assigning to this constant."""
+
+
+def _check_count(n: int) -> None:
+    if n < 1:
+        raise DiffcamError(f"no planes to predict (asked for {n}).")
+    if n > MAX_PLANES:
+        raise DiffcamError(f"{n} planes asked for; one call predicts at most {MAX_PLANES} "
+                           f"(diffcam.calibrate.stack_fit.MAX_PLANES): ask for fewer, or "
+                           f"raise the limit.")
+
+
+def _plane_index(t) -> int:
+    """A plane index: an int (not a bool, not a fraction or a string)."""
+    if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, np.integer)):
+        raise DiffcamError(f"plane indices must be integers, got {t!r}.")
+    return int(t)
 
 
 @eqx.filter_jit
@@ -293,13 +328,14 @@ class StackFitOptions(Options):
         validation_fraction: share of each given plane's pixels held out (0 < f < 0.5).
         seed: the validation split's and the GS start's seed.
         zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²);
-            the best start by training Pearson is kept (64 won in every case of the
-            real-stack benchmark when 32/64/128 were scanned).
+            the best start by training Pearson is kept.
         gs_iterations: Gerchberg–Saxton sweeps per candidate.
         oversample: fine samples per pixel (2: the prototype's).
         pad: fine samples of field grid beyond the frame on each side.
-        amplitude_stride: fine samples between log-amplitude unknowns.
-        kappa: start of the depth-law exponent κ.
+        field_stride: fine samples between field coefficients (the field is a cubic
+            B-spline: band-limited at one coefficient per ``field_stride`` samples).
+        kappa: the depth-law exponent κ, ζ(t) = ζ_ref·s(t)^(−κ): 1 is the Fresnel
+            scaling theorem (z_eff = z2/M).
         fit_kappa: fit κ (else it stays at ``kappa``).
         frozen: κ ≡ 0 (the frozen-distance ablation).
         sigma: start of the blur std, fine samples.
@@ -307,9 +343,9 @@ class StackFitOptions(Options):
             amplitude envelope, fine samples.
         dark_ring: width of the frame-border ring whose median is the dark level
             (:func:`prepare_planes`), pixels.
-        step_theta, step_amplitude, step_zeta, step_magnification, step_centre,
-        step_blur, step_kappa: Adam step sizes of θ (rad), log A, log ζ, log s, centre
-            (pixels), log σ and κ.
+        step_field, step_zeta, step_magnification, step_centre, step_blur, step_kappa:
+            Adam step sizes of the field coefficients (of a field of unit mean
+            intensity), log ζ, log s, centre (pixels), log σ and κ.
     """
 
     max_steps: int = 400
@@ -318,20 +354,19 @@ class StackFitOptions(Options):
     validation_fraction: float = 0.1
     seed: int = 0
     zetas: tuple[float, ...] = eqx.field(
-        default=(64.0,),
+        default=(16.0,),
         converter=lambda z: tuple(float(v) for v in np.atleast_1d(z)))
     gs_iterations: int = 30
     oversample: int = 2
     pad: int = 40
-    amplitude_stride: int = 4
-    kappa: float = 0.0
-    fit_kappa: bool = True
+    field_stride: int = 2
+    kappa: float = 1.0
+    fit_kappa: bool = False
     frozen: bool = False
     sigma: float = 1.0
     amplitude_blur: float = 6.0
     dark_ring: int = 6
-    step_theta: float = 0.005
-    step_amplitude: float = 0.01
+    step_field: float = 0.01
     step_zeta: float = 0.003
     step_magnification: float = 2e-5
     step_centre: float = 0.02
@@ -339,7 +374,7 @@ class StackFitOptions(Options):
     step_kappa: float = 0.01
 
     def __check_init__(self):
-        for name in ("max_steps", "patience", "oversample", "amplitude_stride"):
+        for name in ("max_steps", "patience", "oversample", "field_stride"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise DiffcamError(f"{name} must be a positive int, got {v!r}.")
@@ -361,8 +396,9 @@ class StackFitOptions(Options):
                 raise DiffcamError(f"{name} must be > 0 fine samples, got "
                                    f"{getattr(self, name)!r}.")
         for f in dataclasses.fields(self):
-            if f.name.startswith("step_") and not (float(getattr(self, f.name)) >= 0):
-                raise DiffcamError(f"{f.name} must be ≥ 0, got {getattr(self, f.name)!r}.")
+            v = getattr(self, f.name)
+            if f.name.startswith("step_") and not (0 <= float(v) < math.inf):
+                raise DiffcamError(f"{f.name} must be a finite step ≥ 0, got {v!r}.")
 
 
     def to_dict(self) -> dict:
@@ -416,8 +452,8 @@ def _to_field_grid(img, s, centre, model: StackModel):
     o, (h, w) = model.oversample, model.frame
     s = s / model.grid_magnification
     half = (o - 1) / 2.0
-    py = (np.arange(model.field[0]) - model.pad - half) / o
-    px = (np.arange(model.field[1]) - model.pad - half) / o
+    py = (np.arange(model.grid[0]) - model.pad - half) / o
+    px = (np.arange(model.grid[1]) - model.pad - half) / o
     sy = centre[0] + s * (py - centre[0])
     sx = centre[1] + s * (px - centre[1])
     yy, xx = np.meshgrid(sy, sx, indexing="ij")
@@ -441,37 +477,62 @@ def _gs(amp, mods, knowns, kernels, theta, n_iter):
 
 def _initial_model(imgs, planes, reg: Registration, zeta, opts: StackFitOptions
                    ) -> StackModel:
-    """Amplitude from the blurred reference plane; phase from GS between the planes."""
+    """Amplitude from the blurred reference plane, phase from GS between the planes;
+    the field's spline coefficients by least squares to A·e^{jθ}."""
     h, w = imgs[0].shape
     o, pad = opts.oversample, opts.pad
-    field = (_good_size(o * h + 2 * pad), _good_size(o * w + 2 * pad))
-    stride = opts.amplitude_stride
-    coarse = (-(-field[0] // stride) + 1, -(-field[1] // stride) + 1)
+    grid = (_good_size(o * h + 2 * pad), _good_size(o * w + 2 * pad))
+    stride = opts.field_stride
+    coarse = _coefficient_shape(grid, stride)
     ref, anchor = planes[0], max(planes[1:], key=lambda t: abs(t - planes[0]))
     kappa0 = 0.0 if opts.frozen else float(opts.kappa)
     ss = [float(relative_magnification_at(t, reg.magnification, ref, anchor)) for t in planes]
     shell = StackModel(
-        theta=jnp.zeros(field, jnp.float32),
-        log_amplitude=jnp.zeros(coarse, jnp.float32),
+        field_real=jnp.zeros(coarse, jnp.float32),
+        field_imag=jnp.zeros(coarse, jnp.float32),
         log_zeta=jnp.float32(np.log(zeta)), log_s=jnp.float32(np.log(reg.magnification)),
         centre=jnp.asarray(reg.centre, jnp.float32), log_sigma=jnp.float32(np.log(opts.sigma)),
-        kappa=jnp.float32(kappa0), frame=(h, w), pad=pad, field=field, stride=stride,
+        kappa=jnp.float32(kappa0), frame=(h, w), pad=pad, grid=grid, stride=stride,
         reference=ref, anchor=anchor, oversample=o, frozen=bool(opts.frozen),
         grid_magnification=float(np.sqrt(min(ss) * max(ss))))
-    taper = np.outer(_taper(field[0], pad), _taper(field[1], pad))
+    taper = np.outer(_taper(grid[0], pad), _taper(grid[1], pad))
     grids = [_to_field_grid(img, s, reg.centre, shell) for img, s in zip(imgs, ss)]
     env = np.where(grids[0][1], ndi.gaussian_filter(grids[0][0], opts.amplitude_blur), 0.0)
     amp = np.sqrt(np.clip(env, 0, None)) * taper
     energy = (amp ** 2).sum()
     mods = [np.sqrt(i * energy / max(i.sum(), 1e-30)) for i, _ in grids]
-    kernels = [_fresnel(field, jnp.float32(zeta * s ** (-kappa0))) for s in ss]
-    th0 = (0.1 * np.random.default_rng(opts.seed).standard_normal(field)).astype(np.float32)
+    kernels = [_fresnel(grid, jnp.float32(zeta * s ** (-kappa0))) for s in ss]
+    th0 = (0.1 * np.random.default_rng(opts.seed).standard_normal(grid)).astype(np.float32)
     theta = _gs(jnp.asarray(amp, jnp.float32), [jnp.asarray(m, jnp.float32) for m in mods],
                 [jnp.asarray(k) for _, k in grids], kernels,
                 jnp.asarray(th0), int(opts.gs_iterations))
-    env_c = jax.image.resize(jnp.asarray(env, jnp.float32), coarse, "linear", antialias=True)
-    log_amp = 0.5 * jnp.log(jnp.clip(env_c, 1e-3 * float(env.max()) + 1e-30, None))
-    return dataclasses.replace(shell, theta=theta, log_amplitude=log_amp)
+    c = _coefficients_of(jnp.asarray(amp, jnp.float32) * expj(theta), grid, stride)
+    return dataclasses.replace(shell, field_real=c.real, field_imag=c.imag)
+
+
+def _coefficient_shape(grid, stride: int) -> tuple[int, int]:
+    """Field coefficients per axis: one every ``stride`` fine samples, one more before
+    the grid and two after (the cubic's support)."""
+    return tuple(-(-n // stride) + 3 for n in grid)
+
+
+def _coefficient_points(grid, stride: int):
+    """Where the fine samples fall on the coefficient grid (fractional indices)."""
+    return tuple(jnp.asarray(np.arange(n) / stride + 1.0, jnp.float32) for n in grid)
+
+
+@partial(jax.jit, static_argnums=(1, 2, 3))
+def _coefficients_of(g, grid, stride: int, iterations: int = 40):
+    """Least-squares spline coefficients of the fine field ``g`` (conjugate gradients on
+    the normal equations; the sampling's transpose is its vjp)."""
+    ty, tx = _coefficient_points(grid, stride)
+
+    def upsample(c):
+        return spline_sample(spline_sample(c, ty, -2), tx, -1)
+
+    _, transpose = jax.vjp(upsample, jnp.zeros(_coefficient_shape(grid, stride), g.dtype))
+    normal = lambda c: transpose(upsample(c))[0]  # noqa: E731
+    return jax.scipy.sparse.linalg.cg(normal, transpose(g)[0], maxiter=iterations)[0]
 
 
 # -------------------------------------------------------------------------------- fit
@@ -517,7 +578,7 @@ def _adam_step(model, state, data, lr):
 
 def _step_sizes(model: StackModel, opts: StackFitOptions):
     kappa = opts.step_kappa if (opts.fit_kappa and not opts.frozen) else 0.0
-    sizes = dict(theta=opts.step_theta, log_amplitude=opts.step_amplitude,
+    sizes = dict(field_real=opts.step_field, field_imag=opts.step_field,
                  log_zeta=opts.step_zeta, log_s=opts.step_magnification,
                  centre=opts.step_centre, log_sigma=opts.step_blur, kappa=kappa)
     params = eqx.filter(model, eqx.is_array)
@@ -550,8 +611,9 @@ class StackFit:
             pixels (each given plane predicted from the nearest other given plane).
         worse_than_baseline: ``validation_score < baseline_validation``.
         zeta_scan: ``{ζ candidate (fine samples²): training Pearson of its GS start}``.
-        identifiable: what the data fix: ζ_ref in pixel units (λ·z_eff/pixel²), and
-            λ·z_eff (m²) and z_eff (m) when the pitch and wavelength were given.
+        identifiable: what the data fix: ζ_ref in pixel units; with the pixel pitch and
+            wavelength z2·M at the reference plane and over the stack (m), with z2 too
+            the magnifications and z1 over the stack (:func:`_identifiable`).
         physical: the physical inputs given (pixel pitch, wavelength, z2; m or None).
         options: the :class:`StackFitOptions` as a dict.
         seconds: wall time of the fit, s.
@@ -611,15 +673,29 @@ class StackFit:
         return out.astype(np.float32)
 
     def _plane_list(self, planes) -> list[int]:
+        """The planes to predict, checked: whole numbers, at most :data:`MAX_PLANES`,
+        none beyond where the fitted magnification law reaches zero."""
         if planes is None:
             if self.n_planes is None:
                 raise DiffcamError("this fit does not know the stack's plane count; pass "
                                    "the planes to predict.")
             planes = self.n_planes
-        ts = list(range(planes)) if isinstance(planes, (int, np.integer)) else \
-            [int(t) for t in planes]
-        if not ts:
-            raise DiffcamError("no planes to predict.")
+        if isinstance(planes, (bool, np.bool_, str, bytes, float, np.floating)):
+            raise DiffcamError(f"planes must be a count or a sequence of plane indices "
+                               f"(integers), got {planes!r}.")
+        if isinstance(planes, (int, np.integer)):
+            _check_count(int(planes))
+            ts = list(range(int(planes)))
+        else:
+            ts = [_plane_index(t) for t in np.asarray(planes, dtype=object).reshape(-1)]
+            _check_count(len(ts))
+        bad = [t for t in ts if not float(self.model.magnification(t)) > 0]
+        if bad:
+            raise DiffcamError(f"plane(s) {bad[:5]} lie beyond where the fitted "
+                               f"magnification law reaches zero (it is linear in the plane "
+                               f"index through planes {self.model.reference} and "
+                               f"{self.model.anchor}); predict planes nearer the fitted "
+                               f"ones.")
         return ts
 
     def _with_residuals(self, model: StackModel, ts: list[int]) -> np.ndarray:
@@ -668,7 +744,7 @@ class StackFit:
         m = self.model
         meta = {
             "format": FORMAT, "version": FORMAT_VERSION,
-            "geometry": {"frame": list(m.frame), "pad": m.pad, "field": list(m.field),
+            "geometry": {"frame": list(m.frame), "pad": m.pad, "grid": list(m.grid),
                          "stride": m.stride, "reference": m.reference, "anchor": m.anchor,
                          "oversample": m.oversample, "frozen": m.frozen,
                          "grid_magnification": m.grid_magnification},
@@ -694,17 +770,17 @@ class StackFit:
 
 
 def load_stack_fit(path: str | os.PathLike) -> StackFit:
-    """Read a :class:`StackFit` written by :meth:`StackFit.save` (format 1 files, which
-    hold no measured planes, predict by rendering alone).
+    """Read a :class:`StackFit` written by :meth:`StackFit.save`.
 
     Raises:
-        DiffcamError: missing, corrupt or truncated file, not a stack-fit file, a newer
-            format version, or arrays that do not match the recorded geometry.
+        DiffcamError: missing, corrupt or truncated file, not a stack-fit file, another
+            format version (an older one says to fit again), or arrays that do not match
+            the recorded geometry.
     """
     from diffcam.io import read_npz
 
     what = "a diffcam stack-fit file"
-    data = read_npz(path, ("metadata", "history", "validation") + _ARRAYS, what=what)
+    data = read_npz(path, ("metadata",), what=what)
     try:
         meta = json.loads(str(data["metadata"][()]))
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:
@@ -713,8 +789,13 @@ def load_stack_fit(path: str | os.PathLike) -> StackFit:
         if not isinstance(version, int) or version > FORMAT_VERSION:
             raise DiffcamError(f"{path}: stack-fit format version {version!r}; this diffcam "
                                f"reads versions ≤ {FORMAT_VERSION}: upgrade diffcam.")
+        if version < FORMAT_VERSION:
+            raise DiffcamError(f"{path}: stack-fit format version {version} holds a "
+                               f"per-sample phase model this diffcam no longer renders; "
+                               f"fit the stack again (diffcam fit STACK --planes …).")
+        data = read_npz(path, ("metadata", "history", "validation") + _ARRAYS, what=what)
         model = _model_from(data, meta["geometry"], path)
-        measured = _measured_from(path, meta, model) if version >= 2 else None
+        measured = _measured_from(path, meta, model)
         reg = meta["registration"]
         return StackFit(
             model=model, planes=tuple(int(t) for t in meta["planes"]),
@@ -743,16 +824,16 @@ def _model_from(data, g: dict, path) -> StackModel:
     model = StackModel(
         **{k: jnp.asarray(data[k], jnp.float32) for k in _ARRAYS},
         frame=tuple(int(v) for v in g["frame"]), pad=int(g["pad"]),
-        field=tuple(int(v) for v in g["field"]), stride=int(g["stride"]),
+        grid=tuple(int(v) for v in g["grid"]), stride=int(g["stride"]),
         reference=int(g["reference"]), anchor=int(g["anchor"]),
         oversample=int(g["oversample"]), frozen=bool(g["frozen"]),
         grid_magnification=float(g.get("grid_magnification", 1.0)))
-    coarse = (-(-model.field[0] // model.stride) + 1, -(-model.field[1] // model.stride) + 1)
-    if model.theta.shape != model.field or model.log_amplitude.shape != coarse \
+    coarse = _coefficient_shape(model.grid, model.stride)
+    if model.field_real.shape != coarse or model.field_imag.shape != coarse \
             or model.centre.shape != (2,):
-        raise DiffcamError(f"{path}: arrays do not match the recorded geometry (θ "
-                           f"{model.theta.shape}, field {model.field}); the file is "
-                           f"damaged.")
+        raise DiffcamError(f"{path}: arrays do not match the recorded geometry (field "
+                           f"coefficients {model.field_real.shape}, expected {coarse}); the "
+                           f"file is damaged.")
     if not all(np.isfinite(np.asarray(data[k])).all() for k in _ARRAYS):
         raise DiffcamError(f"{path}: the model holds NaN/Inf values; the file is damaged.")
     if not model.grid_magnification > 0:
@@ -857,7 +938,8 @@ def _check_saturation(frames, planes, level):
                            f"them, or pass saturation=None to fit them as they are.")
 
 
-def _physical(pixel_pitch, wavelength, z2, zeta_px):
+def _check_physical(pixel_pitch, wavelength, z2) -> dict:
+    """The physical inputs given (metres or ``None``), checked."""
     from diffcam.core.errors import check_positive
 
     phys = {"pixel_pitch": pixel_pitch, "wavelength": wavelength, "z2": z2}
@@ -865,14 +947,38 @@ def _physical(pixel_pitch, wavelength, z2, zeta_px):
         if v is not None:
             check_positive(name, v, "m")
             phys[name] = float(v)
+    return phys
+
+
+def _identifiable(phys: dict, model: StackModel, n_planes: int | None) -> dict:
+    """What the planes fix, in physical units as far as ``phys`` allows.
+
+    ζ_ref = λ·z_eff/d² with d the diffuser-side sample pitch, (pitch/o)/M_virtual; with
+    z_eff = z2/M this is λ·z2·M(ref)·m0²/(pitch/o)²: the planes fix z2·M(t) =
+    z2 + z2²/z1(t), not z2 and z1 apart (module docstring). Given z2 too,
+    M(t) = z2·M(t)/z2 and z1(t) = z2/(M(t) − 1).
+    """
+    zeta_px = model.zeta_pixels
     ident = {"zeta_reference_px2": zeta_px,
-             "note": "only ζ = λ·z_eff/pixel² is identifiable from the planes; z1 and z2 "
-                     "are not (the depth law is fitted, κ ≠ 1)."}
-    if phys["pixel_pitch"] is not None:
-        ident["lambda_z_eff_m2"] = zeta_px * phys["pixel_pitch"] ** 2
-        if phys["wavelength"] is not None:
-            ident["z_eff_m"] = ident["lambda_z_eff_m2"] / phys["wavelength"]
-    return phys, ident
+             "note": "the planes fix ζ = λ·z2·M/pixel², i.e. z2·M(t) = z2 + z2²/z1(t) "
+                     "given the pixel pitch and wavelength; z1 needs z2 as well."}
+    pitch, lam, z2 = phys["pixel_pitch"], phys["wavelength"], phys["z2"]
+    if pitch is None:
+        return ident
+    m0 = model.grid_magnification
+    ident["lambda_z2_M_reference_m2"] = zeta_px * pitch ** 2 / m0 ** 2
+    if lam is None:
+        return ident
+    z2m_ref = ident["lambda_z2_M_reference_m2"] / lam
+    ident["z2_M_reference_m"] = z2m_ref
+    ends = [0, n_planes - 1] if n_planes else sorted({model.reference, model.anchor})
+    s = [float(model.magnification(t)) for t in ends]
+    ident["z2_M_range_m"] = [z2m_ref * v for v in s]
+    if z2 is not None:
+        m = [z2m_ref * v / z2 for v in s]
+        ident["magnification_range"] = m
+        ident["z1_range_m"] = [z2 / (v - 1) if v > 1 else None for v in m]
+    return ident
 
 
 # ------------------------------------------------------------------------ entry point
@@ -896,8 +1002,9 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
         saturation: pixel value at or above which a pixel is saturated (input units):
             ``"auto"`` is 0.999 × the full scale of an integer input and no check for
             float input; ``None`` skips the check. Saturated pixels raise.
-        pixel_pitch, wavelength, z2: optional physical inputs, metres; they only turn ζ
-            into λ·z_eff and z_eff in ``identifiable`` (nothing is fitted from them).
+        pixel_pitch, wavelength, z2: optional physical inputs, metres; they turn ζ into
+            z2·M(t) and, with z2, into z1(t) in ``identifiable`` (nothing is fitted from
+            them).
         registration: M(anchor)/M(reference) and the fixed point, if already known
             (the anchor is the given plane farthest from the reference).
 
@@ -914,7 +1021,7 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     opts = StackFitOptions.of(options, **overrides)
     frames, planes, n_planes, dtype = _given_planes(stack, planes)
     _check_saturation(frames, planes, _saturation_level(saturation, dtype))
-    _physical(pixel_pitch, wavelength, z2, 1.0)     # checks the inputs before compute
+    phys = _check_physical(pixel_pitch, wavelength, z2)
     t0 = time.perf_counter()
     imgs = [p.astype(np.float32) for p in prepare_planes(np.stack(frames), opts.dark_ring,
                                                           labels=planes)]
@@ -930,7 +1037,7 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     run = _descend(model, data, opts, t0, progress)
     _render(run.model, planes[:1])      # compiles the predictor inside the fit
     base = _baseline_validation(imgs, planes, registration, val, ref, anchor)
-    phys, ident = _physical(pixel_pitch, wavelength, z2, run.model.zeta_pixels)
+    ident = _identifiable(phys, run.model, n_planes)
     fit = StackFit(model=run.model, planes=tuple(planes), n_planes=n_planes,
                    registration=registration, history=np.asarray(run.train),
                    validation=np.asarray(run.validation), stop_reason=run.reason,
@@ -954,6 +1061,12 @@ def _saturation_level(saturation, dtype) -> float | None:
                                f"{saturation!r}.")
         return 0.999 * float(np.iinfo(dtype).max) \
             if np.issubdtype(dtype, np.integer) else None
+    if saturation is not None:
+        if isinstance(saturation, bool) or not isinstance(saturation, (int, float, np.number)) \
+                or not np.isfinite(saturation):
+            raise DiffcamError(f"saturation must be a finite pixel level, 'auto' or None, "
+                               f"got {saturation!r}.")
+        return float(saturation)
     return saturation
 
 
