@@ -42,6 +42,7 @@ and predict seconds: the maximum; worst_r: the minimum). ``--quick`` runs one pa
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 import warnings
@@ -98,7 +99,7 @@ def spread_planes(count: int, n_planes: int) -> list[int]:
     return [int(round(t)) for t in np.linspace(2, n_planes - 3, count)]
 
 
-def run_case(raw: np.ndarray, planes: list[int], label: str) -> dict:
+def run_case(raw: np.ndarray, planes: list[int], label: str, **options) -> dict:
     """Model, baseline and frozen ablation for one stack and set of given planes: one
     JSON-able row."""
     n = raw.shape[0]
@@ -110,13 +111,13 @@ def run_case(raw: np.ndarray, planes: list[int], label: str) -> dict:
         warnings.simplefilter("ignore", StackFitWarning)
         t0 = time.perf_counter()
         fit = fit_stack(raw, planes, progress=False, pixel_pitch=PIXEL_PITCH,
-                        wavelength=WAVELENGTH)
+                        wavelength=WAVELENGTH, **options)
         fit_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         pred = fit.predict(held)
         predict_s = time.perf_counter() - t0
         frozen_fit = fit_stack(raw, planes, progress=False, frozen=True,
-                               registration=fit.registration)
+                               registration=fit.registration, **options)
         frozen = frozen_fit.predict(held)
         rendered = fit.predict(held, residual=False)
     given = {k: measured[k] for k in planes}
@@ -165,6 +166,12 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=12)
     parser.add_argument("--crop", type=float, default=0.8, help="area kept by the crop")
     parser.add_argument("--quick", action="store_true", help="one pair")
+    parser.add_argument("--time-budget", type=float, default=None,
+                        help="each fit's time budget, s (default: the fit's own); a busy "
+                             "machine needs more to reach the same step")
+    parser.add_argument("--options", type=json.loads, default={},
+                        help="fit options as JSON, e.g. '{\"field_stride\": 3}' or "
+                             "'{\"fit_kappa\": true}' (the ablations of docs/stack_fit.md)")
     parser.add_argument("--spread", type=int, nargs="*", default=[3, 5],
                         help="also fit this many planes spread over the stack (each count "
                              "once on the original and once transformed)")
@@ -180,7 +187,10 @@ def main(argv=None) -> None:
         for label in ("original", f"{kind}+crop{args.crop:g}"):
             stack = raw if label == "original" else transform_stack(
                 raw, kind, args.crop, np.random.default_rng(crop_seed))
-            row = run_case(stack, planes, label)
+            options = dict(args.options)
+            if args.time_budget is not None:
+                options["time_budget"] = args.time_budget
+            row = run_case(stack, planes, label, **options)
             rows.append(row)
             print(f"{row['pair']} {label}: model {row['model_mean']:.4f}, baseline "
                   f"{row['baseline_mean']:.4f}, frozen {row['frozen_mean']:.4f}, "
@@ -191,7 +201,7 @@ def main(argv=None) -> None:
                   f"fit {row['fit_s']:.1f} s "
                   f"({row['stop_reason']})", flush=True)
             write_json("stack_fit", rows, {"seed": args.seed, "pairs": len(cases),
-                                           "crop": args.crop, "options": "defaults"})
+                                           "crop": args.crop, "options": args.options})
     for r in rows:
         r["z2M_ref_mm"] = None if r["z2M_ref_m"] is None else 1e3 * r["z2M_ref_m"]
     table = [{k: r[k] for k in COLUMNS} for r in rows]
@@ -221,7 +231,7 @@ def main(argv=None) -> None:
     table = [{k: fmt(k, v) for k, v in r.items()} for r in table]
     print(markdown_table(table, COLUMNS))
     print("wrote", write_json("stack_fit", rows, {"seed": args.seed, "pairs": len(cases),
-                                                  "crop": args.crop, "options": "defaults"}))
+                                                  "crop": args.crop, "options": args.options}))
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ frozen-distance ablation and the model's rendering alone. Results go to
 from __future__ import annotations
 
 import argparse
+import math
 import warnings
 
 import numpy as np
@@ -36,8 +37,8 @@ def curves(planes: list[int]) -> tuple[dict, np.ndarray, object]:
     n = len(z1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", StackFitWarning)
-        fit = fit_stack(noisy, planes, progress=False)
-        frozen = fit_stack(noisy, planes, progress=False, frozen=True,
+        fit = fit_stack(noisy, planes, progress=False, time_budget=math.inf)
+        frozen = fit_stack(noisy, planes, progress=False, frozen=True, time_budget=math.inf,
                            registration=fit.registration)
     measured = prepare_planes(noisy)
     predictors = {"model": fit.predict(n), "frozen": frozen.predict(n),

@@ -30,6 +30,7 @@ rank correlation with the measured volume's depths. A figure shows the three max
 from __future__ import annotations
 
 import argparse
+import math
 import time
 import warnings
 
@@ -79,7 +80,8 @@ def stacks(raw_stack: np.ndarray, planes: list[int]) -> tuple[dict, object]:
     measured = prepare_planes(raw_stack)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", StackFitWarning)
-        fit = fit_stack(raw_stack, planes, progress=False, saturation=None)
+        fit = fit_stack(raw_stack, planes, progress=False, saturation=None,
+                        time_budget=math.inf)
     n = raw_stack.shape[0]
     base = scaling_baseline({t: measured[t] for t in planes}, n,
                             registration=fit.registration)
