@@ -121,6 +121,12 @@ def test_predict_refuses_bad_planes(synthetic_fit, planes, match):
         synthetic_fit.predict(planes)
 
 
+@pytest.mark.parametrize("kappa", [math.nan, math.inf, 1e6, "1", True])
+def test_predict_refuses_bad_kappa(synthetic_fit, kappa):
+    with pytest.raises(DiffcamError, match="kappa must be a number"):
+        synthetic_fit.predict([3], kappa=kappa)
+
+
 def test_blend_baseline_mixes_bracketing_planes():
     """``blend=True``: at a given plane that plane; between two given planes the weighted
     mean of both magnified to t; outside the given range the nearest plane alone."""
@@ -315,7 +321,7 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     np.save(src, stack)
     model = tmp_path / "model.npz"
     assert main(["fit", str(src), "--planes", "4,12", "--max-steps", "4", "--no-progress",
-                 "--pixel", "3.45um", "-o", str(model)]) == 0
+                 "--time-budget", "900", "--pixel", "3.45um", "-o", str(model)]) == 0
     out = capsys.readouterr().out
     assert "stopped: max_steps (4)" in out and "scaling baseline" in out
     fit = load_stack_fit(model)

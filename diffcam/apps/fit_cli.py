@@ -130,11 +130,17 @@ def _cmd_fit(args) -> int:
           f"{fit.steps}\n"
           f"  validation Pearson: model {fit.validation_score:.4f}, scaling baseline "
           f"{fit.baseline_validation:.4f}{worse}\n"
-          f"  ζ_ref {fit.model.zeta_pixels:.3g} px² (λ·z_eff/pixel²), κ "
+          f"  ζ_ref {fit.model.zeta_pixels:.3g} px² (λ·z2·M/pixel²){_z2m(fit)}, κ "
           f"{float(fit.model.kappa):.3f}, magnification {fit.registration.magnification:.5f}"
           f" about ({fit.registration.centre[0]:.1f}, {fit.registration.centre[1]:.1f}) px\n"
           f"  {fit.seconds:.1f} s → {args.out}")
     return 0
+
+
+def _z2m(fit) -> str:
+    """z2·M at the reference plane in mm, when the pitch and wavelength were given."""
+    z2m = fit.identifiable.get("z2_M_reference_m")
+    return "" if z2m is None else f" = z2·M {1e3 * z2m:.2f} mm at plane {fit.planes[0]}"
 
 
 def _cmd_predict(args) -> int:
@@ -271,9 +277,11 @@ def _add_fit(sub) -> None:
                      help="frozen-distance ablation: ζ the same at every plane")
     fit.add_argument("--saturation", help="pixel value counted as saturated, or 'none' "
                                           "(default: 0.999 × full scale of integer data)")
-    fit.add_argument("--pixel", type=_length("pixel"), help="pixel pitch (only reported)")
-    fit.add_argument("--wavelength", type=_length("wavelength"), help="(only reported)")
-    fit.add_argument("--z2", type=_length("z2"), help="diffuser to sensor (only reported)")
+    fit.add_argument("--pixel", type=_length("pixel"),
+                     help="pixel pitch (reported: with --wavelength, the distance z2·M)")
+    fit.add_argument("--wavelength", type=_length("wavelength"), help="(reported, as above)")
+    fit.add_argument("--z2", type=_length("z2"),
+                     help="diffuser to sensor (reported: with the two above, z1 per plane)")
     fit.add_argument("--no-progress", action="store_true", help="no progress bar")
     fit.add_argument("-o", "--out", required=True, help="model file (.npz)")
     fit.set_defaults(func=_cmd_fit)

@@ -661,6 +661,11 @@ class StackFit:
         """
         ts = self._plane_list(planes)
         model = self.model
+        if kappa is not None and not (isinstance(kappa, (int, float, np.number))
+                                      and not isinstance(kappa, bool)
+                                      and abs(float(kappa)) <= 10):
+            raise DiffcamError(f"kappa must be a number in [-10, 10] (1: the scaling "
+                               f"theorem's depth law, 0: frozen distance), got {kappa!r}.")
         if kappa is not None:
             model = eqx.tree_at(lambda m: m.kappa, model, jnp.float32(kappa))
             if model.frozen and kappa != 0:
