@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import tifffile
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
@@ -233,7 +234,7 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
     pos_dev = put(jnp.asarray(pos, dtype))
 
     def to_host(start, out, n):
-        return start, np.asarray(jax.device_get(out))[:n] if host else out[:n]
+        return start, _gather(out)[:n] if host else out[:n]
 
     pending = buffers = None  # the chunk in flight is copied out after the next one starts
     for start in range(0, depths.size, step):
@@ -248,6 +249,15 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
             yield to_host(*pending)
         pending = (start, out, n)
     yield to_host(*pending)
+
+
+def _gather(out) -> np.ndarray:
+    """A chunk as a host array on this process. A chunk sharded over other processes'
+    devices too (after ``jax.distributed.initialize()``) is all-gathered, so every
+    process receives the whole chunk."""
+    if out.is_fully_addressable:
+        return np.asarray(jax.device_get(out))
+    return np.asarray(multihost_utils.process_allgather(out, tiled=True))
 
 
 def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
@@ -304,6 +314,7 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     full = (depths.size, npos) + tuple(camera.out_shape)
     shape = full if offsets is not None else (full[0],) + full[2:]
     show = depths.size >= _PROGRESS_FROM if progress is None else progress
+    show = show and jax.process_index() == 0  # one bar, however many processes
     bar = tqdm(total=depths.size, unit="depth", disable=not show, desc="PSF stack")
     meta = _meta(camera, depths, offsets, spectrum, normalise)
 
@@ -318,27 +329,47 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             for start, block in _blocks(pages()):
                 stack[start:start + len(block)] = block
             return stack
-        path = outputs[0]
-        if path.endswith(".npy"):  # pixels and metadata replace the old pair together
-            with atomic_output(*outputs) as (temp, temp_json):
-                stack = np.lib.format.open_memmap(temp, mode="w+", dtype=np.float32,
-                                                  shape=shape)
-                for start, block in _blocks(pages()):
-                    stack[start:start + len(block)] = block
-                stack.flush()
-                del stack
-                with open(temp_json, "w") as f:
-                    f.write(meta.to_json())
-            return np.load(path, mmap_mode="r")
-        if path.endswith(".npz"):
-            with atomic_output(path) as temp:
-                _write_npz(temp, pages(), shape, meta)
-            return _memmap_npz_stack(path)
-        with atomic_output(path) as temp:
-            _write_tiff(temp, (page for block in pages() for page in block), shape, meta)
-        return tifffile.memmap(path, mode="r")
+        if jax.process_index() == 0:
+            _write(outputs, pages(), shape, meta)
+        else:  # process 0 writes the file; the others compute their shares of each chunk
+            for _ in pages():
+                pass
+        if jax.process_count() > 1:  # the file is complete before any process opens it
+            multihost_utils.sync_global_devices("diffcam.psf_stack: file written")
+        return _open_written(outputs[0])
     finally:
         bar.close()
+
+
+def _write(outputs, pages, shape, meta: StackMeta) -> None:
+    """Stream ``pages`` (blocks of PSFs) into ``outputs`` (:func:`_output_paths`)
+    atomically: the old files stay as they were until every block is written."""
+    path = outputs[0]
+    if path.endswith(".npy"):  # pixels and metadata replace the old pair together
+        with atomic_output(*outputs) as (temp, temp_json):
+            stack = np.lib.format.open_memmap(temp, mode="w+", dtype=np.float32,
+                                              shape=shape)
+            for start, block in _blocks(pages):
+                stack[start:start + len(block)] = block
+            stack.flush()
+            del stack
+            with open(temp_json, "w") as f:
+                f.write(meta.to_json())
+    elif path.endswith(".npz"):
+        with atomic_output(path) as temp:
+            _write_npz(temp, pages, shape, meta)
+    else:
+        with atomic_output(path) as temp:
+            _write_tiff(temp, (page for block in pages for page in block), shape, meta)
+
+
+def _open_written(path: str) -> np.ndarray:
+    """A read-only memory map of the stack in ``path``, written by :func:`_write`."""
+    if path.endswith(".npy"):
+        return np.load(path, mmap_mode="r")
+    if path.endswith(".npz"):
+        return _memmap_npz_stack(path)
+    return tifffile.memmap(path, mode="r")
 
 
 def _output_paths(out) -> tuple[str, ...]:
