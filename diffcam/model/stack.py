@@ -43,6 +43,7 @@ from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (_irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
 from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.progress import enabled
 from diffcam.io import atomic_output, check_output_path, check_read_size, read_npz
 
 __all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
@@ -296,7 +297,8 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             (:func:`diffcam.io.atomic_output`): an existing file is replaced only once
             the whole stack is written, and an error, Ctrl-C or SIGTERM meanwhile leaves
             it as it was, with no temporary file behind.
-        progress: show a tqdm bar; default on from 32 depths.
+        progress: show a tqdm bar (on process 0 of several); default on from 32
+            depths; ``DIFFCAM_PROGRESS=0`` turns it off.
         devices: devices to shard the depth axis over (default ``jax.devices()``).
         accept_undersampling: turn sampling errors into warnings.
 
@@ -314,7 +316,7 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     full = (depths.size, npos) + tuple(camera.out_shape)
     shape = full if offsets is not None else (full[0],) + full[2:]
     show = depths.size >= _PROGRESS_FROM if progress is None else progress
-    show = show and jax.process_index() == 0  # one bar, however many processes
+    show = enabled(show) and jax.process_index() == 0  # one bar, however many processes
     bar = tqdm(total=depths.size, unit="depth", disable=not show, desc="PSF stack")
     meta = _meta(camera, depths, offsets, spectrum, normalise)
 
