@@ -178,14 +178,6 @@ _PROCESS = textwrap.dedent("""
 """)
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow  # 25 s: both processes compile the sharded chunk (9-13 s on 2 cores)
 def test_two_processes_equal_one(setup, tmp_path):
     """Two JAX processes (``jax.distributed.initialize``, gloo collectives on CPU, one
@@ -193,11 +185,12 @@ def test_two_processes_equal_one(setup, tmp_path):
     positions and a two-line Spectrum, in memory on each process and streamed by process
     0 to .npy, .npz and .tif (what every process returns, and what load_stack reads),
     equals the single-process stack bit for bit."""
+    from diffcam.apps.processes import free_port
     from diffcam.model.camera import Spectrum
 
     cam, phase = setup
     np.save(tmp_path / "phase.npy", phase)
-    address = f"localhost:{_free_port()}"
+    address = f"localhost:{free_port()}"
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     env.pop("XLA_FLAGS", None)
     procs = [subprocess.Popen([sys.executable, "-c", _PROCESS, address, str(rank),

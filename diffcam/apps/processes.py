@@ -37,7 +37,8 @@ from typing import Mapping, Sequence
 from diffcam.core.errors import DiffcamError
 
 __all__ = ["distributed_settings", "initialize_from_environment", "run_processes",
-           "report_error", "in_distributed_run", "GRACE"]
+           "report_error", "in_distributed_run", "worker_env", "cpu_shares", "free_port",
+           "GRACE"]
 
 ADDRESS, COUNT, RANK = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
 ERRORS = "DIFFCAM_PROCESS_ERRORS"  # set by run_processes: a folder for the error lines
@@ -105,24 +106,36 @@ def report_error(command: str, message: str) -> None:
     """Say what went wrong in one line: on stderr, prefixed by the process index in a
     run of several processes; under :func:`run_processes`, in a file it reads (it
     prints one line for the whole run)."""
-    rank = int(os.environ.get(RANK, os.environ.get("SLURM_PROCID", "0")))
-    line = message.splitlines()[0] if message else "failed"
     folder = os.environ.get(ERRORS)
-    if folder:
-        Path(folder, f"{rank}.txt").write_text(f"{time.time_ns()} {line}")
+    if folder:  # run_processes started this process, and set its JAX_PROCESS_ID
+        line = message.splitlines()[0] if message else "failed"
+        Path(folder, f"{os.environ[RANK]}.txt").write_text(f"{time.time_ns()} {line}")
         return
-    where = f"process {rank}: " if rank and in_distributed_run() else ""
-    print(f"diffcam {command}: error: {where}{line}", file=sys.stderr)
+    where = ""
+    if in_distributed_run():
+        import jax
+
+        where = f"process {jax.process_index()}: " if jax.process_index() else ""
+    print(f"diffcam {command}: error: {where}{message}", file=sys.stderr)
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A TCP port on localhost that is free now (for process 0's coordinator)."""
     with socket.socket() as s:
         s.bind(("localhost", 0))
         return s.getsockname()[1]
 
 
-def _cpu_shares(count: int) -> list[set[int] | None]:
-    """This process's CPUs split into ``count`` shares (``None``: no affinity to set)."""
+def worker_env(address: str, count: int, rank: int) -> dict[str, str]:
+    """The environment of process ``rank`` of ``count`` whose process 0 listens at
+    ``address`` (host:port): this process's, with the variables
+    :func:`distributed_settings` reads."""
+    return dict(os.environ, **{ADDRESS: address, COUNT: str(count), RANK: str(rank)})
+
+
+def cpu_shares(count: int) -> list[set[int] | None]:
+    """This process's CPUs split into ``count`` shares, one per process (XLA sizes its
+    CPU thread pool to the CPUs a process may run on); ``None``: no affinity to set."""
     if not hasattr(os, "sched_getaffinity"):
         return [None] * count
     cpus = sorted(os.sched_getaffinity(0))
@@ -132,11 +145,10 @@ def _cpu_shares(count: int) -> list[set[int] | None]:
 
 
 def _start(argv: Sequence[str], count: int, errors: str) -> list[subprocess.Popen]:
-    port = _free_port()
+    address = f"localhost:{free_port()}"
     procs = []
-    for rank, cpus in enumerate(_cpu_shares(count)):
-        env = dict(os.environ, **{ADDRESS: f"localhost:{port}", COUNT: str(count),
-                                  RANK: str(rank), ERRORS: errors})
+    for rank, cpus in enumerate(cpu_shares(count)):
+        env = dict(worker_env(address, count, rank), **{ERRORS: errors})
         quiet = None if rank == 0 else subprocess.DEVNULL
         bind = None if cpus is None else (lambda c=cpus: os.sched_setaffinity(0, c))
         procs.append(subprocess.Popen([sys.executable, "-m", "diffcam", *argv], env=env,

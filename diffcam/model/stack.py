@@ -9,10 +9,13 @@ intensities (see :func:`diffcam.model.point_spread.fields_for_fft`); both write 
 two field-sized buffers (donated), which spares a fresh, page-faulted buffer per call.
 A chunk holds one field per depth, wavelength and, on the direct path, lateral position.
 With
-several devices the chunk's depth axis is sharded over a ``jax.sharding.Mesh`` of them
-(and, after
-``jax.distributed.initialize()``, over hosts). Everything the depths share (the
-diffuser's field, or its FFT on the scaling-theorem path) is computed once.
+several devices the chunk's depth axis is sharded over a ``jax.sharding.Mesh`` of them.
+After ``jax.distributed.initialize()`` ``jax.devices()`` lists every process's devices,
+so the mesh spans processes and hosts: each process computes its devices' share of a
+chunk, and the chunk is all-gathered so that every process holds it; a stack in memory
+is then on every process, and a file is written by process 0 alone
+(docs/distributed.md). Everything the depths share (the diffuser's field, or its FFT on
+the scaling-theorem path) is computed once per process.
 
 Saving and loading (:func:`save_stack`, :func:`load_stack`) keep the metadata
 (:class:`StackMeta`) beside the pixels: ``.npz`` round-trips exactly; ``.tif`` is an
@@ -114,12 +117,27 @@ def camera_record(camera: Camera) -> dict:
 
 # ----------------------------------------------------------------------------- compute
 
+def _per_device(fn, sharding, batched, shared):
+    """``fn(*batched, *shared)``, with a ``sharding`` over devices: each device computes
+    ``fn`` on its own slice of the ``batched`` arguments (their leading axis) with the
+    ``shared`` ones replicated (``jax.shard_map``). Left to XLA's partitioner, the FFTs
+    were all-gathered and every device computed the whole chunk. No collective runs
+    inside (``check_vma=False``: the loops inside need no replication types)."""
+    if sharding is None:
+        return fn(*batched, *shared)
+    per_device = jax.shard_map(lambda b, s: fn(*b, *s), mesh=sharding.mesh,
+                               in_specs=(sharding.spec, PartitionSpec()),
+                               out_specs=sharding.spec, check_vma=False)
+    return per_device(batched, shared)
+
+
 @partial(jax.jit, static_argnames=("sharding",), donate_argnums=0, keep_unused=True)
 def _chunk_inputs(scratch, prepared, camera, wavelengths, z1, positions, sharding):
     """The FFT inputs of a chunk, written over ``scratch`` (donated)."""
     del scratch
-    out = jax.vmap(lambda z: fields_for_fft(prepared, camera, wavelengths, z, positions))(z1)
-    return out if sharding is None else jax.lax.with_sharding_constraint(out, sharding)
+    fields = jax.vmap(lambda z, p, c, w, x: fields_for_fft(p, c, w, z, x),
+                      in_axes=(0, None, None, None, None))
+    return _per_device(fields, sharding, (z1,), (prepared, camera, wavelengths, positions))
 
 
 @partial(jax.jit, static_argnames=("normalise", "sharding"), donate_argnums=(0, 1),
@@ -129,12 +147,11 @@ def _chunk_outputs(inputs, scratch, camera, wavelengths, weights, z1, positions,
     """PSFs of a chunk, and the two buffers its FFTs wrote: ``inputs`` and ``scratch``
     (both donated) are written over, so no fresh N² buffer is page-faulted in per chunk."""
     del scratch
-    out, written = jax.vmap(lambda u, z: _irradiance_and_fields(u, camera, wavelengths, weights,
-                                                                z, positions, normalise)
-                            )(inputs, z1)
-    if sharding is not None:
-        out, written = jax.lax.with_sharding_constraint((out, written), sharding)
-    return out, written
+    psfs = jax.vmap(lambda u, z, c, w, g, x: _irradiance_and_fields(u, c, w, g, z, x,
+                                                                    normalise),
+                    in_axes=(0, 0, None, None, None, None))
+    return _per_device(psfs, sharding, (inputs, z1), (camera, wavelengths, weights,
+                                                      positions))
 
 
 def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sharding,
@@ -186,7 +203,9 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
                    ) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
     """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
     shape ``(n, npos, ny, nx)``: host numpy, or with ``to_host=False`` the device array
-    (for work that stays on the device, a GPU reconstruction say). Other arguments as in
+    (for work that stays on the device, a GPU reconstruction say; with several
+    processes, a global array whose shards are on each process's devices). Other
+    arguments as in
     :func:`psf_stack`; the inputs are checked when this is called, before the first
     chunk.
 
@@ -296,15 +315,19 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             (:func:`diffcam.io.check_output_path`), and the file is written atomically
             (:func:`diffcam.io.atomic_output`): an existing file is replaced only once
             the whole stack is written, and an error, Ctrl-C or SIGTERM meanwhile leaves
-            it as it was, with no temporary file behind.
+            it as it was, with no temporary file behind. With several processes
+            (``jax.distributed``) process 0 writes it, and every process returns its
+            memory map once it is written: the folder must be one they all see.
         progress: show a tqdm bar (on process 0 of several); default on from 32
             depths; ``DIFFCAM_PROGRESS=0`` turns it off.
-        devices: devices to shard the depth axis over (default ``jax.devices()``).
+        devices: devices to shard the depth axis over (default ``jax.devices()``:
+            every process's, after ``jax.distributed.initialize()``).
         accept_undersampling: turn sampling errors into warnings.
 
     Returns:
         float array ``(nz, npos, ny, nx)`` (or ``(nz, ny, nx)`` without positions):
-        numpy in memory, or a read-only memory map of ``out``.
+        numpy in memory, or a read-only memory map of ``out``; the whole stack on
+        every process.
     """
     outputs = _output_paths(out)  # before any work: a bad path costs nothing
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)

@@ -1,0 +1,164 @@
+"""PSF stacks as one process with two threads against two processes with one thread each.
+
+    python -m benchmarks.bench_distributed [--size 256] [--depths 64] [--repeats 3]
+
+The same stack (a random diffuser, 5 µm pitch, 532 nm, aperture radius 0.3·N·dx, the
+scaling-theorem path, on-axis depths 22–30 mm, in memory) is computed
+
+- by one process on both CPUs (XLA's thread pool spans the CPUs a process may use), and
+- by two JAX processes (``jax.distributed.initialize``, gloo collectives), each bound
+  to one CPU as ``diffcam psf --processes 2`` binds them
+  (:func:`diffcam.apps.processes.cpu_shares`): each computes half of every chunk's
+  depths and both receive the whole chunk (all-gather).
+
+Each worker computes the stack once untimed (compilation), then ``--timed`` times; the
+PSFs/s is depths over the median timed wall time of process 0 (the processes start each
+timed run together, after a barrier). Configurations alternate, ``--repeats`` fresh
+runs each, so a busy spell of the shared machine hits both. Peak memory per process is
+its ``ru_maxrss`` (MB: 2**20 bytes). The claim: the two-process path costs at most 15 %
+of the one-process throughput (same cores, same total compute).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from benchmarks.harness import markdown_table, write_json
+
+LAM, DX, Z2, Z1_RANGE = 532e-9, 5e-6, 1e-3, (22e-3, 30e-3)
+OVERHEAD = 0.15  # the claim: two processes lose at most 15 % of the PSFs/s
+
+
+def worker(size: int, depths: int, timed: int) -> None:
+    """One process of a run: the stack once to compile, ``timed`` times timed; prints
+    a JSON line (rank, median seconds, first-call seconds, peak RSS)."""
+    from diffcam.apps.processes import initialize_from_environment
+
+    several = initialize_from_environment()
+    import jax
+    from jax.experimental import multihost_utils
+
+    from diffcam.model import Camera, psf_stack, random_diffuser
+
+    camera = Camera(wavelength=LAM, z2=Z2, dx=DX, aperture_radius=0.3 * size * DX,
+                    shape=(size, size))
+    phase = np.asarray(random_diffuser(jax.random.key(0), (size, size), DX, LAM))
+    z1 = np.linspace(*Z1_RANGE, depths)
+    t = time.perf_counter()
+    psf_stack(phase, camera, z1, progress=False)
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(timed):
+        if several:
+            multihost_utils.sync_global_devices("bench start")
+        t = time.perf_counter()
+        stack = psf_stack(phase, camera, z1, progress=False)
+        times.append(time.perf_counter() - t)
+    print(json.dumps({"rank": jax.process_index(), "median_s": statistics.median(times),
+                      "first_s": first, "checksum": float(np.sum(stack, dtype=np.float64)),
+                      "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10,
+                      "threads_cpus": len(os.sched_getaffinity(0))}), flush=True)
+
+
+def launch(count: int, size: int, depths: int, timed: int) -> dict:
+    """``count`` worker processes on this machine's CPUs (split between them); the row."""
+    from diffcam.apps.processes import cpu_shares, free_port, worker_env
+
+    address = f"localhost:{free_port()}"
+    cmd = [sys.executable, "-m", "benchmarks.bench_distributed", "--worker",
+           "--size", str(size), "--depths", str(depths), "--timed", str(timed)]
+    procs = []
+    t = time.perf_counter()
+    for rank, cpus in enumerate(cpu_shares(count)):
+        env = worker_env(address, count, rank) if count > 1 else dict(os.environ)
+        bind = None if cpus is None else (lambda c=cpus: os.sched_setaffinity(0, c))
+        procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True, preexec_fn=bind))
+    outs = [p.communicate(timeout=3600) for p in procs]
+    wall = time.perf_counter() - t
+    for p, (_, err) in zip(procs, outs):
+        if p.returncode:
+            raise RuntimeError(f"a worker failed ({p.returncode}): {err[-2000:]}")
+    recs = sorted((json.loads(o.strip().splitlines()[-1]) for o, _ in outs),
+                  key=lambda r: r["rank"])
+    return {"processes": count, "cpus_each": recs[0]["threads_cpus"],
+            "psfs_per_s": depths / recs[0]["median_s"], "first_s": recs[0]["first_s"],
+            "peak_mb_each": max(r["peak_mb"] for r in recs), "run_wall_s": wall,
+            "checksum": recs[0]["checksum"], "loadavg": os.getloadavg()[0]}
+
+
+def run(size: int, depths: int, repeats: int, timed: int) -> list[dict]:
+    rows = []
+    for k in range(repeats):
+        for count in (1, 2):
+            rows.append({"N": size, "depths": depths, "repeat": k,
+                         **launch(count, size, depths, timed)})
+    return rows
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    """Per configuration: PSFs/s median and range over the repeats, and the paired ratio
+    (two processes over one, within each repeat)."""
+    out = []
+    for count in (1, 2):
+        mine = [r for r in rows if r["processes"] == count]
+        rates = [r["psfs_per_s"] for r in mine]
+        out.append({"processes": count, "cpus_each": mine[0]["cpus_each"],
+                    "psfs_per_s": statistics.median(rates), "min": min(rates),
+                    "max": max(rates), "peak_mb_each": statistics.median(
+                        r["peak_mb_each"] for r in mine),
+                    "first_s": statistics.median(r["first_s"] for r in mine),
+                    "run_wall_s": statistics.median(r["run_wall_s"] for r in mine)})
+    pairs = {}
+    for r in rows:
+        pairs.setdefault(r["repeat"], {})[r["processes"]] = r["psfs_per_s"]
+    ratios = [p[2] / p[1] for p in pairs.values()]
+    for row in out:
+        row["x_one"] = 1.0 if row["processes"] == 1 else statistics.median(ratios)
+    out[1]["x_range"] = f"{min(ratios):.3f}–{max(ratios):.3f}"
+    return out
+
+
+COLUMNS = ["processes", "cpus_each", "psfs_per_s", "min", "max", "x_one", "x_range",
+           "peak_mb_each", "first_s", "run_wall_s"]
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--size", type=int, default=256, help="grid N (N² samples)")
+    p.add_argument("--depths", type=int, default=64)
+    p.add_argument("--repeats", type=int, default=3, help="fresh runs per configuration")
+    p.add_argument("--timed", type=int, default=3, help="timed stacks per run")
+    p.add_argument("--quick", action="store_true", help="128², 32 depths, 2 repeats")
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.worker:
+        return worker(args.size, args.depths, args.timed)
+    if args.quick:
+        args.size, args.depths, args.repeats = 128, 32, 2
+    rows = run(args.size, args.depths, args.repeats, args.timed)
+    checks = {r["checksum"] for r in rows}
+    table = summary(rows)
+    loss = 1 - table[1]["x_one"]
+    verdict = (f"two processes × 1 CPU reach {table[1]['x_one']:.3f}× the PSFs/s of one "
+               f"process × 2 CPUs (paired median over {args.repeats} runs): overhead "
+               f"{loss:.1%}, {'within' if loss <= OVERHEAD else 'NOT within'} "
+               f"{OVERHEAD:.0%}; stacks identical: {len(checks) == 1}")
+    print(markdown_table(table, COLUMNS))
+    print(f"- {verdict}")
+    path = write_json("distributed", rows, {"summary": table, "claim": verdict,
+                                            "memory": "peak_mb_each: ru_maxrss, 2**20 B"})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
