@@ -1,11 +1,12 @@
 """PSF stacks as one process with two threads against two processes with one thread each.
 
-    python -m benchmarks.bench_distributed [--size 256] [--depths 64] [--repeats 3]
+    python -m benchmarks.bench_distributed [--size 512] [--depths 64] [--repeats 3]
 
 The same stack (a random diffuser, 5 µm pitch, 532 nm, aperture radius 0.3·N·dx, the
 scaling-theorem path, on-axis depths 22–30 mm, in memory) is computed
 
-- by one process on both CPUs (XLA's thread pool spans the CPUs a process may use), and
+- by one process on both CPUs (XLA's thread pool spans the CPUs a process may use),
+- by one process on one CPU (what each of the two processes below has), and
 - by two JAX processes (``jax.distributed.initialize``, gloo collectives), each bound
   to one CPU as ``diffcam psf --processes 2`` binds them
   (:func:`diffcam.apps.processes.cpu_shares`): each computes half of every chunk's
@@ -69,8 +70,9 @@ def worker(size: int, depths: int, timed: int) -> None:
                       "threads_cpus": len(os.sched_getaffinity(0))}), flush=True)
 
 
-def launch(count: int, size: int, depths: int, timed: int) -> dict:
-    """``count`` worker processes on this machine's CPUs (split between them); the row."""
+def launch(count: int, size: int, depths: int, timed: int, one_cpu: bool = False) -> dict:
+    """``count`` worker processes on this machine's CPUs (split between them; with
+    ``one_cpu``, one process on the first CPU alone); the row."""
     from diffcam.apps.processes import cpu_shares, free_port, worker_env
 
     address = f"localhost:{free_port()}"
@@ -78,7 +80,8 @@ def launch(count: int, size: int, depths: int, timed: int) -> dict:
            "--size", str(size), "--depths", str(depths), "--timed", str(timed)]
     procs = []
     t = time.perf_counter()
-    for rank, cpus in enumerate(cpu_shares(count)):
+    shares = [set(sorted(os.sched_getaffinity(0))[:1])] if one_cpu else cpu_shares(count)
+    for rank, cpus in enumerate(shares):
         env = worker_env(address, count, rank) if count > 1 else dict(os.environ)
         bind = None if cpus is None else (lambda c=cpus: os.sched_setaffinity(0, c))
         procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
@@ -96,45 +99,45 @@ def launch(count: int, size: int, depths: int, timed: int) -> dict:
             "checksum": recs[0]["checksum"], "loadavg": os.getloadavg()[0]}
 
 
+CONFIGS = {"1 × 2 CPUs": (1, False), "2 × 1 CPU": (2, False), "1 × 1 CPU": (1, True)}
+
+
 def run(size: int, depths: int, repeats: int, timed: int) -> list[dict]:
+    """Every configuration of :data:`CONFIGS` in turn, ``repeats`` times."""
     rows = []
     for k in range(repeats):
-        for count in (1, 2):
-            rows.append({"N": size, "depths": depths, "repeat": k,
-                         **launch(count, size, depths, timed)})
+        for name, (count, one_cpu) in CONFIGS.items():
+            rows.append({"config": name, "N": size, "depths": depths, "repeat": k,
+                         **launch(count, size, depths, timed, one_cpu)})
     return rows
 
 
 def summary(rows: list[dict]) -> list[dict]:
-    """Per configuration: PSFs/s median and range over the repeats, and the paired ratio
-    (two processes over one, within each repeat)."""
+    """Per configuration: PSFs/s median and range over the repeats, and the ratio to
+    one process on both CPUs paired within each repeat (median and range)."""
+    base = {r["repeat"]: r["psfs_per_s"] for r in rows if r["config"] == "1 × 2 CPUs"}
     out = []
-    for count in (1, 2):
-        mine = [r for r in rows if r["processes"] == count]
+    for name in CONFIGS:
+        mine = [r for r in rows if r["config"] == name]
         rates = [r["psfs_per_s"] for r in mine]
-        out.append({"processes": count, "cpus_each": mine[0]["cpus_each"],
-                    "psfs_per_s": statistics.median(rates), "min": min(rates),
-                    "max": max(rates), "peak_mb_each": statistics.median(
-                        r["peak_mb_each"] for r in mine),
+        ratios = [r["psfs_per_s"] / base[r["repeat"]] for r in mine]
+        out.append({"config": name, "psfs_per_s": statistics.median(rates),
+                    "min": min(rates), "max": max(rates),
+                    "x_one": statistics.median(ratios),
+                    "x_range": f"{min(ratios):.3f}–{max(ratios):.3f}",
+                    "peak_mb_each": statistics.median(r["peak_mb_each"] for r in mine),
                     "first_s": statistics.median(r["first_s"] for r in mine),
                     "run_wall_s": statistics.median(r["run_wall_s"] for r in mine)})
-    pairs = {}
-    for r in rows:
-        pairs.setdefault(r["repeat"], {})[r["processes"]] = r["psfs_per_s"]
-    ratios = [p[2] / p[1] for p in pairs.values()]
-    for row in out:
-        row["x_one"] = 1.0 if row["processes"] == 1 else statistics.median(ratios)
-    out[1]["x_range"] = f"{min(ratios):.3f}–{max(ratios):.3f}"
     return out
 
 
-COLUMNS = ["processes", "cpus_each", "psfs_per_s", "min", "max", "x_one", "x_range",
+COLUMNS = ["config", "psfs_per_s", "min", "max", "x_one", "x_range",
            "peak_mb_each", "first_s", "run_wall_s"]
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--size", type=int, default=256, help="grid N (N² samples)")
+    p.add_argument("--size", type=int, default=512, help="grid N (N² samples)")
     p.add_argument("--depths", type=int, default=64)
     p.add_argument("--repeats", type=int, default=3, help="fresh runs per configuration")
     p.add_argument("--timed", type=int, default=3, help="timed stacks per run")
@@ -150,7 +153,8 @@ def main(argv=None):
     table = summary(rows)
     loss = 1 - table[1]["x_one"]
     verdict = (f"two processes × 1 CPU reach {table[1]['x_one']:.3f}× the PSFs/s of one "
-               f"process × 2 CPUs (paired median over {args.repeats} runs): overhead "
+               f"process × 2 CPUs (paired median over {args.repeats} runs, range "
+               f"{table[1]['x_range']}): overhead "
                f"{loss:.1%}, {'within' if loss <= OVERHEAD else 'NOT within'} "
                f"{OVERHEAD:.0%}; stacks identical: {len(checks) == 1}")
     print(markdown_table(table, COLUMNS))

@@ -253,8 +253,15 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
     prepared = _prepare(phase, camera, wavelengths)
     pos_dev = put(jnp.asarray(pos, dtype))
 
+    # a chunk spanning other processes' devices is all-gathered as soon as it is
+    # dispatched, so that every process can copy it out while the next chunk computes
+    gather = host and sharding is not None and not sharding.is_fully_addressable
+
     def to_host(start, out, n):
-        return start, _gather(out)[:n] if host else out[:n]
+        if not host:
+            return start, out[:n]
+        whole = out.addressable_data(0) if gather else out
+        return start, np.asarray(jax.device_get(whole))[:n]
 
     pending = buffers = None  # the chunk in flight is copied out after the next one starts
     for start in range(0, depths.size, step):
@@ -265,19 +272,22 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
         zb = jax.device_put(zb, sharding) if sharding is not None else put(zb)
         out, buffers = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise,
                               sharding, buffers)
+        if gather:
+            out = _all_gather(out, replicate)
         if pending is not None:
             yield to_host(*pending)
         pending = (start, out, n)
     yield to_host(*pending)
 
 
-def _gather(out) -> np.ndarray:
-    """A chunk as a host array on this process. A chunk sharded over other processes'
-    devices too (after ``jax.distributed.initialize()``) is all-gathered, so every
-    process receives the whole chunk."""
-    if out.is_fully_addressable:
-        return np.asarray(jax.device_get(out))
-    return np.asarray(multihost_utils.process_allgather(out, tiled=True))
+def _identity(x):
+    return x
+
+
+def _all_gather(out, replicate):
+    """``out`` on every device (``replicate``: a replicated sharding of its mesh), the
+    collective dispatched and not waited for."""
+    return jax.jit(_identity, out_shardings=replicate)(out)
 
 
 def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
