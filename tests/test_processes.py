@@ -133,10 +133,11 @@ def _written(out) -> int:
 @pytest.mark.parametrize("victim", [1, 0, "launcher"])
 def test_a_killed_process_ends_the_run_and_keeps_the_old_file(phase_file, tmp_path, victim):
     """SIGKILL to one of the two processes (1, or 0, the one writing the temporary file)
-    once 10 of the 1201 PSFs are in the temporary file ends the run: the other process is ended, the command
-    exits with status 2 and one line naming the killed process, the old .tif keeps its
-    bytes and no temporary file is left (the launcher removes the one process 0 could
-    not). SIGTERM to the command itself ends both processes, with the same guarantees."""
+    once 10 of the 1201 PSFs are in the temporary file ends the run: the other process
+    is ended, the command exits with status 2 and one line naming the killed process,
+    the old .tif keeps its bytes and no temporary file is left (the launcher removes the
+    one process 0 could not). SIGTERM to the command itself ends both processes, with
+    the same guarantees."""
     out = tmp_path / "stack.tif"
     old = os.urandom(4096)
     out.write_bytes(old)

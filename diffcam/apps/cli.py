@@ -487,9 +487,9 @@ def _add_psf(sub) -> None:
     ps.add_argument("-o", "--out", required=True,
                     help="output .npz or .tif (a stack fit: .tif or .npy)")
     ps.add_argument("--processes", type=int, default=1,
-                    help="JAX processes on this machine, each on its share of the CPUs, "
-                         "writing one file (a cluster: start one diffcam psf per task "
-                         "instead, see docs/distributed.md)")
+                    help="JAX processes on this machine, each computing its share of "
+                         "the depths, writing one file (a cluster: start one diffcam psf "
+                         "per task instead, see docs/distributed.md)")
     ps.set_defaults(func=_cmd_psf)
 
 

@@ -10,16 +10,18 @@ module only starts the processes and reads their environment:
   of process 0, the variable ``jax.distributed.initialize()`` reads itself),
   ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``; or, without them, a SLURM job step of
   several tasks (``srun``), whose variables ``jax.distributed.initialize()`` reads.
-- **One machine** (:func:`run_processes`): N copies of the command, each bound to its
-  share of this process's CPUs, process 0 on the terminal (progress bar, summary) and
-  the others silent. The first process to fail ends the others (SIGTERM, then SIGKILL
+- **One machine** (:func:`run_processes`): N copies of the command, process 0 on the
+  terminal (progress bar, summary) and the others silent. They are not bound to CPUs:
+  on a machine others use too, bound processes ran slower than unbound ones
+  (benchmarks/bench_distributed.py). The first process to fail ends the others (SIGTERM, then SIGKILL
   after :data:`GRACE` seconds); one line says which process failed and why, and
   temporary files the run left beside its outputs are removed, so an existing output
   keeps its old bytes.
 
 A process that fails after ``jax.distributed.initialize()`` ends with ``os._exit``
-(:func:`diffcam.apps.cli.run`): a normal interpreter exit would wait in JAX's shutdown barrier for
-peers that are blocked in a collective, until the heartbeat timeout (100 s) aborts it.
+(:func:`diffcam.apps.cli.run`): a normal interpreter exit would wait in JAX's shutdown
+barrier for peers that are blocked in a collective, until the heartbeat timeout (100 s)
+aborts it.
 """
 
 from __future__ import annotations
@@ -37,8 +39,7 @@ from typing import Mapping, Sequence
 from diffcam.core.errors import DiffcamError
 
 __all__ = ["distributed_settings", "initialize_from_environment", "run_processes",
-           "report_error", "in_distributed_run", "worker_env", "cpu_shares", "free_port",
-           "GRACE"]
+           "report_error", "in_distributed_run", "worker_env", "free_port", "GRACE"]
 
 ADDRESS, COUNT, RANK = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
 ERRORS = "DIFFCAM_PROCESS_ERRORS"  # set by run_processes: a folder for the error lines
@@ -133,26 +134,14 @@ def worker_env(address: str, count: int, rank: int) -> dict[str, str]:
     return dict(os.environ, **{ADDRESS: address, COUNT: str(count), RANK: str(rank)})
 
 
-def cpu_shares(count: int) -> list[set[int] | None]:
-    """This process's CPUs split into ``count`` shares, one per process (XLA sizes its
-    CPU thread pool to the CPUs a process may run on); ``None``: no affinity to set."""
-    if not hasattr(os, "sched_getaffinity"):
-        return [None] * count
-    cpus = sorted(os.sched_getaffinity(0))
-    if len(cpus) < count:
-        return [None] * count
-    return [set(cpus[i::count]) for i in range(count)]
-
-
 def _start(argv: Sequence[str], count: int, errors: str) -> list[subprocess.Popen]:
     address = f"localhost:{free_port()}"
     procs = []
-    for rank, cpus in enumerate(cpu_shares(count)):
+    for rank in range(count):
         env = dict(worker_env(address, count, rank), **{ERRORS: errors})
         quiet = None if rank == 0 else subprocess.DEVNULL
-        bind = None if cpus is None else (lambda c=cpus: os.sched_setaffinity(0, c))
         procs.append(subprocess.Popen([sys.executable, "-m", "diffcam", *argv], env=env,
-                                      stdout=quiet, stderr=quiet, preexec_fn=bind))
+                                      stdout=quiet, stderr=quiet))
     return procs
 
 
