@@ -64,6 +64,7 @@ __all__ = [
     "check_output_path",
     "atomic_output",
     "Terminated",
+    "temporary_files",
     "MAX_READ_BYTES",
 ]
 
@@ -656,6 +657,16 @@ def _create_temp(target: Path, *, probe: bool = False) -> tuple[int, Path]:
             os.unlink(temp)
         return fd, temp
     raise FileExistsError(f"no free temporary name beside {target}")
+
+
+def temporary_files(target: str | os.PathLike) -> set[Path]:
+    """The temporary files :func:`atomic_output` has beside ``target`` now: a hard-killed
+    writer leaves its own behind, and whoever ran it (a launcher of several processes)
+    removes the ones that were not there before."""
+    target = Path(os.path.realpath(target))
+    hex8 = "[0-9a-f]" * 8  # secrets.token_hex(4), as _create_temp names them
+    pattern = f".{glob.escape(target.stem)}.tmp-{hex8}{glob.escape(target.suffix)}"
+    return set(target.parent.glob(pattern))
 
 
 def _fsync(path: Path) -> None:

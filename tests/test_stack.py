@@ -156,6 +156,65 @@ def test_sharded_matches_unsharded():
     assert float(out.stdout.strip().splitlines()[-1]) < 1e-6
 
 
+_PROCESS = textwrap.dedent("""
+    import sys
+    import numpy as np
+    import diffcam as dc            # importing diffcam leaves JAX's backend unstarted
+    import jax
+    address, rank, folder = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=address, num_processes=2,
+                               process_id=rank)
+    assert jax.process_count() == 2 and len(jax.devices()) == 2
+    cam = dc.Camera(wavelength=532e-9, z2=1e-3, dx=4e-6, aperture_radius=0.15e-3,
+                    shape=(96, 96), crop=(80, 72))
+    args = dict(offsets=np.array([[0.0, 0.0], [-20e-6, 40e-6]]), batch_size=1,
+                spectrum=dc.Spectrum(np.array([500e-9, 560e-9]), np.array([1.0, 2.0])))
+    phase, z = np.load(f"{folder}/phase.npy"), np.linspace(20e-3, 30e-3, 5)
+    np.save(f"{folder}/memory{rank}.npy", dc.psf_stack(phase, cam, z, **args))
+    for suffix in ("npy", "npz", "tif"):
+        stack = dc.psf_stack(phase, cam, z, out=f"{folder}/stack.{suffix}", **args)
+        np.save(f"{folder}/returned{rank}-{suffix}.npy", stack)
+""")
+
+
+@pytest.mark.slow  # 25 s: both processes compile the sharded chunk (9-13 s on 2 cores)
+def test_two_processes_equal_one(setup, tmp_path):
+    """Two JAX processes (``jax.distributed.initialize``, gloo collectives on CPU, one
+    device each) split every chunk's depths between them. The stack with two lateral
+    positions and a two-line Spectrum, in memory on each process and streamed by process
+    0 to .npy, .npz and .tif (what every process returns, and what load_stack reads),
+    equals the single-process stack bit for bit."""
+    from diffcam.apps.processes import free_port
+    from diffcam.model.camera import Spectrum
+
+    cam, phase = setup
+    np.save(tmp_path / "phase.npy", phase)
+    address = f"localhost:{free_port()}"
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    procs = [subprocess.Popen([sys.executable, "-c", _PROCESS, address, str(rank),
+                               str(tmp_path)], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True) for rank in (0, 1)]
+    logs = [p.communicate(timeout=240)[0] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], logs
+    pos = np.array([[0.0, 0.0], [-20e-6, 40e-6]])
+    spectrum = Spectrum(np.array([500e-9, 560e-9]), np.array([1.0, 2.0]))
+    one = psf_stack(phase, cam, np.linspace(20e-3, 30e-3, 5), offsets=pos,
+                    spectrum=spectrum, batch_size=1)
+    assert one.shape == (5, 2, 80, 72)
+    for rank in (0, 1):
+        np.testing.assert_array_equal(np.load(tmp_path / f"memory{rank}.npy"), one)
+    for suffix in ("npy", "npz", "tif"):
+        for rank in (0, 1):
+            returned = np.load(tmp_path / f"returned{rank}-{suffix}.npy")
+            np.testing.assert_array_equal(returned.reshape(one.shape), one)
+        stack, meta = load_stack(tmp_path / f"stack.{suffix}")
+        np.testing.assert_array_equal(stack, one)
+        np.testing.assert_array_equal(meta.offsets, pos)
+    assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
+
+
 def test_format_1_positions_are_read_as_offsets():
     """Files of format 1 stored (x1, y1) rows as ``positions``; they load as (y1, x1)."""
     old = json.dumps({"depths": [0.02], "positions": [[1e-6, 2e-6]], "pitch": 4e-6,

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from diffcam.apps.fit_cli import _add_fit
+from diffcam.apps.processes import in_distributed_run, report_error, run_processes
 from diffcam.apps.reconstruct_cli import _add_reconstruct
 from diffcam.core.errors import DiffcamError
 from diffcam.io import atomic_output, interrupts_as_keyboard_interrupt
@@ -151,6 +152,9 @@ def _cmd_psf(args) -> int:
     from diffcam.model.stack import psf_stack
 
     if is_stack_fit(args.phase):
+        if args.processes != 1:
+            raise DiffcamError("--processes is for a phase file; a stack-fit model's "
+                               "planes are computed by one process.")
         return _psf_from_stack_fit(args)
     if args.planes is not None:
         raise DiffcamError("--planes is for a stack-fit model from `diffcam fit`; a phase "
@@ -158,18 +162,41 @@ def _cmd_psf(args) -> int:
     if args.z1 is None or args.z2 is None:
         raise DiffcamError("a phase file needs --z1 (depths) and --z2 (diffuser to sensor), "
                            "with units, e.g. --z1 22mm:30mm:1mm --z2 1mm.")
-    phase_file = load_phase(args.phase)
-    camera = _camera_for(phase_file, args.z2, args.crop)
-    depths = args.z1
     suffix = Path(args.out).suffix.lower()
     if suffix not in (".npz", ".tif", ".tiff"):
         raise DiffcamError(f"{args.out}: write the stack as .npz or .tif, not {suffix!r}.")
+    if _several_processes(args):
+        return run_processes("psf", args.argv, args.processes, outputs=[args.out])
+    phase_file = load_phase(args.phase)
+    camera = _camera_for(phase_file, args.z2, args.crop)
+    depths = args.z1
     # streamed to the file chunk by chunk: memory does not grow with the number of depths
     stack = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 1,
                       out=args.out)
     print(f"diffcam psf: {len(depths)} PSFs of {stack.shape[-2]}×{stack.shape[-1]} "
           f"(z1 {depths[0] * 1e3:g}–{depths[-1] * 1e3:g} mm, z2 {args.z2 * 1e3:g} mm) → {args.out}")
     return 0
+
+
+def _several_processes(args) -> bool:
+    """Whether ``diffcam psf`` starts ``--processes`` copies of itself
+    (:func:`~diffcam.apps.processes.run_processes`). A copy it started, or one task of
+    a cluster's launcher, joins the run (``jax.distributed.initialize()``) instead."""
+    from diffcam.apps.processes import ERRORS, distributed_settings, initialize_from_environment
+    from diffcam.io import check_output_path
+
+    if args.processes < 1:
+        raise DiffcamError(f"--processes must be at least 1, got {args.processes}.")
+    settings = distributed_settings()
+    if settings is None:
+        if args.processes > 1:
+            check_output_path(args.out)  # before any process starts
+        return args.processes > 1
+    if args.processes > 1 and ERRORS not in os.environ:
+        raise DiffcamError("this process is already one of several (JAX_PROCESS_ID or a "
+                           "SLURM step of several tasks); leave out --processes.")
+    initialize_from_environment()
+    return False
 
 
 def _psf_from_stack_fit(args) -> int:
@@ -459,6 +486,10 @@ def _add_psf(sub) -> None:
     ps.add_argument("--crop", type=int, help="square crop of each PSF (samples)")
     ps.add_argument("-o", "--out", required=True,
                     help="output .npz or .tif (a stack fit: .tif or .npy)")
+    ps.add_argument("--processes", type=int, default=1,
+                    help="JAX processes on this machine, each computing its share of "
+                         "the depths, writing one file (a cluster: start one diffcam psf "
+                         "per task instead, see docs/distributed.md)")
     ps.set_defaults(func=_cmd_psf)
 
 
@@ -549,15 +580,21 @@ def _talk(args):
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
         with interrupts_as_keyboard_interrupt(), _talk(args):
             return args.func(args)
     except DiffcamError as e:
-        print(f"diffcam {args.command}: error: {e}", file=sys.stderr)
+        report_error(args.command, str(e))
         return 2
     except KeyboardInterrupt:
         print(f"diffcam {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:  # one of several processes: one line, then run() ends at once
+        if not in_distributed_run():
+            raise
+        report_error(args.command, f"{type(e).__name__}: {e}")
+        return 1
 
 
 def run() -> None:
@@ -566,10 +603,13 @@ def run() -> None:
     After an interrupt (status 130) the process ends without the interpreter's
     teardown: XLA's threads may still be running the interrupted computation, and
     tearing the interpreter down under them crashed with SIGSEGV in about one run of
-    five (an interrupted ``diffcam psf``). Outputs are already in place or cleaned up
-    by then (:func:`diffcam.io.atomic_output`)."""
+    five (an interrupted ``diffcam psf``). A failed process of a ``jax.distributed``
+    run ends the same way: the interpreter's teardown would wait in JAX's shutdown
+    barrier for peers blocked in a collective, until the heartbeat timeout aborts it.
+    Outputs are already in place or cleaned up by then
+    (:func:`diffcam.io.atomic_output`)."""
     status = main()
-    if status == 130:
+    if status == 130 or (status and in_distributed_run()):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(status)

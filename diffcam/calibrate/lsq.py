@@ -83,18 +83,17 @@ class JaxoptLBFGS(eqx.Module):
     history_size: int = 10
 
 
-def _solvers():
-    exact = dict(rtol=0.0, atol=0.0)
-    return {
-        "lbfgs": optx.LBFGS(**exact, history_length=10),
-        "ncg": optx.NonlinearCG(**exact),
-        "gauss_newton": optx.GaussNewton(**exact, linear_solver=lx.LSMR(
-            rtol=1e-3, atol=1e-3, max_steps=20)),
-        "jaxopt_lbfgs": JaxoptLBFGS(),
-    }
-
-
-SOLVERS = tuple(_solvers())
+_EXACT = dict(rtol=0.0, atol=0.0)
+# built when asked for: building GaussNewton starts JAX's backend, which an importer may
+# still have to set up first (jax.distributed.initialize())
+_SOLVERS = {
+    "lbfgs": lambda: optx.LBFGS(**_EXACT, history_length=10),
+    "ncg": lambda: optx.NonlinearCG(**_EXACT),
+    "gauss_newton": lambda: optx.GaussNewton(**_EXACT, linear_solver=lx.LSMR(
+        rtol=1e-3, atol=1e-3, max_steps=20)),
+    "jaxopt_lbfgs": JaxoptLBFGS,
+}
+SOLVERS = tuple(_SOLVERS)
 
 
 def solver_object(solver):
@@ -103,7 +102,7 @@ def solver_object(solver):
         if solver not in SOLVERS:
             raise DiffcamError(f"solver must be one of {SOLVERS} or an optimistix solver "
                                f"object, got {solver!r}.")
-        return _solvers()[solver]
+        return _SOLVERS[solver]()
     if not isinstance(solver, (optx.AbstractMinimiser, optx.AbstractLeastSquaresSolver,
                                JaxoptLBFGS)):
         raise DiffcamError(f"solver must be an optimistix minimiser or least-squares solver "

@@ -9,10 +9,13 @@ intensities (see :func:`diffcam.model.point_spread.fields_for_fft`); both write 
 two field-sized buffers (donated), which spares a fresh, page-faulted buffer per call.
 A chunk holds one field per depth, wavelength and, on the direct path, lateral position.
 With
-several devices the chunk's depth axis is sharded over a ``jax.sharding.Mesh`` of them
-(and, after
-``jax.distributed.initialize()``, over hosts). Everything the depths share (the
-diffuser's field, or its FFT on the scaling-theorem path) is computed once.
+several devices the chunk's depth axis is sharded over a ``jax.sharding.Mesh`` of them.
+After ``jax.distributed.initialize()`` ``jax.devices()`` lists every process's devices,
+so the mesh spans processes and hosts: each process computes its devices' share of a
+chunk, and the chunk is all-gathered so that every process holds it; a stack in memory
+is then on every process, and a file is written by process 0 alone
+(docs/distributed.md). Everything the depths share (the diffuser's field, or its FFT on
+the scaling-theorem path) is computed once per process.
 
 Saving and loading (:func:`save_stack`, :func:`load_stack`) keep the metadata
 (:class:`StackMeta`) beside the pixels: ``.npz`` round-trips exactly; ``.tif`` is an
@@ -35,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import tifffile
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
@@ -42,6 +46,7 @@ from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (_irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
 from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.progress import enabled
 from diffcam.io import atomic_output, check_output_path, check_read_size, read_npz
 
 __all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
@@ -112,12 +117,27 @@ def camera_record(camera: Camera) -> dict:
 
 # ----------------------------------------------------------------------------- compute
 
+def _per_device(fn, sharding, batched, shared):
+    """``fn(*batched, *shared)``, with a ``sharding`` over devices: each device computes
+    ``fn`` on its own slice of the ``batched`` arguments (their leading axis) with the
+    ``shared`` ones replicated (``jax.shard_map``). Left to XLA's partitioner, the FFTs
+    were all-gathered and every device computed the whole chunk. No collective runs
+    inside (``check_vma=False``: the loops inside need no replication types)."""
+    if sharding is None:
+        return fn(*batched, *shared)
+    per_device = jax.shard_map(lambda b, s: fn(*b, *s), mesh=sharding.mesh,
+                               in_specs=(sharding.spec, PartitionSpec()),
+                               out_specs=sharding.spec, check_vma=False)
+    return per_device(batched, shared)
+
+
 @partial(jax.jit, static_argnames=("sharding",), donate_argnums=0, keep_unused=True)
 def _chunk_inputs(scratch, prepared, camera, wavelengths, z1, positions, sharding):
     """The FFT inputs of a chunk, written over ``scratch`` (donated)."""
     del scratch
-    out = jax.vmap(lambda z: fields_for_fft(prepared, camera, wavelengths, z, positions))(z1)
-    return out if sharding is None else jax.lax.with_sharding_constraint(out, sharding)
+    fields = jax.vmap(lambda z, p, c, w, x: fields_for_fft(p, c, w, z, x),
+                      in_axes=(0, None, None, None, None))
+    return _per_device(fields, sharding, (z1,), (prepared, camera, wavelengths, positions))
 
 
 @partial(jax.jit, static_argnames=("normalise", "sharding"), donate_argnums=(0, 1),
@@ -127,12 +147,11 @@ def _chunk_outputs(inputs, scratch, camera, wavelengths, weights, z1, positions,
     """PSFs of a chunk, and the two buffers its FFTs wrote: ``inputs`` and ``scratch``
     (both donated) are written over, so no fresh N² buffer is page-faulted in per chunk."""
     del scratch
-    out, written = jax.vmap(lambda u, z: _irradiance_and_fields(u, camera, wavelengths, weights,
-                                                                z, positions, normalise)
-                            )(inputs, z1)
-    if sharding is not None:
-        out, written = jax.lax.with_sharding_constraint((out, written), sharding)
-    return out, written
+    psfs = jax.vmap(lambda u, z, c, w, g, x: _irradiance_and_fields(u, c, w, g, z, x,
+                                                                    normalise),
+                    in_axes=(0, 0, None, None, None, None))
+    return _per_device(psfs, sharding, (inputs, z1), (camera, wavelengths, weights,
+                                                      positions))
 
 
 def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sharding,
@@ -184,7 +203,9 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
                    ) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
     """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
     shape ``(n, npos, ny, nx)``: host numpy, or with ``to_host=False`` the device array
-    (for work that stays on the device, a GPU reconstruction say). Other arguments as in
+    (for work that stays on the device, a GPU reconstruction say; with several
+    processes, a global array whose shards are on each process's devices). Other
+    arguments as in
     :func:`psf_stack`; the inputs are checked when this is called, before the first
     chunk.
 
@@ -232,8 +253,15 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
     prepared = _prepare(phase, camera, wavelengths)
     pos_dev = put(jnp.asarray(pos, dtype))
 
+    # a chunk spanning other processes' devices is all-gathered as soon as it is
+    # dispatched, so that every process can copy it out while the next chunk computes
+    gather = host and sharding is not None and not sharding.is_fully_addressable
+
     def to_host(start, out, n):
-        return start, np.asarray(jax.device_get(out))[:n] if host else out[:n]
+        if not host:
+            return start, out[:n]
+        whole = out.addressable_data(0) if gather else out
+        return start, np.asarray(jax.device_get(whole))[:n]
 
     pending = buffers = None  # the chunk in flight is copied out after the next one starts
     for start in range(0, depths.size, step):
@@ -244,10 +272,22 @@ def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_s
         zb = jax.device_put(zb, sharding) if sharding is not None else put(zb)
         out, buffers = _chunk(prepared, camera, wavelengths, weights, zb, pos_dev, normalise,
                               sharding, buffers)
+        if gather:
+            out = _all_gather(out, replicate)
         if pending is not None:
             yield to_host(*pending)
         pending = (start, out, n)
     yield to_host(*pending)
+
+
+def _identity(x):
+    return x
+
+
+def _all_gather(out, replicate):
+    """``out`` on every device (``replicate``: a replicated sharding of its mesh), the
+    collective dispatched and not waited for."""
+    return jax.jit(_identity, out_shardings=replicate)(out)
 
 
 def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
@@ -285,14 +325,19 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             (:func:`diffcam.io.check_output_path`), and the file is written atomically
             (:func:`diffcam.io.atomic_output`): an existing file is replaced only once
             the whole stack is written, and an error, Ctrl-C or SIGTERM meanwhile leaves
-            it as it was, with no temporary file behind.
-        progress: show a tqdm bar; default on from 32 depths.
-        devices: devices to shard the depth axis over (default ``jax.devices()``).
+            it as it was, with no temporary file behind. With several processes
+            (``jax.distributed``) process 0 writes it, and every process returns its
+            memory map once it is written: the folder must be one they all see.
+        progress: show a tqdm bar (on process 0 of several); default on from 32
+            depths; ``DIFFCAM_PROGRESS=0`` turns it off.
+        devices: devices to shard the depth axis over (default ``jax.devices()``:
+            every process's, after ``jax.distributed.initialize()``).
         accept_undersampling: turn sampling errors into warnings.
 
     Returns:
         float array ``(nz, npos, ny, nx)`` (or ``(nz, ny, nx)`` without positions):
-        numpy in memory, or a read-only memory map of ``out``.
+        numpy in memory, or a read-only memory map of ``out``; the whole stack on
+        every process.
     """
     outputs = _output_paths(out)  # before any work: a bad path costs nothing
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
@@ -304,6 +349,7 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     full = (depths.size, npos) + tuple(camera.out_shape)
     shape = full if offsets is not None else (full[0],) + full[2:]
     show = depths.size >= _PROGRESS_FROM if progress is None else progress
+    show = enabled(show) and jax.process_index() == 0  # one bar, however many processes
     bar = tqdm(total=depths.size, unit="depth", disable=not show, desc="PSF stack")
     meta = _meta(camera, depths, offsets, spectrum, normalise)
 
@@ -318,27 +364,47 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             for start, block in _blocks(pages()):
                 stack[start:start + len(block)] = block
             return stack
-        path = outputs[0]
-        if path.endswith(".npy"):  # pixels and metadata replace the old pair together
-            with atomic_output(*outputs) as (temp, temp_json):
-                stack = np.lib.format.open_memmap(temp, mode="w+", dtype=np.float32,
-                                                  shape=shape)
-                for start, block in _blocks(pages()):
-                    stack[start:start + len(block)] = block
-                stack.flush()
-                del stack
-                with open(temp_json, "w") as f:
-                    f.write(meta.to_json())
-            return np.load(path, mmap_mode="r")
-        if path.endswith(".npz"):
-            with atomic_output(path) as temp:
-                _write_npz(temp, pages(), shape, meta)
-            return _memmap_npz_stack(path)
-        with atomic_output(path) as temp:
-            _write_tiff(temp, (page for block in pages() for page in block), shape, meta)
-        return tifffile.memmap(path, mode="r")
+        if jax.process_index() == 0:
+            _write(outputs, pages(), shape, meta)
+        else:  # process 0 writes the file; the others compute their shares of each chunk
+            for _ in pages():
+                pass
+        if jax.process_count() > 1:  # the file is complete before any process opens it
+            multihost_utils.sync_global_devices("diffcam.psf_stack: file written")
+        return _open_written(outputs[0])
     finally:
         bar.close()
+
+
+def _write(outputs, pages, shape, meta: StackMeta) -> None:
+    """Stream ``pages`` (blocks of PSFs) into ``outputs`` (:func:`_output_paths`)
+    atomically: the old files stay as they were until every block is written."""
+    path = outputs[0]
+    if path.endswith(".npy"):  # pixels and metadata replace the old pair together
+        with atomic_output(*outputs) as (temp, temp_json):
+            stack = np.lib.format.open_memmap(temp, mode="w+", dtype=np.float32,
+                                              shape=shape)
+            for start, block in _blocks(pages):
+                stack[start:start + len(block)] = block
+            stack.flush()
+            del stack
+            with open(temp_json, "w") as f:
+                f.write(meta.to_json())
+    elif path.endswith(".npz"):
+        with atomic_output(path) as temp:
+            _write_npz(temp, pages, shape, meta)
+    else:
+        with atomic_output(path) as temp:
+            _write_tiff(temp, (page for block in pages for page in block), shape, meta)
+
+
+def _open_written(path: str) -> np.ndarray:
+    """A read-only memory map of the stack in ``path``, written by :func:`_write`."""
+    if path.endswith(".npy"):
+        return np.load(path, mmap_mode="r")
+    if path.endswith(".npz"):
+        return _memmap_npz_stack(path)
+    return tifffile.memmap(path, mode="r")
 
 
 def _output_paths(out) -> tuple[str, ...]:
