@@ -138,6 +138,25 @@ def read_image(path: str | os.PathLike, *, channel_order: str | None = None,
     return _to_capture(data, path, suffix, channel_order)
 
 
+def read_rgb(path: str | os.PathLike, *, channel_order: str | None = None) -> np.ndarray:
+    """A colour capture as float32 ``(3, ny, nx)`` in R, G, B order, whatever the file's
+    order (``channel_order``, e.g. ``"BGR"``, as in :func:`read_image`).
+
+    Raises:
+        DiffcamError: the file is grayscale, a stack, or has an alpha channel (with
+            what to do), or any error of :func:`read_image`.
+    """
+    capture = read_image(path, channel_order=channel_order)
+    if capture.channels is None:
+        raise DiffcamError(f"{path}: expected a colour image (ny, nx, 3), got shape "
+                           f"{capture.image.shape}; give a colour capture, or read it as "
+                           f"grayscale.")
+    if sorted(capture.channels) != ["B", "G", "R"]:
+        raise DiffcamError(f"{path}: channels {''.join(capture.channels)}; expected R, G "
+                           f"and B (drop the alpha channel first).")
+    return capture.image[[capture.channels.index(c) for c in "RGB"]]
+
+
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 """Suffixes of the single-plane images a folder or glob of PSFs may hold."""
 

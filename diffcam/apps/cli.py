@@ -14,6 +14,7 @@ import numpy as np
 
 from diffcam.apps.fit_cli import _add_fit
 from diffcam.apps.reconstruct_cli import _add_reconstruct
+from diffcam.apps.scene_psf_cli import _add_calibrate_psf
 from diffcam.core.errors import DiffcamError
 from diffcam.io import atomic_output, interrupts_as_keyboard_interrupt
 from diffcam.core.units import parse_length, parse_length_range
@@ -368,13 +369,17 @@ def _cmd_data(args) -> int:
 
 
 def _add_data(sub) -> None:
+    from diffcam.data import CAPTURES
+
     data = sub.add_parser("data", help="write a built-in capture set as image files",
                           description="Write a built-in measured capture set (Waller Lab "
                                       "DiffuserCam data) as the image files a camera gives: "
                                       "'hand' (a 2-D capture and its PSF) or 'usaf3d' (a "
                                       "3-D capture and its 44-plane PSF stack, one file "
-                                      "per plane). See docs/real_data.md.")
-    data.add_argument("name", choices=["hand", "usaf3d"], help="capture set")
+                                      "per plane) or 'scenes' (seven colour captures, each "
+                                      "with the lensed photograph of its scene). See "
+                                      "docs/real_data.md and docs/scene_psf.md.")
+    data.add_argument("name", choices=list(CAPTURES), help="capture set")
     data.add_argument("-o", "--out", default="captures", help="folder (default: captures)")
     data.add_argument("--force", action="store_true", help="overwrite existing files")
     data.set_defaults(func=_cmd_data)
@@ -507,8 +512,8 @@ def build_parser() -> argparse.ArgumentParser:
     # every subcommand's --help shows its defaults (a parser may still pass its own)
     sub._parser_class = functools.partial(argparse.ArgumentParser,
                                           formatter_class=DefaultsFormatter)
-    for add in (_add_demo, _add_data, _add_plan, _add_reconstruct, _add_calibrate, _add_psf,
-                _add_compare, _add_fit):
+    for add in (_add_demo, _add_data, _add_plan, _add_reconstruct, _add_calibrate,
+                _add_calibrate_psf, _add_psf, _add_compare, _add_fit):
         add(sub)
     return parser
 
