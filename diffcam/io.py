@@ -138,23 +138,27 @@ def read_image(path: str | os.PathLike, *, channel_order: str | None = None,
     return _to_capture(data, path, suffix, channel_order)
 
 
-def read_rgb(path: str | os.PathLike, *, channel_order: str | None = None) -> np.ndarray:
-    """A colour capture as float32 ``(3, ny, nx)`` in R, G, B order, whatever the file's
-    order (``channel_order``, e.g. ``"BGR"``, as in :func:`read_image`).
+def as_rgb(capture: Capture) -> np.ndarray:
+    """A colour capture's image as float32 ``(3, ny, nx)`` in R, G, B order, whatever
+    the file's order (``capture.channels``).
 
     Raises:
-        DiffcamError: the file is grayscale, a stack, or has an alpha channel (with
-            what to do), or any error of :func:`read_image`.
+        DiffcamError: the capture is grayscale or a stack, or has an alpha channel.
     """
-    capture = read_image(path, channel_order=channel_order)
     if capture.channels is None:
-        raise DiffcamError(f"{path}: expected a colour image (ny, nx, 3), got shape "
+        raise DiffcamError(f"{capture.path}: expected a colour image (ny, nx, 3), got shape "
                            f"{capture.image.shape}; give a colour capture, or read it as "
                            f"grayscale.")
     if sorted(capture.channels) != ["B", "G", "R"]:
-        raise DiffcamError(f"{path}: channels {''.join(capture.channels)}; expected R, G "
-                           f"and B (drop the alpha channel first).")
+        raise DiffcamError(f"{capture.path}: channels {''.join(capture.channels)}; expected "
+                           f"R, G and B (drop the alpha channel first).")
     return capture.image[[capture.channels.index(c) for c in "RGB"]]
+
+
+def read_rgb(path: str | os.PathLike, *, channel_order: str | None = None) -> np.ndarray:
+    """:func:`read_image` then :func:`as_rgb`: float32 ``(3, ny, nx)``, R, G, B
+    (``channel_order`` is the file's, e.g. ``"BGR"``)."""
+    return as_rgb(read_image(path, channel_order=channel_order))
 
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")

@@ -67,6 +67,35 @@ def save_image(path, image, *, bits: int = 16) -> None:
             tifffile.imwrite(tmp, image, imagej=image.ndim == 3)
 
 
+def save_rgb(path, image) -> None:
+    """Write a colour image ``(3, ny, nx)`` (R, G, B) atomically: ``.npy`` float32
+    ``(ny, nx, 3)`` as is; ``.png`` 8 bits and ``.tif``/``.tiff`` 16 bits per channel,
+    scaled so that the 99.9th percentile of all channels is full scale (the few brighter
+    pixels saturate; negatives clip to 0; one scale keeps the colour balance)."""
+    image = np.moveaxis(np.asarray(image, dtype=np.float32), 0, -1)
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".png", ".tif", ".tiff", ".npy"):
+        raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
+    if image.ndim != 3 or image.shape[-1] != 3:
+        raise DiffcamError(f"{path}: a colour image has 3 channels, got shape "
+                           f"{np.moveaxis(image, -1, 0).shape}.")
+    with atomic_output(path) as tmp:
+        if suffix == ".npy":
+            np.save(tmp, image)
+            return
+        top = float(np.percentile(image, 99.9))
+        scaled = np.clip(image / top, 0, 1) if top > 0 else np.zeros_like(image)
+        if suffix == ".png":
+            from skimage.io import imsave
+
+            imsave(tmp, np.round(scaled * 255).astype(np.uint8), check_contrast=False)
+        else:
+            import tifffile
+
+            tifffile.imwrite(tmp, np.round(scaled * 65535).astype(np.uint16),
+                             photometric="rgb")
+
+
 class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """``--help`` shows ``(default: X)`` where there is a default to show (not None/off)."""
 

@@ -28,7 +28,7 @@ def read_pairs(raws, truths, channel_order: str) -> tuple[np.ndarray, np.ndarray
     """The raw and truth files as ``(k, c, ny, nx)`` arrays (RGB for colour), checked
     (:func:`diffcam.calibrate.scene_psf.check_scene_pairs`)."""
     from diffcam.calibrate.scene_psf import check_scene_pairs
-    from diffcam.io import read_image, read_rgb
+    from diffcam.io import as_rgb, read_image
 
     if len(raws) != len(truths):
         raise DiffcamError(f"{len(raws)} raw file(s) but {len(truths)} --truth file(s); "
@@ -41,7 +41,7 @@ def read_pairs(raws, truths, channel_order: str) -> tuple[np.ndarray, np.ndarray
                 raise DiffcamError(f"{path}: a stack of {capture.image.shape[0]} images; "
                                    f"give one image per file.")
             return capture.image
-        return read_rgb(path, channel_order=channel_order)
+        return as_rgb(capture)
 
     try:
         return check_scene_pairs([read(p) for p in raws], [read(p) for p in truths])
