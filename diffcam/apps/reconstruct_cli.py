@@ -34,6 +34,12 @@ ITERATIONS = {"admm": 100, "rl": 1000}
 ADMM-TV has converged by 100 (correlation 0.998 with a 200-step FISTA reference, the
 same at 300); Richardson–Lucy needs about 1000 (0.996; at 150 the fingers are not
 resolved, 0.959)."""
+WORKING_SIZE = 480
+"""Pixels on the longer side up to which ``reconstruct`` works at the capture's own
+resolution by default; larger captures are box-averaged by the least integer factor
+that brings them there (:func:`working_factor`). The defaults (iterations, ADMM-TV's
+``tau``) were measured on captures of 400 and 480 pixels per side; on the tutorial hand
+at its full 1200 × 1600 they leave the fine detail unresolved (docs/scene_psf.md)."""
 ITERATIONS_3D = {"admm": 100, "rl": 300}
 """The same for ``--3d`` (44 planes of 270 × 320: ADMM-TV 100 iterations take about
 40 s on 2 cores; Richardson–Lucy's 300 as long again)."""
@@ -210,20 +216,35 @@ def read_inputs(args, say) -> tuple[np.ndarray, PsfSource]:
     from diffcam.io import downsample
 
     raw_level, psf_level = dark_levels(args)
-    if args.downsample < 1:
+    if args.downsample is not None and args.downsample < 1:
         raise DiffcamError(f"--downsample {args.downsample}: give a factor of 1 or more.")
     raw = read_raw(args.raw, args.channel_order)
     source = colour_psf(args.psf, raw, args.channel_order) or read_psf_source(args.psf,
                                                                                args.planes)
     raw = _subtract_dark(raw, raw_level, f"{args.raw} (raw dark level)", say)
     psfs = _subtract_dark(source.psfs, psf_level, f"{args.psf} (PSF dark level)", say)
-    if args.downsample > 1:
-        raw, psfs = downsample(raw, args.downsample), downsample(psfs, args.downsample)
+    factor = working_factor(raw.shape, args.downsample, say)
+    if factor > 1:
+        raw, psfs = downsample(raw, factor), downsample(psfs, factor)
     if psfs.shape[-2] > raw.shape[-2] or psfs.shape[-1] > raw.shape[-1]:
         raise DiffcamError(f"PSF {psfs.shape[-2:]} is larger than the image {raw.shape[-2:]}"
-                           f"{' after --downsample' if args.downsample > 1 else ''}; crop "
+                           f"{' after downsampling' if factor > 1 else ''}; crop "
                            f"the PSF or use the same downsampling for both.")
     return raw, source._replace(psfs=np.asarray(psfs, np.float32))
+
+
+def working_factor(shape, requested: int | None, say) -> int:
+    """``requested`` (``--downsample``), or by default the least factor that brings the
+    capture's longer side to :data:`WORKING_SIZE` pixels or fewer, said through ``say``."""
+    if requested is not None:
+        return requested
+    ny, nx = shape[-2:]
+    factor = -(-max(ny, nx) // WORKING_SIZE)
+    if factor > 1:
+        say(f"working at {ny // factor}×{nx // factor}: the {ny}×{nx} capture box-averaged "
+            f"by {factor} (the defaults suit ≤ {WORKING_SIZE} pixels per side; "
+            f"--downsample 1 keeps the full resolution)")
+    return factor
 
 
 def read_raw(path, channel_order: str | None) -> np.ndarray:
@@ -523,8 +544,10 @@ def _add_reconstruct(sub) -> None:
     rec.add_argument("--dark-psf", type=_dark_arg, metavar="COUNTS|auto",
                      help="dark level of the PSFs, counts, or 'auto': per plane, the "
                           f"median of a {DARK_RING}-pixel ring at the frame border")
-    rec.add_argument("--downsample", type=int, default=1, metavar="FACTOR",
-                     help="box-average factor, pixels per side (raw and PSFs alike)")
+    rec.add_argument("--downsample", type=int, metavar="FACTOR",
+                     help="box-average factor, pixels per side (raw and PSFs alike); "
+                          f"default: 1 up to {WORKING_SIZE} pixels per side, else the least "
+                          f"factor that brings the capture there")
     rec.add_argument("--full-field", action="store_true",
                      help="keep the solver's object grid (per side: sensor + PSF − 1 pixels, "
                           "rounded up to a fast FFT length; the scene the sensor partly "
