@@ -2,6 +2,8 @@
 synthetic pairs made by the crop model, the flip between frames is found, and on the
 shipped Lensless Learning pairs the PSF fitted to some pairs predicts a held-out raw."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -83,3 +85,30 @@ def test_bad_pairs_fail_before_any_fit():
         ScenePsfOptions(flip="z")
     with pytest.raises(DiffcamError, match="iterations"):
         ScenePsfOptions(iterations=0)
+
+
+SHARED_PAIRS = (Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+                / "lenslesslearning")
+
+
+def test_shipped_pairs():
+    pairs = load_scene_pairs()
+    assert pairs.raws.shape == pairs.truths.shape == (7, 3, 135, 240)
+    assert pairs.names[0] == "im43" and len(set(pairs.names)) == 7
+    assert 0 <= pairs.truths.min() and pairs.truths.max() <= 1
+    assert -0.005 < pairs.raws.min() < 0      # the source's background subtraction
+
+
+@pytest.mark.skipif(not SHARED_PAIRS.is_dir(), reason="needs shared/data/real beside the repo")
+def test_shipped_pairs_match_the_originals():
+    """16-bit storage of the 2×-averaged pairs: errors below half a storage step, and RGB
+    is the originals' BGR reversed."""
+    from diffcam.io import downsample, read_rgb
+
+    pairs = load_scene_pairs()
+    for k in (0, 6):
+        for kind, stored, step in (("diffuser", pairs.raws, 5.42e-6),
+                                   ("lensed", pairs.truths, 1 / 65535)):
+            original = read_rgb(SHARED_PAIRS / kind / f"{pairs.names[k]}.npy",
+                                channel_order="BGR")
+            assert np.abs(stored[k] - downsample(original, 2)).max() <= step / 2 + 1e-7
