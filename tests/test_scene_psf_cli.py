@@ -81,3 +81,17 @@ def test_bad_colour_input_fails_cleanly(scenes, capsys, tmp_path):
     ]
     for args, message in cases:
         _fails_cleanly(capsys, args, message, out)
+
+
+def test_white_balance():
+    """Grey world brings every channel's mean to the mean of the three; explicit gains
+    multiply; a grayscale image is left alone."""
+    from diffcam.apps.reconstruct_cli import white_balance
+
+    image = np.random.default_rng(0).uniform(0, 1, (3, 8, 9)) * np.array([1, 2, 4])[:, None, None]
+    balanced = white_balance(image, "auto")
+    np.testing.assert_allclose(balanced.mean(axis=(1, 2)), image.mean(), rtol=1e-12)
+    np.testing.assert_allclose(white_balance(image, [1, 0.5, 0.25]),
+                               image * np.array([1, 0.5, 0.25])[:, None, None])
+    gray = image[0]
+    assert white_balance(gray, "auto") is gray
