@@ -95,3 +95,18 @@ def test_white_balance():
                                image * np.array([1, 0.5, 0.25])[:, None, None])
     gray = image[0]
     assert white_balance(gray, "auto") is gray
+
+
+def test_working_resolution():
+    """Captures up to 480 pixels per side are solved as they are; the tutorial's full
+    1200 × 1600 is box-averaged by 4 (to the shipped 300 × 400), and the command says so;
+    --downsample overrides."""
+    from diffcam.apps.reconstruct_cli import working_factor
+
+    said = []
+    assert working_factor((300, 400), None, said.append) == 1
+    assert working_factor((3, 270, 480), None, said.append) == 1 and not said
+    assert working_factor((1200, 1600), None, said.append) == 4
+    assert said and "300×400" in said[0] and "--downsample 1" in said[0]
+    assert working_factor((1200, 1600), 1, said.append) == 1
+    assert working_factor((481, 100), None, said.append) == 2
