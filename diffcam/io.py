@@ -139,6 +139,29 @@ def read_image(path: str | os.PathLike, *, channel_order: str | None = None,
     return _to_capture(data, path, suffix, channel_order)
 
 
+def as_rgb(capture: Capture) -> np.ndarray:
+    """A colour capture's image as float32 ``(3, ny, nx)`` in R, G, B order, whatever
+    the file's order (``capture.channels``).
+
+    Raises:
+        DiffcamError: the capture is grayscale or a stack, or has an alpha channel.
+    """
+    if capture.channels is None:
+        raise DiffcamError(f"{capture.path}: expected a colour image (ny, nx, 3), got shape "
+                           f"{capture.image.shape}; give a colour capture, or read it as "
+                           f"grayscale.")
+    if sorted(capture.channels) != ["B", "G", "R"]:
+        raise DiffcamError(f"{capture.path}: channels {''.join(capture.channels)}; expected "
+                           f"R, G and B (drop the alpha channel first).")
+    return capture.image[[capture.channels.index(c) for c in "RGB"]]
+
+
+def read_rgb(path: str | os.PathLike, *, channel_order: str | None = None) -> np.ndarray:
+    """:func:`read_image` then :func:`as_rgb`: float32 ``(3, ny, nx)``, R, G, B
+    (``channel_order`` is the file's, e.g. ``"BGR"``)."""
+    return as_rgb(read_image(path, channel_order=channel_order))
+
+
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 """Suffixes of the single-plane images a folder or glob of PSFs may hold."""
 

@@ -15,6 +15,7 @@ import numpy as np
 from diffcam.apps.fit_cli import _add_fit
 from diffcam.apps.processes import in_distributed_run, report_error, run_processes
 from diffcam.apps.reconstruct_cli import _add_reconstruct
+from diffcam.apps.scene_psf_cli import _add_calibrate_psf
 from diffcam.core.errors import DiffcamError
 from diffcam.io import atomic_output, interrupts_as_keyboard_interrupt
 from diffcam.core.units import parse_length, parse_length_range
@@ -65,6 +66,35 @@ def save_image(path, image, *, bits: int = 16) -> None:
             import tifffile
 
             tifffile.imwrite(tmp, image, imagej=image.ndim == 3)
+
+
+def save_rgb(path, image) -> None:
+    """Write a colour image ``(3, ny, nx)`` (R, G, B) atomically: ``.npy`` float32
+    ``(ny, nx, 3)`` as is; ``.png`` 8 bits and ``.tif``/``.tiff`` 16 bits per channel,
+    scaled so that the 99.9th percentile of all channels is full scale (the few brighter
+    pixels saturate; negatives clip to 0; one scale keeps the colour balance)."""
+    image = np.moveaxis(np.asarray(image, dtype=np.float32), 0, -1)
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".png", ".tif", ".tiff", ".npy"):
+        raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
+    if image.ndim != 3 or image.shape[-1] != 3:
+        raise DiffcamError(f"{path}: a colour image has 3 channels, got shape "
+                           f"{np.moveaxis(image, -1, 0).shape}.")
+    with atomic_output(path) as tmp:
+        if suffix == ".npy":
+            np.save(tmp, image)
+            return
+        top = float(np.percentile(image, 99.9))
+        scaled = np.clip(image / top, 0, 1) if top > 0 else np.zeros_like(image)
+        if suffix == ".png":
+            from skimage.io import imsave
+
+            imsave(tmp, np.round(scaled * 255).astype(np.uint8), check_contrast=False)
+        else:
+            import tifffile
+
+            tifffile.imwrite(tmp, np.round(scaled * 65535).astype(np.uint16),
+                             photometric="rgb")
 
 
 class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -395,13 +425,17 @@ def _cmd_data(args) -> int:
 
 
 def _add_data(sub) -> None:
+    from diffcam.data import CAPTURES
+
     data = sub.add_parser("data", help="write a built-in capture set as image files",
                           description="Write a built-in measured capture set (Waller Lab "
                                       "DiffuserCam data) as the image files a camera gives: "
                                       "'hand' (a 2-D capture and its PSF) or 'usaf3d' (a "
                                       "3-D capture and its 44-plane PSF stack, one file "
-                                      "per plane). See docs/real_data.md.")
-    data.add_argument("name", choices=["hand", "usaf3d"], help="capture set")
+                                      "per plane) or 'scenes' (seven colour captures, each "
+                                      "with the lensed photograph of its scene). See "
+                                      "docs/real_data.md and docs/scene_psf.md.")
+    data.add_argument("name", choices=list(CAPTURES), help="capture set")
     data.add_argument("-o", "--out", default="captures", help="folder (default: captures)")
     data.add_argument("--force", action="store_true", help="overwrite existing files")
     data.set_defaults(func=_cmd_data)
@@ -538,8 +572,8 @@ def build_parser() -> argparse.ArgumentParser:
     # every subcommand's --help shows its defaults (a parser may still pass its own)
     sub._parser_class = functools.partial(argparse.ArgumentParser,
                                           formatter_class=DefaultsFormatter)
-    for add in (_add_demo, _add_data, _add_plan, _add_reconstruct, _add_calibrate, _add_psf,
-                _add_compare, _add_fit):
+    for add in (_add_demo, _add_data, _add_plan, _add_reconstruct, _add_calibrate,
+                _add_calibrate_psf, _add_psf, _add_compare, _add_fit):
         add(sub)
     return parser
 

@@ -34,6 +34,12 @@ ITERATIONS = {"admm": 100, "rl": 1000}
 ADMM-TV has converged by 100 (correlation 0.998 with a 200-step FISTA reference, the
 same at 300); Richardson–Lucy needs about 1000 (0.996; at 150 the fingers are not
 resolved, 0.959)."""
+WORKING_SIZE = 480
+"""Pixels on the longer side up to which ``reconstruct`` works at the capture's own
+resolution by default; larger captures are box-averaged by the least integer factor
+that brings them there (:func:`working_factor`). The defaults (iterations, ADMM-TV's
+``tau``) were measured on captures of 400 and 480 pixels per side; on the tutorial hand
+at its full 1200 × 1600 they leave the fine detail unresolved (docs/scene_psf.md)."""
 ITERATIONS_3D = {"admm": 100, "rl": 300}
 """The same for ``--3d`` (44 planes of 270 × 320: ADMM-TV 100 iterations take about
 40 s on 2 cores; Richardson–Lucy's 300 as long again)."""
@@ -47,12 +53,14 @@ class PsfSource(NamedTuple):
         depths: source depth z1 of each plane, metres, or ``None`` if unknown.
         planes: plane number of each plane (index in the stack or the model).
         names: file of each plane (folder/glob sources), else ``None``.
+        colour: ``psfs`` is ``(3, my, mx)``, one PSF per colour channel (R, G, B).
     """
 
     psfs: np.ndarray
     depths: np.ndarray | None
     planes: list[int]
     names: list[str] | None
+    colour: bool = False
 
     def labels(self) -> list[str]:
         """One label per plane: the depth when known, else the plane number (and file)."""
@@ -131,17 +139,19 @@ def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:
 
 
 def _dark_arg(text: str):
-    """``auto`` or a level in counts (argparse type)."""
+    """``auto``, a level in counts, or one level per colour channel ``R,G,B``
+    (argparse type)."""
     if text.strip().lower() == "auto":
         return "auto"
     try:
-        value = float(text)
+        values = [float(v) for v in text.split(",")]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"give a dark level in counts or 'auto', not "
-                                         f"{text!r}") from None
-    if not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"the dark level must be finite, not {text!r}")
-    return value
+        raise argparse.ArgumentTypeError(f"give a dark level in counts, one per channel "
+                                         f"(R,G,B) or 'auto', not {text!r}") from None
+    if not np.all(np.isfinite(values)) or len(values) not in (1, 3):
+        raise argparse.ArgumentTypeError(f"the dark level must be one finite number or "
+                                         f"three (R,G,B), not {text!r}")
+    return values[0] if len(values) == 1 else np.asarray(values)
 
 
 def _subtract_dark(images, level, what: str, say=print):
@@ -154,7 +164,10 @@ def _subtract_dark(images, level, what: str, say=print):
 
     if level is None:
         return images
-    background = border_dark_level(images, DARK_RING) if level == "auto" else level
+    background = border_dark_level(images, DARK_RING) if _is_auto(level) else level
+    if np.ndim(background) == 1 and np.ndim(images) != 3:
+        raise DiffcamError(f"{what}: one dark level per channel needs a colour image; "
+                           f"give one level.")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", BackgroundWarning)
         try:
@@ -164,6 +177,24 @@ def _subtract_dark(images, level, what: str, say=print):
     for w in caught:
         say(f"{what}: {w.message}")
     return out
+
+
+def _gains_arg(text: str):
+    """``auto`` or three gains ``R,G,B`` (argparse type)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        gains = [float(v) for v in text.split(",")]
+    except ValueError:
+        gains = []
+    if len(gains) != 3 or not all(np.isfinite(g) and g > 0 for g in gains):
+        raise argparse.ArgumentTypeError(f"give three positive gains R,G,B or 'auto', not "
+                                         f"{text!r}")
+    return gains
+
+
+def _is_auto(level) -> bool:
+    return isinstance(level, str) and level == "auto"
 
 
 def dark_levels(args) -> tuple:
@@ -182,24 +213,87 @@ def dark_levels(args) -> tuple:
 def read_inputs(args, say) -> tuple[np.ndarray, PsfSource]:
     """The raw capture and the PSFs, dark-subtracted and downsampled alike; checks that
     the PSF fits in the raw image. ``say`` reports progress notes."""
-    from diffcam.io import downsample, read_image
+    from diffcam.io import downsample
 
     raw_level, psf_level = dark_levels(args)
-    if args.downsample < 1:
+    if args.downsample is not None and args.downsample < 1:
         raise DiffcamError(f"--downsample {args.downsample}: give a factor of 1 or more.")
-    raw = read_image(args.raw).image
-    if raw.ndim != 2:
-        raise DiffcamError(f"{args.raw}: expected a grayscale image, got shape {raw.shape}.")
-    source = read_psf_source(args.psf, args.planes)
+    raw = read_raw(args.raw, args.channel_order)
+    source = colour_psf(args.psf, raw, args.channel_order) or read_psf_source(args.psf,
+                                                                               args.planes)
     raw = _subtract_dark(raw, raw_level, f"{args.raw} (raw dark level)", say)
     psfs = _subtract_dark(source.psfs, psf_level, f"{args.psf} (PSF dark level)", say)
-    if args.downsample > 1:
-        raw, psfs = downsample(raw, args.downsample), downsample(psfs, args.downsample)
-    if psfs.shape[-2] > raw.shape[0] or psfs.shape[-1] > raw.shape[1]:
-        raise DiffcamError(f"PSF {psfs.shape[-2:]} is larger than the image {raw.shape}"
-                           f"{' after --downsample' if args.downsample > 1 else ''}; crop "
+    factor = working_factor(raw.shape, args.downsample, say)
+    if factor > 1:
+        raw, psfs = downsample(raw, factor), downsample(psfs, factor)
+    if psfs.shape[-2] > raw.shape[-2] or psfs.shape[-1] > raw.shape[-1]:
+        raise DiffcamError(f"PSF {psfs.shape[-2:]} is larger than the image {raw.shape[-2:]}"
+                           f"{' after downsampling' if factor > 1 else ''}; crop "
                            f"the PSF or use the same downsampling for both.")
     return raw, source._replace(psfs=np.asarray(psfs, np.float32))
+
+
+def working_factor(shape, requested: int | None, say) -> int:
+    """``requested`` (``--downsample``), or by default the least factor that brings the
+    capture's longer side to :data:`WORKING_SIZE` pixels or fewer, said through ``say``."""
+    if requested is not None:
+        return requested
+    ny, nx = shape[-2:]
+    factor = -(-max(ny, nx) // WORKING_SIZE)
+    if factor > 1:
+        say(f"working at {ny // factor}×{nx // factor}: the {ny}×{nx} capture box-averaged "
+            f"by {factor} (the defaults suit ≤ {WORKING_SIZE} pixels per side; "
+            f"--downsample 1 keeps the full resolution)")
+    return factor
+
+
+def read_raw(path, channel_order: str | None) -> np.ndarray:
+    """The raw capture: ``(ny, nx)``, or ``(3, ny, nx)`` in R, G, B order for a colour
+    file (``channel_order`` is the file's, e.g. ``"BGR"``)."""
+    from diffcam.io import as_rgb, read_image
+
+    capture = read_image(path, channel_order=channel_order)
+    if capture.channels is not None:
+        return as_rgb(capture)
+    if capture.image.ndim != 2:
+        raise DiffcamError(f"{path}: expected a grayscale or colour (ny, nx, 3) image, got "
+                           f"a stack of shape {capture.image.shape}.")
+    return capture.image
+
+
+def colour_psf(source: str, raw: np.ndarray, channel_order: str | None) -> PsfSource | None:
+    """One PSF per colour channel if ``source`` is one colour image file (e.g. from
+    ``diffcam calibrate-psf``), else ``None`` (a grayscale PSF is shared by the channels).
+    """
+    from diffcam.apps.cli import _has_stack_meta
+    from diffcam.io import IMAGE_SUFFIXES, as_rgb, read_image
+
+    path = Path(source)
+    if (path.suffix.lower() not in IMAGE_SUFFIXES or not path.is_file()
+            or Path(f"{path}.json").exists() or _has_stack_meta(path)):
+        return None
+    capture = read_image(path, channel_order=channel_order)
+    if capture.channels is None:
+        return None
+    if raw.ndim == 2:
+        raise DiffcamError(f"{source}: a colour PSF for a grayscale raw; give a colour raw "
+                           f"or a grayscale PSF.")
+    return PsfSource(as_rgb(capture), None, [0], None, colour=True)
+
+
+def white_balance(image: np.ndarray, gains) -> np.ndarray:
+    """``image`` ``(3, ny, nx)`` times a gain per channel: ``gains`` ``"auto"`` (grey
+    world: every channel's mean brought to the mean of the three), three numbers, or
+    ``None`` (unchanged)."""
+    if gains is None or np.ndim(image) != 3:
+        return image
+    if _is_auto(gains):
+        means = image.mean(axis=(-2, -1))
+        if np.any(means <= 0):
+            raise DiffcamError("--white-balance auto: a channel of the reconstruction is "
+                               "dark; give the gains (R,G,B).")
+        gains = means.mean() / means
+    return image * np.asarray(gains, image.dtype)[:, None, None]
 
 
 def _reporter(quiet: bool):
@@ -216,7 +310,7 @@ def _pick_plane(raw, source: PsfSource, args, say) -> np.ndarray:
     from diffcam.reconstruct import focus_sweep
 
     psfs = source.psfs
-    if psfs.ndim == 2:
+    if psfs.ndim == 2 or source.colour:
         return psfs
     if args.depth is not None:
         if source.depths is None:
@@ -228,7 +322,8 @@ def _pick_plane(raw, source: PsfSource, args, say) -> np.ndarray:
     else:
         say(f"focus sweep over {len(psfs)} planes (ADMM-TV, {SWEEP_ITERATIONS} iterations "
             f"each)")
-        plane = int(focus_sweep(raw, psfs, SWEEP_ITERATIONS, progress=not args.quiet).best)
+        image = raw if raw.ndim == 2 else raw.sum(axis=0)
+        plane = int(focus_sweep(image, psfs, SWEEP_ITERATIONS, progress=not args.quiet).best)
         print(f"diffcam reconstruct: plane {plane} of {len(psfs)} explains the image best")
     if not 0 <= plane < len(psfs):
         raise DiffcamError(f"--plane {plane} is outside the stack of {len(psfs)} PSFs.")
@@ -246,7 +341,7 @@ def _iterations(args) -> int:
 
 
 def _run_2d(args, say) -> int:
-    from diffcam.apps.cli import save_image
+    from diffcam.apps.cli import save_image, save_rgb
     from diffcam.core.grid import crop_to
     from diffcam.io import check_output_path
     from diffcam.reconstruct import admm_tv, richardson_lucy, wiener
@@ -256,18 +351,24 @@ def _run_2d(args, say) -> int:
     raw, source = read_inputs(args, say)
     psf = _pick_plane(raw, source, args, say)
     iterations = _iterations(args)
-    say(f"reconstructing {raw.shape[0]}×{raw.shape[1]}: {args.method}"
+    say(f"reconstructing {raw.shape[-2]}×{raw.shape[-1]}"
+        + (" in colour (R, G, B)" if raw.ndim == 3 else "") + f": {args.method}"
         + ("" if args.method == "wiener" else f", {iterations} iterations"))
     if args.method == "rl":
         rec = richardson_lucy(raw, psf, iterations, boundary="crop", progress=not args.quiet)
     elif args.method == "admm":
+        scale = np.linalg.norm(raw) / np.linalg.norm(psf)   # back to raw / PSF units
         rec = admm_tv(raw / np.linalg.norm(raw), psf / np.linalg.norm(psf), iterations,
                       progress=not args.quiet)
+        rec = rec._replace(image=rec.image * scale)
     else:
         rec = wiener(raw, psf, boundary="crop")
-    image = rec.image if args.full_field else crop_to(rec.image, raw.shape)
+    image = np.asarray(rec.image if args.full_field else crop_to(rec.image, raw.shape[-2:]))
     say(f"writing {args.out}")
-    save_image(args.out, image)
+    if raw.ndim == 3:
+        save_rgb(args.out, white_balance(image, args.white_balance))
+    else:
+        save_image(args.out, image)
     print(f"diffcam reconstruct: {args.method}, {int(np.max(rec.iterations))} iterations, "
           f"residual {float(np.nanmin(rec.residual)):.3g} → {args.out}")
     return 0
@@ -305,6 +406,9 @@ def _run_3d(args, say) -> int:
     paths = volume_paths(args.out)
     say(f"reading {args.raw} and {args.psf}")
     raw, source = read_inputs(args, say)
+    if raw.ndim != 2 or source.colour:
+        raise DiffcamError(f"{args.raw}: --3d reconstructs grayscale captures with a "
+                           f"grayscale PSF stack; reconstruct colour in 2-D.")
     if source.psfs.ndim != 3:
         raise DiffcamError(f"{args.psf}: --3d needs a PSF stack (one PSF per depth), got one "
                            f"PSF of shape {source.psfs.shape}.")
@@ -403,7 +507,13 @@ def _add_reconstruct(sub) -> None:
                     "a PSF stack, pick the plane by --depth, --plane, or else the sharpest "
                     "reconstruction; with --3d, reconstruct every plane as a volume "
                     "(OUT.tif, OUT_max.png, OUT_depth.png). See docs/cli_reconstruct.md.")
-    rec.add_argument("raw", help="raw capture, grayscale (.png, .tif, .npy)")
+    rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
+    rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
+                     help="channel order of colour files, RGB or BGR (OpenCV .npy arrays); "
+                          "needed for colour .npy, PNG/TIFF are RGB by default")
+    rec.add_argument("--white-balance", type=_gains_arg, metavar="auto|R,G,B",
+                     help="colour: gains per channel, or 'auto' (grey world); default none "
+                          "(a PSF per channel from calibrate-psf already balances them)")
     rec.add_argument("--psf", required=True, metavar="SOURCE",
                      help="PSF image or stack (.png/.tif/.npy, multi-page TIFF, .npz or .tif "
                           "from `diffcam psf`, .mat), a folder or a quoted glob "
@@ -428,13 +538,16 @@ def _add_reconstruct(sub) -> None:
                      help="sensor bias, counts: the same level subtracted from both the raw "
                           "and the PSFs (not with --dark-raw/--dark-psf)")
     rec.add_argument("--dark-raw", type=_dark_arg, metavar="COUNTS|auto",
-                     help="dark level of the raw, counts, or 'auto': the median of a "
-                          f"{DARK_RING}-pixel ring at the frame border")
+                     help="dark level of the raw, counts (R,G,B: one per colour channel), "
+                          f"or 'auto': the median of a {DARK_RING}-pixel ring at the frame "
+                          "border, per channel")
     rec.add_argument("--dark-psf", type=_dark_arg, metavar="COUNTS|auto",
                      help="dark level of the PSFs, counts, or 'auto': per plane, the "
                           f"median of a {DARK_RING}-pixel ring at the frame border")
-    rec.add_argument("--downsample", type=int, default=1, metavar="FACTOR",
-                     help="box-average factor, pixels per side (raw and PSFs alike)")
+    rec.add_argument("--downsample", type=int, metavar="FACTOR",
+                     help="box-average factor, pixels per side (raw and PSFs alike); "
+                          f"default: 1 up to {WORKING_SIZE} pixels per side, else the least "
+                          f"factor that brings the capture there")
     rec.add_argument("--full-field", action="store_true",
                      help="keep the solver's object grid (per side: sensor + PSF − 1 pixels, "
                           "rounded up to a fast FFT length; the scene the sensor partly "
@@ -442,5 +555,6 @@ def _add_reconstruct(sub) -> None:
     rec.add_argument("--quiet", action="store_true",
                      help="no progress lines or bars on stderr")
     rec.add_argument("-o", "--out", required=True,
-                     help="output .png, .tif or .npy (2-D); .tif volume (--3d)")
+                     help="output .png, .tif or .npy (2-D; colour: 8-bit PNG, 16-bit TIFF "
+                          "or float32 (ny, nx, 3) .npy); .tif volume (--3d)")
     rec.set_defaults(func=_cmd_reconstruct)

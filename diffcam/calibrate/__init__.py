@@ -8,6 +8,8 @@
 - :mod:`.psf_fit`     — fitting θd (and geometry) to captured PSFs through paper Eq. 7
 - :mod:`.pipeline`    — :func:`retrieve_phase`, the default path: RAAR with restarts, then
   least squares
+- :mod:`.scene_psf`   — the camera's PSF from raw captures of known scenes
+  (:func:`fit_psf_from_scenes`), no point source needed
 - :mod:`.captures`    — preprocessing of captures, HDR merge, synthetic captures
 - :mod:`.simulation`  — the paper's Fig. 3 simulation (the cameraman diffuser)
 - :mod:`.phase_io`    — phase files
@@ -55,3 +57,8 @@ from diffcam.calibrate.stack_fit import (StackFit, StackFitOptions, StackFitWarn
 
 __all__ += ["StackModel", "StackFitOptions", "StackFit", "StackFitWarning", "fit_stack",
             "load_stack_fit", "prepare_planes"]
+
+from diffcam.calibrate.scene_psf import (ScenePsf, ScenePsfOptions,  # noqa: E402
+                                         fit_psf_from_scenes, predict_raw)
+
+__all__ += ["ScenePsf", "ScenePsfOptions", "fit_psf_from_scenes", "predict_raw"]

@@ -5,6 +5,8 @@
 * :func:`load_psf_stack_3d` — the 44-plane DiffuserCam 3-D PSF stack, 270x320, values
   as LCAV normalised them (one global min-max over the stack, so 0 … 1).
 * :func:`load_raw_3d` — the raw 3-D capture (a tilted USAF target) that goes with it.
+* :func:`load_scene_pairs` — seven colour DiffuserCam captures with the lensed
+  photograph of each scene (Lensless Learning), 135x240 RGB (box-averaged by 2).
 * :func:`export_captures` — write either set as the image files a camera gives
   (``diffcam data``), for the command line's real-data walkthrough (docs/real_data.md).
 
@@ -23,7 +25,8 @@ import numpy as np
 from diffcam.io import BackgroundWarning, downsample
 from diffcam.io import subtract_background as _subtract
 
-__all__ = ["DATA_DIR", "TutorialPair", "load_tutorial_pair", "load_psf_stack_3d",
+__all__ = ["DATA_DIR", "TutorialPair", "load_tutorial_pair", "ScenePairs",
+           "load_scene_pairs", "load_psf_stack_3d",
            "load_raw_3d", "IMAGE_BIAS_3D", "CAPTURES", "export_captures"]
 
 DATA_DIR = Path(__file__).resolve().parent
@@ -111,7 +114,44 @@ def load_raw_3d(*, subtract_bias: bool = True, downsample_by: int = 1) -> np.nda
     return downsample(image, downsample_by) if downsample_by != 1 else image
 
 
-CAPTURES = ("hand", "usaf3d")
+class ScenePairs(NamedTuple):
+    """Raw colour captures and the ground-truth scene of each.
+
+    Attributes:
+        raws: float32 ``(7, 3, ny, nx)`` raw captures, channels R, G, B; the source's
+            units (12-bit counts / 4095, background 0.00827 already subtracted, so a
+            few values are slightly negative).
+        truths: float32 ``(7, 3, ny, nx)`` lensed photographs registered to the sensor
+            grid, R, G, B, in ``[0, 1]``.
+        names: the source's name of each pair (``"im43"`` …).
+    """
+
+    raws: np.ndarray
+    truths: np.ndarray
+    names: tuple[str, ...]
+
+
+def load_scene_pairs(*, downsample_by: int = 1) -> ScenePairs:
+    """The seven Lensless Learning pairs (a DiffuserCam capture of a picture on a
+    monitor, and a lensed photograph of it), 135x240 at ``downsample_by=1``.
+
+    The source arrays (270x480, BGR, float32) are box-averaged by 2, reordered to RGB
+    with channels first, and stored as 16 bits: raws with a step of 5.4e-6 (the
+    source's 12-bit step averaged over 64 pixels is 3.8e-6), truths with 1/65535.
+
+    Args:
+        downsample_by: further box averaging (2 gives 67x120).
+    """
+    d = _npz("lensless_learning.npz")
+    raws = (d["raw"].astype(np.float64) * float(d["raw_step"])
+            + float(d["raw_low"])).astype(np.float32)
+    truths = d["truth"].astype(np.float32) / np.float32(65535)
+    if downsample_by != 1:
+        raws, truths = downsample(raws, downsample_by), downsample(truths, downsample_by)
+    return ScenePairs(raws=raws, truths=truths, names=tuple(str(n) for n in d["names"]))
+
+
+CAPTURES = ("hand", "usaf3d", "scenes")
 """The built-in capture sets :func:`export_captures` writes."""
 
 
@@ -120,6 +160,13 @@ def _capture_files(name: str) -> dict[str, np.ndarray]:
     if name == "hand":
         pair = load_tutorial_pair(subtract_background=False)
         return {"hand_raw.tif": pair.image, "hand_psf.tif": pair.psf}
+    if name == "scenes":
+        pairs = load_scene_pairs()
+        files = {}
+        for n, raw, truth in zip(pairs.names, pairs.raws, pairs.truths):
+            files[f"raw_{n}.tif"] = np.moveaxis(raw, 0, -1)
+            files[f"truth_{n}.tif"] = np.moveaxis(truth, 0, -1)
+        return files
     d = _npz("diffusercam_3d.npz")
     files = {"usaf_raw.png": d["image"]}
     files.update({f"psfs/psf{k:02d}.tif": plane for k, plane in enumerate(d["psf_stack"])})
@@ -134,7 +181,9 @@ def export_captures(name: str, folder, *, overwrite: bool = False) -> list[Path]
       (the DiffuserCam tutorial pair, box-averaged by 4; dark level 34 counts);
     * ``"usaf3d"``: ``usaf_raw.png`` (16-bit counts, 270 × 320, sensor bias 100) and
       ``psfs/psf00.tif`` … ``psf43.tif`` (16-bit, the stack's normalised values × 65535;
-      plane 0 nearest the camera).
+      plane 0 nearest the camera);
+    * ``"scenes"``: ``raw_imNN.tif`` and ``truth_imNN.tif`` for the seven pairs of
+      :func:`load_scene_pairs`, float32 RGB TIFFs (135 × 240 × 3).
 
     All files are written together (:func:`diffcam.io.atomic_output`); an existing file
     is an error unless ``overwrite``.
@@ -166,6 +215,8 @@ def export_captures(name: str, folder, *, overwrite: bool = False) -> list[Path]
         for tmp, image in zip(temps if len(paths) > 1 else [temps], files.values()):
             if tmp.suffix == ".png":
                 imsave(tmp, image, check_contrast=False)
+            elif image.ndim == 3 and image.shape[-1] == 3:
+                tifffile.imwrite(tmp, image, photometric="rgb")
             else:
                 tifffile.imwrite(tmp, image)
     return paths

@@ -6,6 +6,7 @@
 * :func:`focus_sweep` — deconvolve at every depth of a stack, pick the plane that
   explains the image best.
 * :func:`admm_tv` — the DiffuserCam ADMM-TV solver for the crop model.
+* :func:`fista` — non-negative least squares (FISTA), the unregularised floor.
 * :func:`wiener` — Tikhonov inverse filter, the fast linear baseline.
 * :func:`convolution_model` — the forward model ``A`` and its adjoint.
 
@@ -13,6 +14,7 @@ Every solver returns a :class:`Reconstruction`.
 """
 
 from diffcam.reconstruct.admm import admm_tv, admm_tv_3d
+from diffcam.reconstruct.fista import fista, nonnegative_least_squares
 from diffcam.reconstruct.focus import FocusSweep, focus_sweep, sharpness
 from diffcam.reconstruct.loop import Reconstruction
 from diffcam.reconstruct.operators import ConvolutionModel, convolution_model
@@ -31,4 +33,6 @@ __all__ = [
     "admm_tv",
     "admm_tv_3d",
     "wiener",
+    "fista",
+    "nonnegative_least_squares",
 ]
