@@ -366,7 +366,7 @@ class StackFitOptions(Options):
     sigma: float = 1.0
     amplitude_blur: float = 6.0
     dark_ring: int = 6
-    step_field: float = 0.01
+    step_field: float = 0.02
     step_zeta: float = 0.003
     step_magnification: float = 2e-5
     step_centre: float = 0.02
