@@ -78,7 +78,8 @@ class Camera(eqx.Module):
         aperture_mask: transmission of the aperture on the ``shape`` grid (0…1); or
             ``None`` for the circular aperture.
         shape: ``(ny, nx)`` samples of the diffuser grid.
-        pad: zero samples added per side before propagating (int or ``(py, px)``).
+        pad: zero samples added per side before propagating (int or ``(py, px)``);
+            the padded grid holds at most ``diffcam.core.grid.MAX_GRID_SAMPLES``.
         crop: ``(ny, nx)`` of the returned PSF, centred (default: ``shape``).
         method: ``"scaling"`` (Fresnel scaling theorem, default) or ``"direct"``.
         edge: ``"hard"`` (as in the paper) or ``"soft"`` (one-pixel ramp,

@@ -360,9 +360,11 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
 
     Raises:
         ShapeError: the phase does not match the camera grid.
-        DiffcamError: z1 ≤ 0, NaN in the phase, bad spectrum.
-        SamplingError: ``method="direct"`` with an undersampled source chirp, or a
-            transfer function that aliases.
+        DiffcamError: z1 ≤ 0, NaN in the phase, a complex or non-numeric phase, bad
+            spectrum.
+        SamplingError: ``method="direct"`` with an undersampled source chirp, a
+            transfer function that aliases, or (``"scaling"``) a source so close that
+            the frame spans fewer than :data:`MIN_SAMPLES_ACROSS` diffuser samples.
     """
     out, finite = _psf(phase, camera, *_arguments(phase, camera, z1, y1, x1, spectrum,
                                                   accept_undersampling),

@@ -348,11 +348,14 @@ def fresnel_tf(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
         wavelength: metres.
         z: distance, metres; negative propagates backwards, 0 is the identity.
         pad: zero samples added on each side before the FFT and cropped after (int
-            or ``(py, px)``); 0 means circular propagation (wrap-around).
+            or ``(py, px)``); 0 means circular propagation (wrap-around). The padded
+            grid holds at most ``diffcam.core.grid.MAX_GRID_SAMPLES``.
         accept_undersampling: turn the aliasing error into a warning.
 
     Raises:
         SamplingError: ``|z| > N·dx²/λ`` on the padded grid (the chirp aliases).
+        DiffcamError: a pad that is not whole and ≥ 0, or a padded grid above the
+            limit (checked before anything is allocated).
     """
     return _run("fresnel_tf", field, dx, wavelength, z, pad, accept_undersampling)
 
@@ -444,7 +447,8 @@ def fourier_lens(field: Num[Array, "... ny nx"], dx, wavelength, focal_length, *
         wavelength: metres.
         focal_length: metres.
         pad: zero samples added on each side first; the output keeps the padded shape
-            and so has a finer pitch λf/((N + 2·pad)·dx).
+            and so has a finer pitch λf/((N + 2·pad)·dx). The padded grid holds at
+            most ``diffcam.core.grid.MAX_GRID_SAMPLES``.
 
     Returns:
         ``(far_field, (du_y, du_x))``: the field and its pitch in metres.

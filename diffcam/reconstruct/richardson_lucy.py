@@ -120,7 +120,9 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
         ``"crop"``. Its values are in the units of ``image / sum(psf)``.
 
     Raises:
-        DiffcamError: negative, NaN/Inf or all-zero inputs, ``iterations < 1``, or a
+        DiffcamError: negative, NaN/Inf, non-numeric or all-zero inputs, inputs or an
+            estimate outside the float range it computes in, ``iterations`` outside
+            1 … :data:`~diffcam.reconstruct.checks.MAX_ITERATIONS`, or a
             convention/boundary combination that does not exist.
         ShapeError: a PSF larger than the image, or batch axes that do not broadcast.
     """
