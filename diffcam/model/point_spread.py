@@ -267,7 +267,7 @@ def _check_phase(phase, camera, finite):
                          f"build the Camera with shape={np.shape(arr)[-2:]}.")
     if np.iscomplexobj(arr):
         raise DiffcamError(
-            f"diffuser {what} is complex ({np.result_type(arr)}); θd is a real phase in "
+            f"diffuser {what} is complex ({np.asarray(arr).dtype}); θd is a real phase in "
             f"radians: pass np.angle(t) for a complex transmission t, or np.real(phase) if "
             f"the imaginary part is rounding.")
     if finite or not isinstance(arr, jax.Array):
