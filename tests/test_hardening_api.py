@@ -61,7 +61,7 @@ def _camera(**changes):
 
 def _magnify_far_away():
     """A reference at z1_ref = 1 nm shrinks by m ≈ 4e-5: all its light lands in the
-    centre pixel, with the area kernel bounded by the frame (it asked for 24 000 taps)."""
+    centre pixel, with the area kernel bounded by the frame (not 24 000 taps)."""
     ref = IMAGE[:8, :8]
     out = np.asarray(magnify_psf(ref, 5e-6, 1e-9, 25e-3, 1e-3, kind="area"))
     assert out.sum() == pytest.approx(ref.sum(), rel=1e-5)
@@ -70,7 +70,7 @@ def _magnify_far_away():
 
 def _affine_mse_of_a_constant():
     """The least-squares affine fit of a constant estimate is the reference's mean, so
-    the MSE is the reference's variance (it was 0/0)."""
+    the MSE is the reference's variance (not 0/0)."""
     assert float(mse(np.ones_like(IMAGE), IMAGE, align="affine")) == pytest.approx(
         IMAGE.var(), rel=1e-5)
 
