@@ -140,16 +140,17 @@ def check_finite(name: str, arr: Any) -> None:
 
 
 def _as_real(name: str, value: Any, what: str, *, complex_ok: bool = False) -> np.ndarray:
-    """``value`` as a NumPy array of numbers (no copy if it already is one; float64 for
-    other inputs), or a DiffcamError naming ``name``."""
+    """``value`` as a NumPy array of numbers (no copy if it already is one), or a
+    DiffcamError naming ``name``: object, text and (unless ``complex_ok``) complex data
+    are refused, whatever they hold."""
     try:
         arr = np.asarray(value)
-        if arr.dtype.kind not in ("biufc" if complex_ok else "biuf"):
-            if arr.dtype.kind == "c":
-                raise TypeError("complex")
-            arr = arr.astype(np.float64)
     except (TypeError, ValueError):
         raise DiffcamError(f"{name} must be {what}, got {value!r:.80}.") from None
+    if arr.dtype.kind not in ("biufc" if complex_ok else "biuf"):
+        held = "complex numbers" if arr.dtype.kind == "c" else f"dtype {arr.dtype}"
+        raise DiffcamError(f"{name} must be {what}, got {held} ({value!r:.60}); convert it "
+                           f"first, e.g. np.asarray(x, dtype=np.float32).")
     return arr
 
 

@@ -227,7 +227,7 @@ def load() -> _Backend:
     kept from earlier runs; raises :class:`DiffcamError` saying what is missing and
     what to do."""
     backend = _Backend()
-    _configure(backend, None, "measure")
+    _configure(backend, _threads(None), "measure")
     for precision in (0, 1):
         try:
             wisdom = _wisdom_file(backend, precision).read_bytes()
@@ -251,16 +251,35 @@ def configure(threads: int | None = None, planning: str = "measure") -> None:
             30 s per shape) or ``"estimate"`` (no timing: plans in microseconds, but
             measured here up to 10x slower to run).
     """
+    threads = _threads(threads)             # the arguments first, then the library
+    if planning not in PLANNING:
+        raise DiffcamError(f"planning must be one of {sorted(PLANNING)}, not {planning!r}.")
     _configure(load(), threads, planning)
 
 
-def _configure(backend: _Backend, threads: int | None, planning: str) -> None:
-    if planning not in PLANNING:
-        raise DiffcamError(f"planning must be one of {sorted(PLANNING)}, not {planning!r}.")
+def _threads(threads: int | None) -> int:
+    """``threads`` checked (a positive int, not a bool), or ``$DIFFCAM_FFT_THREADS``
+    read as one, or the CPUs this process may use."""
     if threads is None:
-        threads = int(os.environ.get("DIFFCAM_FFT_THREADS") or 0) or _cpus()
-    if not isinstance(threads, (int, np.integer)) or threads < 1:
-        raise DiffcamError(f"threads must be a positive integer, not {threads!r}.")
+        text = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
+        if not text:
+            return _cpus()
+        try:
+            threads = int(text)
+        except ValueError:
+            raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
+                               f"{text!r:.40}; unset it to use every CPU.") from None
+        if threads < 1:
+            raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
+                               f"{text!r:.40}; unset it to use every CPU.")
+        return threads
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise DiffcamError(f"threads must be a positive integer (FFTW's threads), not "
+                           f"{threads!r:.40}; None uses every CPU.")
+    return int(threads)
+
+
+def _configure(backend: _Backend, threads: int, planning: str) -> None:
     if not backend.threads_supported:
         threads = 1
     backend.shim.diffcam_fftw_configure(int(threads), PLANNING[planning],

@@ -13,11 +13,13 @@ centred), and :func:`centred_freqs` is the order of :func:`fft2c` outputs.
 
 from __future__ import annotations
 
-from typing import Sequence
+import numbers
+from typing import Any, Sequence
 
 import jax.numpy as jnp
 
 from diffcam.core.backend import fft2, ifft2
+from diffcam.core.errors import DiffcamError
 from jax import Array
 
 __all__ = [
@@ -34,7 +36,16 @@ __all__ = [
     "pad_to",
     "crop_to",
     "pad_by",
+    "int_pair",
+    "check_grid_size",
+    "MAX_GRID_SAMPLES",
 ]
+
+MAX_GRID_SAMPLES = 2 ** 28
+"""Largest propagation grid (samples, padding included) that a :class:`Camera` or a
+propagator accepts: 16384², 2 GiB per complex64 field. A mistyped pad or shape is
+refused before anything is allocated; raise it for the session by assigning to
+``diffcam.core.grid.MAX_GRID_SAMPLES``."""
 
 _AXES = (-2, -1)
 
@@ -127,9 +138,40 @@ def pad_to(field: Array, shape: Sequence[int]) -> Array:
     return jnp.pad(field, widths)
 
 
+def int_pair(value: Any, name: str) -> tuple[int, int]:
+    """``(a, b)`` from an int or a pair of ints (NumPy integers too, not bools), or a
+    DiffcamError naming ``name``."""
+    def whole(v):
+        return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+    if whole(value):
+        return int(value), int(value)
+    if isinstance(value, (tuple, list)) and len(value) == 2 and all(map(whole, value)):
+        return int(value[0]), int(value[1])
+    raise DiffcamError(f"{name} must be an int or a pair of ints (samples), got {value!r:.80}.")
+
+
+def check_grid_size(shape: Sequence[int], pad: Any = 0, what: str = "the propagation grid"
+                    ) -> tuple[int, int]:
+    """The padded ``(ny, nx)`` of a grid of ``shape[-2:]`` plus ``pad`` per side, after
+    checking that ``pad`` is whole and ≥ 0 and that the grid holds at most
+    :data:`MAX_GRID_SAMPLES` samples (before anything of that size is allocated)."""
+    py, px = int_pair(pad, "pad")
+    if py < 0 or px < 0:
+        raise DiffcamError(f"pad must be ≥ 0 samples per side, got {pad!r}.")
+    ny, nx = shape[-2] + 2 * py, shape[-1] + 2 * px
+    if ny * nx > MAX_GRID_SAMPLES:
+        raise DiffcamError(
+            f"{what} {ny}×{nx} (shape {tuple(shape[-2:])} plus pad {(py, px)} per side) is "
+            f"{ny * nx / 2**20:.0f} Mi samples, {ny * nx * 8 / 2**30:.1f} GiB per complex64 "
+            f"field, above the limit of {MAX_GRID_SAMPLES / 2**20:.0f} Mi samples "
+            f"(diffcam.core.grid.MAX_GRID_SAMPLES; the paper's 4000² grid is 15 Mi); check "
+            f"pad and shape (samples, not metres).")
+    return ny, nx
+
+
 def pad_by(field: Array, pad) -> Array:
     """Zero-pad ``pad`` samples (an int, or a ``(py, px)`` pair) on each side."""
-    py, px = (pad, pad) if isinstance(pad, int) else pad
+    py, px = int_pair(pad, "pad")
     ny, nx = field.shape[-2:]
     return pad_to(field, (ny + 2 * py, nx + 2 * px))
 

@@ -89,9 +89,11 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
     if kind not in ("cubic", "area"):
         raise DiffcamError(f"kind must be 'cubic' or 'area', got {kind!r}.")
     m = relative_magnification(z1_ref, jnp.asarray(z1), z2)
-    # the area kernel's taps depend only on ceil(max_width): one compilation per count
-    max_width = float(math.ceil(1 / float(np.min(np.asarray(m))))) if is_concrete(m) else 2.0
     ref = jnp.asarray(psf_ref)
+    # the area kernel's taps depend only on ceil(max_width), and never exceed the frame
+    # (diffcam.model.sensor): one compilation per count, at most one per frame size
+    max_width = (float(min(math.ceil(1 / float(np.min(np.asarray(m)))), max(ref.shape)))
+                 if is_concrete(m) else 2.0)
     if not jnp.issubdtype(ref.dtype, jnp.floating):
         ref = ref.astype(jnp.float32)
     out = _magnify(ref, dx, m, jnp.asarray(centre), kind=kind, max_width=max_width)

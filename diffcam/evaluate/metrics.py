@@ -73,9 +73,14 @@ def align_to(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... n
     de = estimate if mode == "scale" else estimate - _mean(estimate, mask)
     dr = reference - rm
     scale = _peak(dr)
-    e, r = de / _peak(de), dr / scale
-    a = jnp.sum(w * e * r, axis=_SPACE, keepdims=True) / jnp.sum(w * e * e, axis=_SPACE,
-                                                                keepdims=True)
+    r = dr / scale
+    # a constant estimate (or, for "scale", an all-zero one) fits every a equally well:
+    # a = 0, the least-squares solution of least norm, not 0/0 or a fit to the rounding
+    # of its mean (a few ulps, which _peak would blow up to ±1)
+    flat = _peak(de) <= 64 * jnp.finfo(de.dtype).eps * _peak(estimate)
+    e = jnp.where(flat, 0, de / _peak(de))
+    ee = jnp.sum(w * e * e, axis=_SPACE, keepdims=True)
+    a = jnp.sum(w * e * r, axis=_SPACE, keepdims=True) / jnp.where(ee > 0, ee, 1)
     return scale * a * e + rm
 
 
@@ -93,17 +98,45 @@ def pearson(a: Float[Array, "... ny nx"], b: Float[Array, "... ny nx"], *, mask=
 
     optionally over the samples where ``mask`` is nonzero (``mask`` broadcasts).
     Equals ``numpy.corrcoef(a.ravel(), b.ravel())[0, 1]`` for 2-D inputs.
+
+    It is undefined (0/0) when ``a`` or ``b`` is constant over the mask, or the mask
+    selects nothing: called eagerly, that is a DiffcamError saying which; under a
+    caller's ``jit`` the result is NaN or meaningless.
     """
     _check_pair(a, b, "a", "b")
     a, b = jnp.asarray(a), jnp.asarray(b)
     if mask is not None:
         mask = jnp.asarray(mask, dtype=a.dtype)
+    if is_concrete(a, b, mask):
+        _check_variance(a, b, mask)
     w = 1.0 if mask is None else mask
     da, db = a - _mean(a, mask), b - _mean(b, mask)
     da, db = da / _peak(da), db / _peak(db)
     num = jnp.sum(w * da * db, axis=_SPACE)
     den = jnp.sqrt(jnp.sum(w * da * da, axis=_SPACE) * jnp.sum(w * db * db, axis=_SPACE))
     return num / den
+
+
+def _check_variance(a, b, mask):
+    """Raise a DiffcamError if the mask selects nothing or ``a`` or ``b`` is constant
+    over it (in the dtype it is computed in: its mean's rounding would otherwise
+    normalise to a meaningless ±1 pattern, or 0/0)."""
+    shape = np.broadcast_shapes(np.shape(a), np.shape(b), np.shape(mask) if mask is not
+                                None else ())
+    sel = True if mask is None else np.broadcast_to(np.asarray(mask) != 0, shape)
+    if mask is not None and not np.any(sel):
+        raise DiffcamError("pearson: the mask selects no sample; give a mask with nonzero "
+                           "entries where the images should be compared.")
+    for name, x in (("a", a), ("b", b)):
+        x = np.broadcast_to(np.asarray(x), shape)
+        hi = np.max(x, axis=_SPACE, where=sel, initial=-np.inf)
+        lo = np.min(x, axis=_SPACE, where=sel, initial=np.inf)
+        if np.any(hi == lo):
+            raise DiffcamError(
+                f"pearson is undefined: {name} is constant over "
+                f"{'the image' if mask is None else 'the mask'} ({int(np.sum(hi == lo))} "
+                f"image(s)), so its variance is 0; compare constant images with mse, or "
+                f"check that the image holds any signal.")
 
 
 def mse(estimate, reference, *, align: str | None = None) -> Float[Array, "..."]:
@@ -114,13 +147,28 @@ def mse(estimate, reference, *, align: str | None = None) -> Float[Array, "..."]
 
 
 def _data_range(reference, data_range):
+    """``data_range``, checked finite and > 0, or the reference's max − min (which must
+    be > 0: SSIM and PSNR are measured in units of it)."""
     if data_range is not None:
+        if is_concrete(data_range):
+            dr = np.asarray(data_range, np.float64)
+            if dr.size == 0 or not (np.all(np.isfinite(dr)) and np.all(dr > 0)):
+                raise DiffcamError(
+                    f"data_range must be a finite number > 0 (the span of the images' "
+                    f"scale, e.g. 1 for [0, 1] or 255 for 8 bits), got {data_range!r}; "
+                    f"SSIM and PSNR are undefined in units of 0, NaN or a negative span.")
         return data_range
     if not is_concrete(reference):
         raise DiffcamError("data_range is needed under jit/grad (the reference is traced); "
                            "pass data_range=<max − min of the reference's scale>.")
     r = np.asarray(reference)
-    return float(r.max() - r.min())
+    span = float(r.max() - r.min())
+    if not span > 0:
+        raise DiffcamError(
+            f"the reference is constant (every value {float(r.max()):.4g}), so its data "
+            f"range max − min is 0 and SSIM/PSNR in units of it are undefined; pass "
+            f"data_range= (e.g. 1 for images in [0, 1]).")
+    return span
 
 
 def psnr(estimate, reference, *, data_range=None, align: str | None = None
@@ -382,6 +430,16 @@ def psf_fidelity(model: Float[Array, "... ny nx"], measured: Float[Array, "... n
         (zero when ``register=False``).
     """
     _check_pair(model, measured, "model", "measured")
+    for name, x in (("model", model), ("measured", measured)):
+        if is_concrete(x):
+            x = np.asarray(x)
+            flat = x.reshape((-1,) + x.shape[-2:])
+            flat_range = np.ptp(flat, axis=(-2, -1))
+            if np.any(flat_range == 0):
+                raise DiffcamError(
+                    f"psf_fidelity: {name} is constant in {int(np.sum(flat_range == 0))} of "
+                    f"its {flat.shape[0]} PSF(s), so its min–max normalisation (0/0) and "
+                    f"the scores are undefined; check that every PSF holds light.")
     return _fidelity(jnp.asarray(model), jnp.asarray(measured), register, upsample)
 
 

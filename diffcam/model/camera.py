@@ -24,23 +24,29 @@ from jaxtyping import Float
 
 from diffcam.core.backend import fft2, ifft2
 
-from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite, check_positive,
-                     fmt_length, is_concrete)
+from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
+                                 check_positive, fmt_length, is_concrete)
+from diffcam.core.grid import check_grid_size, int_pair
 from diffcam.optics.elements import circular_aperture
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "as_spectrum", "diffuser_phase", "random_diffuser",
            "real_dtype", "with_method", "METHODS"]
 
-MAX_GRID_SAMPLES = 2 ** 28
-"""Largest propagation grid a Camera accepts (16384², 2 GiB per complex64 field): a
-mistyped pad or shape is refused before anything is allocated; raise it for the session
-by assigning to this constant."""
-
 METHODS = ("scaling", "direct")
 
 
 def _scalar(x):
-    """A strongly typed real scalar: float32, or float64 when given or when x64 is on."""
+    """A strongly typed real scalar: float32, or float64 when given or when x64 is on.
+
+    Text (``"532nm"``: units are read only on the command line), complex or non-numeric
+    values are a DiffcamError here, before JAX sees them; the number of values is
+    checked by ``Camera.__check_init__``."""
+    if not isinstance(x, jax.core.Tracer):
+        kind = np.asarray(x).dtype.kind if not isinstance(x, jax.Array) else x.dtype.kind
+        if kind not in "biuf":
+            raise DiffcamError(
+                f"Camera lengths are numbers in metres (e.g. wavelength=532e-9), got "
+                f"{x!r:.60}; units such as '532nm' are read only on the command line.")
     x = jnp.asarray(x)
     return x.astype(jnp.promote_types(x.dtype, jnp.float32))
 
@@ -52,15 +58,6 @@ def real_dtype(camera) -> jnp.dtype:
 
 def _optional_array(x):
     return None if x is None else jnp.asarray(x)
-
-
-def _pair(v, name):
-    if isinstance(v, (int, np.integer)):
-        return int(v), int(v)
-    if isinstance(v, (tuple, list)) and len(v) == 2 and all(
-            isinstance(a, (int, np.integer)) for a in v):
-        return int(v[0]), int(v[1])
-    raise DiffcamError(f"{name} must be an int or a pair of ints, got {v!r}.")
 
 
 class Camera(eqx.Module):
@@ -81,7 +78,8 @@ class Camera(eqx.Module):
         aperture_mask: transmission of the aperture on the ``shape`` grid (0…1); or
             ``None`` for the circular aperture.
         shape: ``(ny, nx)`` samples of the diffuser grid.
-        pad: zero samples added per side before propagating (int or ``(py, px)``).
+        pad: zero samples added per side before propagating (int or ``(py, px)``);
+            the padded grid holds at most ``diffcam.core.grid.MAX_GRID_SAMPLES``.
         crop: ``(ny, nx)`` of the returned PSF, centred (default: ``shape``).
         method: ``"scaling"`` (Fresnel scaling theorem, default) or ``"direct"``.
         edge: ``"hard"`` (as in the paper) or ``"soft"`` (one-pixel ramp,
@@ -97,27 +95,18 @@ class Camera(eqx.Module):
                                                             converter=_optional_array)
     shape: tuple[int, int] = eqx.field(default=(1024, 1024), static=True)
     pad: tuple[int, int] = eqx.field(default=(0, 0), static=True,
-                                     converter=lambda v: _pair(v, "pad"))
+                                     converter=lambda v: int_pair(v, "pad"))
     crop: tuple[int, int] | None = eqx.field(default=None, static=True)
     method: str = eqx.field(default="scaling", static=True)
     edge: str = eqx.field(default="hard", static=True)
 
     def __check_init__(self):
-        shape = _pair(tuple(self.shape), "shape")
+        shape = int_pair(tuple(self.shape), "shape")
         if min(shape) <= 0:
             raise ShapeError(f"camera shape must be positive (ny, nx), got {self.shape}.")
-        if min(self.pad) < 0:
-            raise DiffcamError(f"pad must be ≥ 0 samples per side, got {self.pad}.")
-        ny, nx = self.padded_shape
-        if ny * nx > MAX_GRID_SAMPLES:
-            raise DiffcamError(
-                f"the propagation grid {ny}×{nx} (shape {shape} plus pad {self.pad} per "
-                f"side) is {ny * nx / 2**20:.0f} Mi samples, {ny * nx * 8 / 2**30:.1f} GiB "
-                f"per complex64 field; the limit is {MAX_GRID_SAMPLES / 2**20:.0f} Mi samples "
-                f"(diffcam.model.camera.MAX_GRID_SAMPLES; the paper's 4000² grid is 15 Mi). "
-                f"Check pad and shape (samples, not metres).")
+        check_grid_size(shape, self.pad)
         if self.crop is not None:
-            cy, cx = _pair(tuple(self.crop), "crop")
+            cy, cx = int_pair(tuple(self.crop), "crop")
             if not (0 < cy <= shape[0] and 0 < cx <= shape[1]):
                 raise ShapeError(f"crop {self.crop} must be positive and fit in the grid "
                                  f"{shape}; crop to at most the camera shape.")
@@ -125,6 +114,14 @@ class Camera(eqx.Module):
             raise DiffcamError(f"method must be one of {METHODS}, got {self.method!r}.")
         if self.edge not in ("hard", "soft"):
             raise DiffcamError(f"edge must be 'hard' or 'soft', got {self.edge!r}.")
+        for name in ("wavelength", "z2", "dx", "aperture_radius"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, jax.core.Tracer) \
+                    and np.ndim(value) != 0:
+                raise DiffcamError(
+                    f"Camera.{name} must be one number, got {np.size(value)} values; for "
+                    f"broadband light pass psf(..., spectrum=(wavelengths, weights)), and "
+                    f"for several cameras build one Camera each (or jax.vmap over one).")
         check_positive("wavelength", self.wavelength, "m")
         check_positive("z2 (diffuser-to-sensor distance)", self.z2, "m")
         check_positive("dx (pixel pitch)", self.dx, "m")

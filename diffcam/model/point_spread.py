@@ -265,6 +265,11 @@ def _check_phase(phase, camera, finite):
         raise ShapeError(f"diffuser {what} has shape {np.shape(arr)} but the camera grid is "
                          f"{tuple(camera.shape)}; embed it with diffcam.core.grid.pad_to or "
                          f"build the Camera with shape={np.shape(arr)[-2:]}.")
+    if np.iscomplexobj(arr):
+        raise DiffcamError(
+            f"diffuser {what} is complex ({np.asarray(arr).dtype}); θd is a real phase in "
+            f"radians: pass np.angle(t) for a complex transmission t, or np.real(phase) if "
+            f"the imaginary part is rounding.")
     if finite or not isinstance(arr, jax.Array):
         check_finite(f"diffuser {what}", arr)
 
@@ -281,6 +286,8 @@ def _check_geometry(camera, z_min, z_max, rho, wavelengths, accept_undersampling
             f"{camera.out_shape[0]}×{camera.out_shape[1]} frame (half-diagonal "
             f"{fmt_length(half_diagonal)}): its PSF would miss the frame. Move the source "
             f"towards the axis or enlarge the camera's crop.")
+    if camera.method == "scaling":
+        _check_magnified_sampling(camera, z_min, accept_undersampling)
     for lam in wavelengths:
         # transfer-function sampling of the longest propagation on the padded grid
         z_prop = z2 if camera.method == "direct" else effective_distance(z_max, z2)
@@ -293,6 +300,32 @@ def _check_geometry(camera, z_min, z_max, rho, wavelengths, accept_undersampling
         if camera.method == "direct":
             check_point_source_sampling(lam, z_min, camera.support_radius(), rho, dx,
                                         "at the aperture edge", accept_undersampling)
+
+
+MIN_SAMPLES_ACROSS = 4
+"""Fewest diffuser-grid samples the sensor frame may span on the scaling path (where
+the z_eff field is magnified by M, the frame spans ``min(out_shape)/M`` of them)."""
+
+
+def _check_magnified_sampling(camera, z_min, accept_undersampling):
+    """The scaling path reads the z_eff field magnified by M = (z1 + z2)/z1 about the
+    image of the source, so the sensor frame spans ``n/M`` samples of the diffuser grid.
+    For a very close source (M of tens) that is one or two samples: the PSF is then a
+    spline interpolation between them, nearly flat, whatever the diffuser (the direct
+    path refuses the same geometry for its undersampled chirp). The light spreads over
+    M times the aperture, far beyond the frame; ``n/M`` does not depend on the pitch,
+    only on the frame's pixel count and on z1."""
+    n = min(camera.out_shape)
+    m = float(magnification(z_min, float(camera.z2)))
+    if n / m >= MIN_SAMPLES_ACROSS:
+        return
+    need = (f"z1 ≥ {fmt_length(float(camera.z2) / (n / MIN_SAMPLES_ACROSS - 1))}, "
+            if n > MIN_SAMPLES_ACROSS else "")
+    sampling_problem(
+        f"at z1 = {fmt_length(z_min)} the scaling theorem magnifies the field M = {m:.3g}×, "
+        f"so the {n}-pixel-wide frame spans {n / m:.2g} diffuser samples (fewer than "
+        f"{MIN_SAMPLES_ACROSS}) and the PSF is an interpolation between them, nearly flat; "
+        f"use {need}or a frame of more pixels (Camera shape and crop)", accept_undersampling)
 
 
 def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: bool = True,
@@ -327,9 +360,11 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
 
     Raises:
         ShapeError: the phase does not match the camera grid.
-        DiffcamError: z1 ≤ 0, NaN in the phase, bad spectrum.
-        SamplingError: ``method="direct"`` with an undersampled source chirp, or a
-            transfer function that aliases.
+        DiffcamError: z1 ≤ 0, NaN in the phase, a complex or non-numeric phase, bad
+            spectrum.
+        SamplingError: ``method="direct"`` with an undersampled source chirp, a
+            transfer function that aliases, or (``"scaling"``) a source so close that
+            the frame spans fewer than :data:`MIN_SAMPLES_ACROSS` diffuser samples.
     """
     out, finite = _psf(phase, camera, *_arguments(phase, camera, z1, y1, x1, spectrum,
                                                   accept_undersampling),

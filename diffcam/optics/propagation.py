@@ -45,8 +45,8 @@ from jaxtyping import Complex, Num
 from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_positive,
                                  found_false, is_concrete, fmt_length, plain_numbers,
                                  sampling_problem)
-from diffcam.core.grid import (coord_at, crop_to, fft_freq_at, fft_freqs, fft2c, ifft2c, pad_by,
-                   pitch_yx)
+from diffcam.core.grid import (check_grid_size, coord_at, crop_to, fft_freq_at, fft_freqs,
+                               fft2c, ifft2c, int_pair, pad_by, pitch_yx)
 from diffcam.core.backend import fft2, fft_size, ifft2, transfer_step, vector
 from diffcam.core.phasor import expj
 
@@ -106,23 +106,20 @@ def critical_distance(shape, dx, wavelength) -> tuple[float, float]:
     return ny * dy * dy / lam, nx * dxx * dxx / lam
 
 
-def _check_common(field, dx, wavelength, z, pad):
+def _check_common(field, dx, wavelength, z):
     check_field(field)
-    _check_lengths(dx, wavelength, z, pad)
+    _check_lengths(dx, wavelength, z)
 
 
-def _check_lengths(dx, wavelength, z, pad):
+def _check_lengths(dx, wavelength, z):
     for p in pitch_yx(dx):
         check_positive("dx (pixel pitch)", p, "m")
     check_positive("wavelength", wavelength, "m")
     check_positive("z (propagation distance)", z, "m", allow_negative=True)
-    py, px = (pad, pad) if isinstance(pad, int) else pad
-    if not (isinstance(py, int) and isinstance(px, int)) or py < 0 or px < 0:
-        raise DiffcamError(f"pad must be a non-negative int or (py, px) pair of ints, got {pad!r}.")
 
 
 def _padded_shape(shape, pad):
-    py, px = (pad, pad) if isinstance(pad, int) else pad
+    py, px = int_pair(pad, "pad")
     return shape[-2] + 2 * py, shape[-1] + 2 * px
 
 
@@ -294,8 +291,9 @@ def _run(method, field, dx, wavelength, z, pad, accept_undersampling, band_limit
 def _prepare(method, shape, cdt, dx, wavelength, z, pad, accept_undersampling):
     """The geometry's checks, then ``(pad as (py, px), geometry vector)`` for
     :func:`_propagate_core`, or None for z = 0 (the identity)."""
-    _check_lengths(dx, wavelength, z, pad)
-    pad = (pad, pad) if isinstance(pad, int) else tuple(pad)
+    _check_lengths(dx, wavelength, z)
+    check_grid_size(shape, pad)
+    pad = int_pair(pad, "pad")
     _check_kernel_sampling(method, shape, dx, wavelength, z, pad, accept_undersampling)
     if is_concrete(z) and float(np.max(np.abs(np.asarray(z)))) == 0.0:
         return None
@@ -350,11 +348,14 @@ def fresnel_tf(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
         wavelength: metres.
         z: distance, metres; negative propagates backwards, 0 is the identity.
         pad: zero samples added on each side before the FFT and cropped after (int
-            or ``(py, px)``); 0 means circular propagation (wrap-around).
+            or ``(py, px)``); 0 means circular propagation (wrap-around). The padded
+            grid holds at most ``diffcam.core.grid.MAX_GRID_SAMPLES``.
         accept_undersampling: turn the aliasing error into a warning.
 
     Raises:
         SamplingError: ``|z| > N·dx²/λ`` on the padded grid (the chirp aliases).
+        DiffcamError: a pad that is not whole and ≥ 0, or a padded grid above the
+            limit (checked before anything is allocated).
     """
     return _run("fresnel_tf", field, dx, wavelength, z, pad, accept_undersampling)
 
@@ -412,6 +413,7 @@ def _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse):
         check_positive("dx (pixel pitch)", q, "m")
     check_positive("wavelength", wavelength, "m")
     check_positive("focal_length", focal_length, "m")
+    check_grid_size(np.shape(field), pad)
     field = jnp.asarray(field)
     if pad:
         field = pad_by(field, pad)
@@ -445,7 +447,8 @@ def fourier_lens(field: Num[Array, "... ny nx"], dx, wavelength, focal_length, *
         wavelength: metres.
         focal_length: metres.
         pad: zero samples added on each side first; the output keeps the padded shape
-            and so has a finer pitch λf/((N + 2·pad)·dx).
+            and so has a finer pitch λf/((N + 2·pad)·dx). The padded grid holds at
+            most ``diffcam.core.grid.MAX_GRID_SAMPLES``.
 
     Returns:
         ``(far_field, (du_y, du_x))``: the field and its pitch in metres.
@@ -542,7 +545,7 @@ def choose_propagation(shape, dx, wavelength, z, pad=(0, 0)) -> PropagationChoic
     its transfer function is sampled, |z| ≤ N·dx²/λ; the Fresnel impulse response
     beyond, where the transfer function's chirp would alias.
     """
-    pad = (pad, pad) if isinstance(pad, int) else tuple(pad)
+    pad = int_pair(pad, "pad")
     zc = min(critical_distance(_padded_shape(shape, pad), dx, wavelength))
     az = abs(float(z))
     if az <= zc:
@@ -571,9 +574,9 @@ def plan_propagation(field: Num[Array, "... ny nx"], dx, wavelength, z, *,
         if not is_concrete(field, z, dx, wavelength):
             raise DiffcamError("pad='auto' inspects the field and z, which are traced here; "
                                "pass pad=<int> (zero samples per side) inside jit/grad/vmap.")
-        _check_common(field, dx, wavelength, z, 0)
+        _check_common(field, dx, wavelength, z)
         pad = _auto_pad(field, dx, wavelength, z)
-    pad = (pad, pad) if isinstance(pad, int) else tuple(pad)
+    pad = int_pair(pad, "pad")
     if method == "auto":
         if not is_concrete(z, dx, wavelength):
             raise DiffcamError("method='auto' compares z with N·dx²/λ, which needs concrete "

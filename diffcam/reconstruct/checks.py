@@ -13,8 +13,14 @@ from diffcam.core.errors import DiffcamError, ShapeError, check_field, is_concre
 
 _ROUNDING = 1e-5  # negatives this small (relative to max|image|) are rounding, not data
 
+MAX_ITERATIONS = 100_000
+"""Most iterations a solver accepts (Richardson–Lucy settles in 50–300, ADMM in
+100–1000): a mistyped count (``10**9``) is refused before its history, which holds
+two numbers per iteration and image, is allocated. Raise it for the session by
+assigning to ``diffcam.reconstruct.checks.MAX_ITERATIONS``."""
+
 __all__ = ["as_psf_stack", "check_psf", "check_image", "check_iterations", "check_tol",
-           "batch_shape", "float_dtype"]
+           "batch_shape", "float_dtype", "MAX_ITERATIONS"]
 
 
 def as_psf_stack(psfs: Any) -> Any:
@@ -48,6 +54,7 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Non
     if not is_concrete(psf):
         return
     p = np.asarray(psf, dtype=np.float64)
+    _check_range("psf", p, float_dtype(psf))
     if p.min() < 0:
         raise DiffcamError(
             f"psf has {int((p < 0).sum())} negative value(s) (min {p.min():.3g}); a PSF is "
@@ -64,9 +71,12 @@ def check_image(image: Any, *, nonnegative: bool) -> None:
     """Shape and finiteness of the sensor image; its sign if the solver needs it.
 
     With ``nonnegative``, negatives down to ``-1e-5·max|image|`` pass (the rounding of an
-    FFT-simulated image; the solver clips them); deeper ones raise.
+    FFT-simulated image; the solver clips them); deeper ones raise, and so does an image
+    (or a slice of a batch) without light.
     """
     check_field(image, "image")
+    if is_concrete(image):
+        _check_range("image", np.asarray(image), float_dtype(image))
     if nonnegative and is_concrete(image):
         a = np.asarray(image)
         lo = float(np.min(a))
@@ -75,6 +85,25 @@ def check_image(image: Any, *, nonnegative: bool) -> None:
                 f"image has negative values (min {lo:.3g}); Richardson–Lucy needs "
                 f"non-negative counts: subtract the background with "
                 f"diffcam.io.subtract_background (clips small negatives) or use admm_tv.")
+        dark = int(np.sum(np.max(a.reshape((-1,) + a.shape[-2:]), axis=(-2, -1)) <= 0))
+        if dark:
+            raise DiffcamError(
+                f"image has no light ({dark} of its {a.size // (a.shape[-2] * a.shape[-1])} "
+                f"image(s) are all zeros after clipping rounding-level negatives): there is "
+                f"nothing to deconvolve; check the capture and the background subtraction.")
+
+
+def _check_range(name: str, a: np.ndarray, dtype) -> None:
+    """The peak of ``a`` is a normal number of the solver's ``dtype`` (float32 unless
+    x64 is on): a smaller one is flushed to zero on the CPU, a larger one is Inf."""
+    info = np.finfo(dtype)
+    peak = float(np.max(np.abs(a), initial=0.0))
+    if 0 < peak < info.tiny or peak > info.max:
+        raise DiffcamError(
+            f"{name} peaks at {peak:.3g}, outside the range of {np.dtype(dtype).name} "
+            f"({info.tiny:.2g} to {info.max:.2g}), in which the solver computes; divide it "
+            f"by a constant first (the solvers' results scale with the image and "
+            f"inversely with the PSF), or enable jax_enable_x64.")
 
 
 def check_iterations(iterations: Any) -> int:
@@ -85,6 +114,11 @@ def check_iterations(iterations: Any) -> int:
             f"iterations must be a Python int (it is static under jit), got {iterations!r}.")
     if iterations <= 0:
         raise DiffcamError(f"iterations must be >= 1, got {iterations}; 50–300 is typical.")
+    if iterations > MAX_ITERATIONS:
+        raise DiffcamError(
+            f"iterations = {iterations} is above the limit of {MAX_ITERATIONS} "
+            f"(diffcam.reconstruct.checks.MAX_ITERATIONS); 50–300 is typical: pass tol= to "
+            f"stop early, or raise the limit.")
     return int(iterations)
 
 

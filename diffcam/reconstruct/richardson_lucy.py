@@ -13,7 +13,8 @@ model) keeps flux: ``sum(A x) = sum(b)`` after every step. It is the maximum-lik
 the I-divergence ``Σ b log(b / Ax) - b + Ax`` at every step. Scene points that no sensor
 pixel sees (``Aᵀ1 <= 1e-5·max Aᵀ1``, the rim of the ``"crop"`` object grid) stay 0.
 ``eps`` is a fraction of ``max b``, so the estimate scales with the image whatever its
-units (an absolute 1e-12 drove the estimate of an image of values ~1e-14 to zero).
+units: the solver runs on ``b / max b`` and ``psf / sum psf`` and scales the estimate
+back (an absolute 1e-12 drove the estimate of an image of values ~1e-14 to zero).
 
 ``convention="skimage"`` reproduces ``skimage.restoration.richardson_lucy(image, psf,
 num_iter, clip=False, filter_epsilon)``: start 0.5, no sensitivity division, the forward
@@ -119,7 +120,9 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
         ``"crop"``. Its values are in the units of ``image / sum(psf)``.
 
     Raises:
-        DiffcamError: negative, NaN/Inf or all-zero inputs, ``iterations < 1``, or a
+        DiffcamError: negative, NaN/Inf, non-numeric or all-zero inputs, inputs or an
+            estimate outside the float range it computes in, ``iterations`` outside
+            1 … :data:`~diffcam.reconstruct.checks.MAX_ITERATIONS`, or a
             convention/boundary combination that does not exist.
         ShapeError: a PSF larger than the image, or batch axes that do not broadcast.
     """
@@ -180,6 +183,8 @@ def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate
             raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
     dtype = float_dtype(image, psf)
+    if is_concrete(image, psf) and convention == "adjoint":
+        _check_estimate_range(image, psf, dtype)
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
     psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
     depth = jnp.shape(psf)[-3:-2] if volume else ()
@@ -209,6 +214,19 @@ def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate
     if use_tv and is_concrete(out.objective):
         _warn_if_oscillating(np.asarray(out.objective, np.float64), tv_weight)
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
+
+
+def _check_estimate_range(image, psf, dtype) -> None:
+    """The estimate is in units of ``image / sum(psf)``: refuse a pair whose ratio
+    leaves ``dtype`` (each may be within it: an image ×1e30 and a PSF ×1e-30)."""
+    top = float(np.max(np.asarray(image), initial=0.0))
+    psf_sum = float(np.min(np.sum(np.asarray(psf, np.float64), axis=(-2, -1))))
+    info = np.finfo(dtype)
+    if top / psf_sum > info.max / 1e3 or top / psf_sum < info.tiny * 1e3:
+        raise DiffcamError(
+            f"the estimate would be about max(image)/sum(psf) = {top / psf_sum:.3g}, "
+            f"outside the range of {np.dtype(dtype).name} in which it is computed; divide "
+            f"the image or the PSF by a constant first (the estimate scales with both).")
 
 
 def _warn_if_oscillating(objective, tv_weight) -> None:
@@ -275,14 +293,33 @@ def _operators(b, psf, x0, config: _Config):
 
 
 def _rl_solve(b, psf, x0, weights: _Weights, config: _Config) -> Reconstruction:
-    """One problem: ``b (ny, nx)``, ``psf ([nz,] my, mx)``."""
+    """One problem: ``b (ny, nx)``, ``psf ([nz,] my, mx)``.
+
+    With the adjoint convention it runs on ``b / max b`` and ``psf / sum psf`` and
+    scales the estimate (and the objective) back: the iteration is homogeneous in both,
+    and float32 products of raw values leave its range (NaN for an image ×1e30 with
+    acceleration or TV, or a PSF ×1e-30). ``eps`` is then the fraction of the peak it
+    is documented to be."""
     b = jnp.maximum(b, 0)  # rounding-level negatives passed validation
+    b_scale = h_scale = jnp.ones((), b.dtype)
+    if config.convention != "skimage":  # skimage's iteration is kept bit for bit
+        b_scale = _positive(jnp.max(b))
+        h_scale = _positive(jnp.sum(psf))
+        b, psf = b / b_scale, psf / h_scale
+        x0 = None if x0 is None else x0 * (h_scale / b_scale)
+    solution = _rl_normalised(b, psf, x0, weights, config)
+    return solution._replace(image=solution.image * (b_scale / h_scale),
+                             objective=solution.objective * b_scale)
+
+
+def _positive(scale):
+    return jnp.where(scale > 0, scale, 1)
+
+
+def _rl_normalised(b, psf, x0, weights: _Weights, config: _Config) -> Reconstruction:
+    """:func:`_rl_solve` on the normalised problem (``max b = 1`` unless skimage's)."""
     forward, back, sensitivity, seen, x0 = _operators(b, psf, x0, config)
     eps, filter_epsilon = weights.eps, weights.filter_epsilon
-    if config.convention != "skimage":  # fractions of the image's peak: any units work
-        peak = jnp.max(b)
-        peak = jnp.where(peak > 0, peak, 1)
-        eps, filter_epsilon = eps * peak, filter_epsilon * peak
     use_tv, use_filter, accelerate = config.use_tv, config.use_filter, config.accelerate
     inv_sensitivity = jnp.where(seen, 1 / jnp.where(seen, sensitivity, 1), 0)
     if use_tv:
