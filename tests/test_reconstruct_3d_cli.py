@@ -233,13 +233,16 @@ def test_help_shows_defaults_with_units(capsys):
 
 def test_real_capture_matches_the_api(tmp_path):
     """The shipped DiffuserCam capture at 1/8 size (33×40, 44 planes) through the CLI
-    gives the volume admm_tv_3d (the default method) gives called directly (cropped to
-    the sensor frame as the CLI does): finite, max projections correlated (measured:
+    gives the volume admm_tv_3d (the default method, with the CLI's settings
+    diffcam.reconstruct.admm.VOLUME on the raw scaled to unit L2 norm, the volume scaled
+    back) gives called directly (cropped to the sensor frame as the CLI does): finite,
+    max projections correlated (measured:
     Pearson 1.000000; a CLI that changed the data, the crop or the plane order would
     fall well below the bound)."""
     from diffcam.core.grid import crop_to
     from diffcam.data import load_psf_stack_3d, load_raw_3d
     from diffcam.reconstruct import admm_tv_3d
+    from diffcam.reconstruct.admm import VOLUME
 
     raw, psfs = load_raw_3d(downsample_by=8), load_psf_stack_3d(downsample_by=8)
     assert raw.shape == (33, 40) and psfs.shape == (44, 33, 40)
@@ -249,7 +252,9 @@ def test_real_capture_matches_the_api(tmp_path):
                 "--iterations", 60, "--quiet", "-o", tmp_path / "vol.tif") == 0
     volume = _volume(tmp_path / "vol.tif")[0]
     assert volume.shape == (44, 33, 40) and np.isfinite(volume).all()
-    direct = np.asarray(crop_to(admm_tv_3d(raw, psfs, 60).image, raw.shape))
+    norm = np.linalg.norm(raw)
+    direct = np.asarray(crop_to(admm_tv_3d(raw / norm, psfs, 60, VOLUME).image, raw.shape))
+    assert np.allclose(volume.max(), direct.max() * norm, rtol=1e-3)
     pearson = np.corrcoef(volume.max(axis=0).ravel(), direct.max(axis=0).ravel())[0, 1]
     assert pearson > 0.999, pearson
 

@@ -12,7 +12,7 @@
 Every solver returns a :class:`Reconstruction`.
 """
 
-from diffcam.reconstruct.admm import admm_tv, admm_tv_3d
+from diffcam.reconstruct.admm import AdmmOptions, admm_tv, admm_tv_3d
 from diffcam.reconstruct.focus import FocusSweep, focus_sweep, sharpness
 from diffcam.reconstruct.loop import Reconstruction
 from diffcam.reconstruct.operators import ConvolutionModel, convolution_model
@@ -28,6 +28,7 @@ __all__ = [
     "focus_sweep",
     "FocusSweep",
     "sharpness",
+    "AdmmOptions",
     "admm_tv",
     "admm_tv_3d",
     "wiener",
