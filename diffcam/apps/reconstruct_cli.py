@@ -33,9 +33,10 @@ ITERATIONS = {"admm": 100, "rl": 1000}
 ADMM-TV has converged by 100 (correlation 0.998 with a 200-step FISTA reference, the
 same at 300); Richardson–Lucy needs about 1000 (0.996; at 150 the fingers are not
 resolved, 0.959)."""
-ITERATIONS_3D = {"admm": 100, "rl": 300}
-"""The same for ``--3d`` (44 planes of 270 × 320: ADMM-TV 100 iterations take about
-40 s on 2 cores; Richardson–Lucy's 300 as long again)."""
+ITERATIONS_3D = {"admm": 60, "rl": 300}
+"""The same for ``--3d``: ADMM-TV with :data:`diffcam.reconstruct.admm.VOLUME` 60 (the
+shipped USAF capture, 44 planes of 270 × 320: the measurements behind the choice are in
+docs/volume.md); Richardson–Lucy 300."""
 
 
 class PsfSource(NamedTuple):
@@ -431,9 +432,9 @@ def _add_reconstruct(sub) -> None:
                     "reconstruction; with --3d, reconstruct every plane as a volume "
                     "(OUT.tif, OUT_max.png, OUT_depth.png, OUT_projections.png, "
                     "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm; "
-                    "in 3-D with 3-D TV and an L1 weight of 1e-5 each and residual-"
-                    "balanced penalties (diffcam.reconstruct.admm.VOLUME, recorded in "
-                    "OUT.tif's metadata). See docs/cli_reconstruct.md.")
+                    "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5 "
+                    "and residual-balanced penalties (diffcam.reconstruct.admm.VOLUME, "
+                    "recorded in OUT.tif's metadata). See docs/cli_reconstruct.md.")
     rec.add_argument("raw", help="raw capture, grayscale (.png, .tif, .npy)")
     rec.add_argument("--psf", required=True, metavar="SOURCE",
                      help="PSF image or stack (.png/.tif/.npy, multi-page TIFF, .npz or .tif "
