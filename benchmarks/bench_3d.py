@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.harness import markdown_table, run_probed, write_json
+from diffcam.apps.reconstruct_cli import ITERATIONS_3D
 
 README_COMMAND = ["reconstruct", "captures/usaf_raw.png", "--psf", "captures/psfs", "--3d",
                   "-o", "usaf.tif"]
@@ -271,7 +272,7 @@ def main(argv=None) -> None:
             row["s_per_it_vs_scico"] = row["s_per_it"] / scico
     fig10_rows = []
     if not args.skip_fig10:
-        stacks_volumes = fig10(raw, its or 100, down)
+        stacks_volumes = fig10(raw, its or ITERATIONS_3D["admm"], down)
         measured = ridge_row("fig10 measured", stacks_volumes["measured"], box)
         for name, v in stacks_volumes.items():
             row = ridge_row(f"fig10 {name}", v, box)

@@ -4,24 +4,32 @@
 The problem, for a sensor image ``b``, crop ``C`` and convolution ``H`` (the sum over
 depths for a volume)::
 
-    min_v  ½ ||C H v - b||²  +  tau ||Ψ v||₁    subject to  v >= 0
+    min_v  ½ ||C H v - b||²  +  tau ||Ψ v||₁  +  sparsity ||v||₁    subject to  v >= 0
 
 with ``Ψ`` anisotropic finite differences: circular along y and x (diagonal under the
-FFT, as in the DiffuserCam reference), and, for a volume with ``tv_axial=True``,
-Neumann (non-periodic) along depth (diagonal under the DCT-II). ADMM splits
+FFT, as in the DiffuserCam reference), and, for a volume, ``tau_axial / tau`` times the
+Neumann (non-periodic) differences along depth (diagonal under the DCT-II). ADMM splits
 ``x = H v`` (so the crop is a pixel-wise division), ``u = Ψ v`` (soft threshold) and
-``w = v`` (projection onto ``w >= 0``), with penalties ``mu1``, ``mu2``, ``mu3`` and
-scaled duals. The ``v`` update solves ``(mu1 HᵀH + mu2 ΨᵀΨ + mu3) v = r`` exactly: per
-lateral frequency, ``HᵀH`` over depth is the rank-one ``conj(h) hᵀ``, so
-Sherman–Morrison turns it into two applications of the (diagonal) TV-and-identity part.
-Everything that depends only on the PSF and the penalties is computed once, before the
-loop.
+``w = v`` (projection onto ``w >= 0``, shifted by the L1 weight), with penalties
+``mu1``, ``mu2``, ``mu3`` (fixed, or adapted by residual balancing) and unscaled duals.
+The ``v`` update solves ``(mu1 HᵀH + mu2 ΨᵀΨ + mu3) v = r`` exactly: per lateral
+frequency, ``HᵀH`` over depth is the rank-one ``conj(h) hᵀ``, so Sherman–Morrison
+turns it into divisions by the diagonal of the TV-and-identity part. The OTF stack is
+taken into the DCT basis once; the DCT of each iterate along depth is a product with
+the ``(nz, nz)`` DCT matrix applied to real volumes (one each way per iteration), so an
+iteration costs one real FFT pair of the stack, one of a plane, and element-wise work.
+
+The solvers return the non-negative split variable ``w``; ``final_residual`` and
+``final_objective`` are those of ``w`` itself, and ``split_gap`` is ``||v - w|| / ||w||``
+(the residual history is that of the iterates ``v``, which fit the data more closely
+than ``w`` until the split has closed).
 
 Scaling: like the DiffuserCam code (2-D tutorial and 3-D solver), the PSF (the whole
 stack for a volume) is divided by its L2 norm, so the penalties ``mu1..mu3`` do not
 depend on the PSF's units nor on the image's (every term of the augmented Lagrangian
-scales with ``||b||²``); ``tau`` does scale with the image: the tutorial's ``tau = 1e-4``
-is for an L2-normalised image (:func:`diffcam.io.normalise_l2`), the 3-D solver's
+scales with ``||b||²``); the weights ``tau``, ``tau_axial``, ``sparsity`` scale with the
+image: the tutorial's ``tau = 1e-4`` and :data:`VOLUME`'s weights are for an
+L2-normalised image (:func:`diffcam.io.normalise_l2`), the DiffuserCam 3-D solver's
 ``tau = 6e-4`` for raw counts minus the bias. The estimate is returned in the units of
 ``image / psf`` (so ``A x ≈ b`` with the PSF as given); the objective history is in
 units of the image squared, for the normalised PSF.
