@@ -54,6 +54,12 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Any
     if not is_concrete(psf):
         return psf
     p = np.asarray(psf, dtype=np.float64)
+    if p.min() < -_ROUNDING * p.max():
+        raise DiffcamError(
+            f"psf has {int((p < 0).sum())} negative value(s) (min {p.min():.3g}, max "
+            f"{p.max():.3g}); a PSF is an intensity: subtract the background with "
+            f"diffcam.io.subtract_background (which clips small negatives) or "
+            f"np.clip(psf, 0, None).")
     sums = p.sum(axis=(-2, -1))
     if np.any(sums <= 0):
         raise DiffcamError(
@@ -61,12 +67,6 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Any
             f"light: check the file and the background subtraction.")
     if p.min() >= 0:
         return psf
-    if p.min() < -_ROUNDING * p.max():
-        raise DiffcamError(
-            f"psf has {int((p < 0).sum())} negative value(s) (min {p.min():.3g}, max "
-            f"{p.max():.3g}); a PSF is an intensity: subtract the background with "
-            f"diffcam.io.subtract_background (which clips small negatives) or "
-            f"np.clip(psf, 0, None).")
     from diffcam.io import BackgroundWarning
 
     warnings.warn(f"psf: {int((p < 0).sum())} negative value(s) down to {p.min():.3g} "
