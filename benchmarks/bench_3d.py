@@ -225,9 +225,7 @@ def figure(volumes: dict, box, path) -> None:
     save_figure(fig, path)
 
 
-def main(argv=None) -> None:
-    from diffcam.evaluate.volume import target_box
-
+def _arguments(argv):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reference-iterations", type=int, default=300)
     parser.add_argument("--peer-iterations", type=int, default=10)
@@ -237,51 +235,68 @@ def main(argv=None) -> None:
     parser.add_argument("--quick", action="store_true",
                         help="a smoke run: frames binned 4x, 5 iterations everywhere")
     parser.add_argument("--figure", default="benchmarks/results/bench_3d.png")
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
+
+
+def _speeds(raw, psf, rows) -> None:
+    """diffcam's s/it with XLA's FFT and FFTW into the README rows, and the ratio to
+    scico's."""
+    from diffcam.core.backend import set_fft
     from diffcam.reconstruct.admm import VOLUME
 
+    speed = {}
+    for fft in ("xla", "fftw"):
+        set_fft(fft)
+        speed[fft] = seconds_per_iteration(raw, psf, VOLUME)
+    set_fft("xla")
+    scico = next((r["s_per_it"] for r in rows if r["run"] == "scico"), None)
+    for row in rows:
+        if "readme" in row["run"]:
+            row.update(speed["fftw" if "fftw" in row["run"] else "xla"])
+            if scico:
+                row["s_per_it_vs_scico"] = row["s_per_it"] / scico
+
+
+def _fig10_rows(raw, box, iterations, down, volumes) -> list[dict]:
+    stacks_volumes = fig10(raw, iterations, down)
+    measured = ridge_row("fig10 measured", stacks_volumes["measured"], box)
+    rows = []
+    for name, v in stacks_volumes.items():
+        row = ridge_row(f"fig10 {name}", v, box)
+        rows.append({**row, **agreement(row, measured)})
+        volumes[f"fig10 {name}"] = v
+    return rows
+
+
+def main(argv=None) -> None:
+    from diffcam.evaluate.volume import target_box
+    from diffcam.reconstruct.admm import VOLUME
+
+    args = _arguments(argv)
     down, its = (4, 5) if args.quick else (1, None)
     extra = ["--downsample", "4", "--iterations", "5"] if args.quick else []
     raw, psf = inputs(down)
     note: list[str] = []
     ref_record, ref_volume = reference(raw, psf, its or args.reference_iterations)
     box = target_box(ref_volume.max(axis=0))
-    rows, volumes = [ridge_row("reference", ref_volume, box, ref_record)], {"reference": ref_volume}
+    rows = [ridge_row("reference", ref_volume, box, ref_record)]
+    volumes = {"reference": ref_volume}
     for fft in (None, "fftw"):
         name = f"readme ({fft or 'xla'})"
         record, volumes[name] = readme_run(fft, extra)
         rows.append(ridge_row(name, volumes[name], box, record))
-    speed = {}
-    for fft in ("xla", "fftw"):
-        from diffcam.core.backend import set_fft
-
-        set_fft(fft)
-        speed[fft] = seconds_per_iteration(raw, psf, VOLUME)
-    set_fft("xla")
-    for row in rows[1:]:
-        row.update(speed["fftw" if "fftw" in row["run"] else "xla"])
     for name in PEERS:
         record, volume = peer(name, getattr(args, f"{name}_python"), raw, psf,
                               its or args.peer_iterations, note)
         if record is not None:
             volumes[name] = volume
             rows.append(ridge_row(name, volume, box, record))
-    scico = next((r["s_per_it"] for r in rows if r["run"] == "scico"), None)
-    for row in rows:
-        if scico and "readme" in row["run"]:
-            row["s_per_it_vs_scico"] = row["s_per_it"] / scico
-    fig10_rows = []
-    if not args.skip_fig10:
-        stacks_volumes = fig10(raw, its or ITERATIONS_3D["admm"], down)
-        measured = ridge_row("fig10 measured", stacks_volumes["measured"], box)
-        for name, v in stacks_volumes.items():
-            row = ridge_row(f"fig10 {name}", v, box)
-            fig10_rows.append({**row, **agreement(row, measured)})
-            volumes[f"fig10 {name}"] = v
-    cols = ["run", "s_per_it", "fft_s_per_it", "s_per_it_vs_scico", "slope", "rms",
-            "axial_width", "outside", "wall_s", "peak_mb", "printed_residual",
-            "recomputed_residual"]
-    print(markdown_table(rows, cols))
+    _speeds(raw, psf, rows)
+    fig10_rows = [] if args.skip_fig10 else _fig10_rows(
+        raw, box, its or ITERATIONS_3D["admm"], down, volumes)
+    print(markdown_table(rows, ["run", "s_per_it", "fft_s_per_it", "s_per_it_vs_scico",
+                                "slope", "rms", "axial_width", "outside", "wall_s",
+                                "peak_mb", "printed_residual", "recomputed_residual"]))
     if fig10_rows:
         print(markdown_table(fig10_rows, ["run", "slope", "rms", "axial_width", "outside",
                                           "slope_diff", "within_1_plane"]))

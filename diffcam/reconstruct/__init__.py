@@ -5,7 +5,8 @@
 * :func:`richardson_lucy_3d`, :func:`admm_tv_3d` — a volume from one image and a PSF stack.
 * :func:`focus_sweep` — deconvolve at every depth of a stack, pick the plane that
   explains the image best.
-* :func:`admm_tv` — the DiffuserCam ADMM-TV solver for the crop model.
+* :func:`admm_tv` — the DiffuserCam ADMM-TV solver for the crop model; its settings
+  (axial TV weight, L1 weight, residual balancing) in :class:`AdmmOptions`.
 * :func:`wiener` — Tikhonov inverse filter, the fast linear baseline.
 * :func:`convolution_model` — the forward model ``A`` and its adjoint.
 
