@@ -1,9 +1,13 @@
 """`diffcam reconstruct --3d`: a volume from a raw capture and a PSF stack given as a
-file, a folder, a glob or a stack-fit model; its TIFF, max projection and depth map;
-dark levels; and one clear error (exit 2, outputs untouched) for every bad input."""
+file, a folder, a glob or a stack-fit model; its TIFF (with its run record), max
+projection, depth map, projections and montage; the residual it prints; dark levels;
+and one clear error (exit 2, outputs untouched) for every bad input."""
 
+import json
+import re
 import warnings
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import tifffile
@@ -78,6 +82,33 @@ def test_volume_puts_each_point_in_its_plane(scene, capsys):
     assert mip.dtype == np.uint8 and mip.shape == (N, N) and mip.max() == 255
     depth = imread(d / "vol_depth.png")
     assert depth.ndim == 3 and np.ptp(depth[..., :3].astype(int)) > 100  # not one colour
+    for name in ("projections", "montage"):
+        view = imread(d / f"vol_{name}.png")
+        assert view.ndim == 3 and np.ptp(view[..., :3].astype(int)) > 100, name
+    info = json.loads(meta["Info"])
+    assert info["method"] == "rl" and info["iterations"] == 200 and info["residual"] < 0.1
+
+
+def test_printed_residual_is_the_written_volumes(scene, capsys):
+    """ADMM-TV: the residual printed is ||A x - b|| / ||b|| of the volume written
+    (--full-field: the whole object grid), recomputed with the forward model; the split
+    gap is printed and recorded beside it."""
+    from diffcam.reconstruct import convolution_model
+    from diffcam.reconstruct.loop import relative_residual
+
+    d, psfs = scene
+    out = d / "vol.tif"
+    assert _run(d / "raw.npy", "--psf", d / "psfs.tif", "--3d", "--iterations", 40,
+                "--full-field", "--quiet", "-o", out) == 0
+    printed = float(re.search(r"residual ([0-9.eE+-]+)", capsys.readouterr().out).group(1))
+    volume, _, meta = _volume(out)
+    raw = np.load(d / "raw.npy")
+    model = convolution_model(jnp.asarray(psfs), raw.shape, "crop", volume=True)
+    recomputed = float(relative_residual(model(jnp.asarray(volume)), raw))
+    assert printed == pytest.approx(recomputed, rel=2e-3, abs=1e-4)
+    info = json.loads(meta["Info"])
+    assert info["residual"] == pytest.approx(recomputed, rel=2e-3, abs=1e-4)
+    assert info["split_gap"] >= 0 and info["options"]["balance"] is True
 
 
 def test_folder_and_glob_give_the_stack_volume(scene):
@@ -225,7 +256,7 @@ def test_help_shows_defaults_with_units(capsys):
         main(["reconstruct", "--help"])
     assert stop.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    for words in ("default: 100 for admm, 1000 for rl; with --3d 100 for admm, 300 for rl",
+    for words in ("default: 100 for admm, 1000 for rl; with --3d 60 for admm, 300 for rl",
                   "(default: admm)", "default: 1 up to 480 pixels per side", "counts", "'auto'", "--3d",
                   "natural name order"):
         assert words in text, words
@@ -233,13 +264,16 @@ def test_help_shows_defaults_with_units(capsys):
 
 def test_real_capture_matches_the_api(tmp_path):
     """The shipped DiffuserCam capture at 1/8 size (33×40, 44 planes) through the CLI
-    gives the volume admm_tv_3d (the default method) gives called directly (cropped to
-    the sensor frame as the CLI does): finite, max projections correlated (measured:
+    gives the volume admm_tv_3d (the default method, with the CLI's settings
+    diffcam.reconstruct.admm.VOLUME on the raw scaled to unit L2 norm, the volume scaled
+    back) gives called directly (cropped to the sensor frame as the CLI does): finite,
+    max projections correlated (measured:
     Pearson 1.000000; a CLI that changed the data, the crop or the plane order would
     fall well below the bound)."""
     from diffcam.core.grid import crop_to
     from diffcam.data import load_psf_stack_3d, load_raw_3d
     from diffcam.reconstruct import admm_tv_3d
+    from diffcam.reconstruct.admm import VOLUME
 
     raw, psfs = load_raw_3d(downsample_by=8), load_psf_stack_3d(downsample_by=8)
     assert raw.shape == (33, 40) and psfs.shape == (44, 33, 40)
@@ -249,7 +283,9 @@ def test_real_capture_matches_the_api(tmp_path):
                 "--iterations", 60, "--quiet", "-o", tmp_path / "vol.tif") == 0
     volume = _volume(tmp_path / "vol.tif")[0]
     assert volume.shape == (44, 33, 40) and np.isfinite(volume).all()
-    direct = np.asarray(crop_to(admm_tv_3d(raw, psfs, 60).image, raw.shape))
+    norm = np.linalg.norm(raw)
+    direct = np.asarray(crop_to(admm_tv_3d(raw / norm, psfs, 60, VOLUME).image, raw.shape))
+    assert np.allclose(volume.max(), direct.max() * norm, rtol=1e-3)
     pearson = np.corrcoef(volume.max(axis=0).ravel(), direct.max(axis=0).ravel())[0, 1]
     assert pearson > 0.999, pearson
 

@@ -27,7 +27,6 @@ from diffcam.core.errors import DiffcamError
 from diffcam.io import image_files
 
 DARK_RING = 6        # pixels: width of the frame-border band whose median is the dark level
-MASK_FRACTION = 0.1  # depth map: pixels below this fraction of the max projection's peak
 SWEEP_ITERATIONS = 60  # ADMM iterations per plane of the 2-D focus sweep
 ITERATIONS = {"admm": 100, "rl": 1000}
 """Default iterations per method in 2-D, measured on the shipped hand (docs/real_data.md):
@@ -40,9 +39,10 @@ resolution by default; larger captures are box-averaged by the least integer fac
 that brings them there (:func:`working_factor`). The defaults (iterations, ADMM-TV's
 ``tau``) were measured on captures of 400 and 480 pixels per side; on the tutorial hand
 at its full 1200 × 1600 they leave the fine detail unresolved (docs/scene_psf.md)."""
-ITERATIONS_3D = {"admm": 100, "rl": 300}
-"""The same for ``--3d`` (44 planes of 270 × 320: ADMM-TV 100 iterations take about
-40 s on 2 cores; Richardson–Lucy's 300 as long again)."""
+ITERATIONS_3D = {"admm": 60, "rl": 300}
+"""The same for ``--3d``: ADMM-TV with :data:`diffcam.reconstruct.admm.VOLUME` 60 (the
+shipped USAF capture, 44 planes of 270 × 320: the measurements behind the choice are in
+docs/volume.md); Richardson–Lucy 300."""
 
 
 class PsfSource(NamedTuple):
@@ -370,28 +370,56 @@ def _run_2d(args, say) -> int:
     else:
         save_image(args.out, image)
     print(f"diffcam reconstruct: {args.method}, {int(np.max(rec.iterations))} iterations, "
-          f"residual {float(np.nanmin(rec.residual)):.3g} → {args.out}")
+          f"residual {final_residual(rec):.3g} → {args.out}")
     return 0
 
 
-def volume_paths(out) -> tuple[Path, Path, Path]:
-    """``OUT.tif`` and its companions ``OUT_max.png``, ``OUT_depth.png``, each checked
-    writable (:func:`diffcam.io.check_output_path`) before any work."""
+class VolumePaths(NamedTuple):
+    """The files of ``--3d -o OUT.tif``."""
+
+    volume: Path        # OUT.tif
+    max: Path           # OUT_max.png
+    depth: Path         # OUT_depth.png
+    projections: Path   # OUT_projections.png
+    montage: Path       # OUT_montage.png
+
+
+def volume_paths(out) -> VolumePaths:
+    """``OUT.tif`` and its companions (:class:`VolumePaths`), each checked writable
+    (:func:`diffcam.io.check_output_path`) before any work."""
     from diffcam.io import check_output_path
 
     out = check_output_path(out, suffixes=(".tif", ".tiff"))
-    paths = (out, out.with_name(out.stem + "_max.png"), out.with_name(out.stem + "_depth.png"))
+    paths = VolumePaths(out, *(out.with_name(f"{out.stem}_{name}.png") for name in
+                               VolumePaths._fields[1:]))
     for p in paths[1:]:
         check_output_path(p)
     return paths
 
 
 def _solve_3d(raw, psfs, args):
+    """The volume and its :class:`~diffcam.reconstruct.Reconstruction`; ADMM-TV solves
+    for the raw scaled to unit L2 norm (the scale the weights of
+    :data:`diffcam.reconstruct.admm.VOLUME` are for) and the volume is scaled back to counts."""
     from diffcam.reconstruct import admm_tv_3d, richardson_lucy_3d
+    from diffcam.reconstruct.admm import VOLUME
 
     if args.method == "rl":
-        return richardson_lucy_3d(raw, psfs, _iterations(args), progress=not args.quiet)
-    return admm_tv_3d(raw, psfs, _iterations(args), progress=not args.quiet)
+        rec = richardson_lucy_3d(raw, psfs, _iterations(args), progress=not args.quiet)
+        return rec.image, rec
+    norm = float(np.linalg.norm(raw))
+    rec = admm_tv_3d(raw / norm, psfs, _iterations(args), VOLUME,
+                     progress=not args.quiet)
+    return rec.image * norm, rec
+
+
+def final_residual(rec) -> float:
+    """The relative data misfit of the volume a solver returned (ADMM reports it; for
+    Richardson–Lucy the last iterate's)."""
+    if rec.final_residual is not None:
+        return float(np.max(rec.final_residual))
+    residual = np.asarray(rec.residual)
+    return float(residual[np.isfinite(residual)][-1])
 
 
 def _run_3d(args, say) -> int:
@@ -416,19 +444,38 @@ def _run_3d(args, say) -> int:
     say(f"reconstructing {nz} planes from a {raw.shape[0]}×{raw.shape[1]} image ({my}×{mx} "
         f"PSFs): {args.method}, {_iterations(args)} iterations")
     t0 = time.perf_counter()
-    rec = _solve_3d(raw, source.psfs, args)
-    volume = np.asarray(rec.image if args.full_field else crop_to(rec.image, raw.shape),
-                        np.float32)
+    image, rec = _solve_3d(raw, source.psfs, args)
+    volume = np.asarray(image if args.full_field else crop_to(image, raw.shape), np.float32)
     if not np.isfinite(volume).all():
         raise DiffcamError("the reconstruction holds NaN/Inf values; check the dark levels "
                            "and try fewer --iterations.")
     seconds = time.perf_counter() - t0
-    say(f"writing {paths[0]}, {paths[1].name}, {paths[2].name}")
-    write_volume(paths, volume, source)
-    print(f"diffcam reconstruct: {args.method} 3-D, {nz} planes, "
-          f"{int(np.max(rec.iterations))} iterations ({seconds:.1f} s), residual "
-          f"{float(np.nanmin(rec.residual)):.3g} → {paths[0]}")
+    info = _volume_info(args, rec, seconds)
+    say(f"writing {paths.volume} and " + ", ".join(p.name for p in paths[1:]))
+    write_volume(paths, volume, source, info)
+    gap = "" if rec.split_gap is None else f", split gap {info['split_gap']:.2g}"
+    print(f"diffcam reconstruct: {args.method} 3-D, {nz} planes, {info['iterations']} "
+          f"iterations ({seconds:.1f} s), residual {info['residual']:.3g}{gap} → "
+          f"{paths.volume}")
     return 0
+
+
+def _volume_info(args, rec, seconds: float) -> dict:
+    """What the volume's metadata records: solver, settings, dark levels, how far it
+    converged."""
+    import dataclasses
+
+    from diffcam.reconstruct.admm import VOLUME
+
+    info = {"method": args.method, "iterations": int(np.max(rec.iterations)),
+            "seconds": round(seconds, 2), "residual": final_residual(rec),
+            "dark_raw": args.dark_raw, "dark_psf": args.dark_psf, "bias": args.bias,
+            "downsample": args.downsample}
+    if args.method == "admm":
+        info["options"] = {f.name: getattr(VOLUME, f.name)
+                           for f in dataclasses.fields(VOLUME)}
+        info["split_gap"] = float(np.max(rec.split_gap))
+    return info
 
 
 def _cmd_reconstruct(args) -> int:
@@ -436,63 +483,44 @@ def _cmd_reconstruct(args) -> int:
     return _run_3d(args, say) if args.three_d else _run_2d(args, say)
 
 
-def depth_index(volume, fraction: float = MASK_FRACTION) -> np.ma.MaskedArray:
-    """Index of the brightest plane per pixel, masked where the max projection is below
-    ``fraction`` of its peak (no object there)."""
-    volume = np.asarray(volume)
-    mip = volume.max(axis=0)
-    return np.ma.masked_array(volume.argmax(axis=0), mip < fraction * mip.max())
-
-
-def depth_map_figure(volume, source: PsfSource):
-    """The depth map (:func:`depth_index`) coloured by plane, with a colour bar labelled
-    by depth (mm) or plane number."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    nz, ny, nx = np.shape(volume)
-    width = 6.0
-    fig, ax = plt.subplots(figsize=(width, max(2.5, width * ny / nx * 0.85)),
-                           layout="constrained")
-    ax.set_facecolor("0.8")  # masked pixels
-    image = ax.imshow(depth_index(volume), cmap=plt.get_cmap("turbo", nz), vmin=-0.5,
-                      vmax=nz - 0.5, interpolation="nearest")
-    ticks = np.unique(np.linspace(0, nz - 1, min(nz, 9)).round().astype(int))
-    bar = fig.colorbar(image, ax=ax, ticks=ticks)
+def volume_labels(source: PsfSource) -> tuple[list[str], str]:
+    """Short per-plane labels for the figures (depth in mm, else plane number) and the
+    axis name they need."""
     if source.depths is not None:
-        bar.ax.set_yticklabels([f"{source.depths[t] * 1e3:.4g}" for t in ticks])
-        bar.set_label("source depth z1 (mm)")
-    else:
-        bar.ax.set_yticklabels([str(source.planes[t]) for t in ticks])
-        bar.set_label("plane")
-    ax.set_title(f"brightest plane per pixel (grey: < {MASK_FRACTION:.0%} of the peak)",
-                 fontsize=9)
-    ax.set_xlabel("x (pixels)")
-    ax.set_ylabel("y (pixels)")
-    return fig
+        return [f"{d * 1e3:.4g}" for d in source.depths], "source depth z1 (mm)"
+    return [str(t) for t in source.planes], "plane"
 
 
-def write_volume(paths, volume, source: PsfSource) -> None:
-    """Write the volume TIFF (ImageJ, axes ZYX, a label per plane), its max projection
-    (8-bit PNG) and depth map (PNG) together: all three are replaced or none."""
+def write_volume(paths: VolumePaths, volume, source: PsfSource, info: dict) -> None:
+    """Write the volume TIFF (ImageJ, axes ZYX, a label per plane, ``info`` as JSON in
+    its Info field), its max projection (8-bit PNG), depth map, orthogonal projections
+    and plane montage (PNG) together: all are replaced or none."""
+    import json
+
     import matplotlib.pyplot as plt
     import tifffile
 
     from diffcam.apps.cli import save_figure, save_image
+    from diffcam.apps.volume_views import (depth_map_figure, montage_figure,
+                                           projections_figure)
     from diffcam.io import atomic_output
 
     volume = np.asarray(volume, np.float32)
-    fig = depth_map_figure(volume, source)
+    labels, axis = volume_labels(source)
+    figures = (depth_map_figure(volume, labels, axis), projections_figure(volume, labels),
+               montage_figure(volume, labels))
     try:
-        with atomic_output(*paths) as (tmp_volume, tmp_max, tmp_depth):
-            tifffile.imwrite(tmp_volume, volume, imagej=True,
-                             metadata={"axes": "ZYX", "Labels": source.labels()})
-            save_image(tmp_max, volume.max(axis=0), bits=8)
-            save_figure(fig, tmp_depth)
+        with atomic_output(*paths) as temps:
+            tmp = VolumePaths(*temps)
+            tifffile.imwrite(tmp.volume, volume, imagej=True,
+                             metadata={"axes": "ZYX", "Labels": source.labels(),
+                                       "Info": json.dumps(info)})
+            save_image(tmp.max, volume.max(axis=0), bits=8)
+            for fig, path in zip(figures, (tmp.depth, tmp.projections, tmp.montage)):
+                save_figure(fig, path)
     finally:
-        plt.close(fig)
+        for fig in figures:
+            plt.close(fig)
 
 
 def _add_reconstruct(sub) -> None:
@@ -504,9 +532,14 @@ def _add_reconstruct(sub) -> None:
         "reconstruct", help="deconvolve a sensor image with a PSF (or a volume with --3d)",
         formatter_class=DefaultsFormatter,
         description="Reconstruct a scene from a raw capture and the PSF of its depth. With "
-                    "a PSF stack, pick the plane by --depth, --plane, or else the sharpest "
-                    "reconstruction; with --3d, reconstruct every plane as a volume "
-                    "(OUT.tif, OUT_max.png, OUT_depth.png). See docs/cli_reconstruct.md.")
+                    "a PSF stack, pick the plane by --depth, --plane, or else the plane "
+                    "whose PSF explains the capture best (least data misfit); with --3d, "
+                    "reconstruct every plane as a volume "
+                    "(OUT.tif, OUT_max.png, OUT_depth.png, OUT_projections.png, "
+                    "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm; "
+                    "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5 "
+                    "and residual-balanced penalties (diffcam.reconstruct.admm.VOLUME, "
+                    "recorded in OUT.tif's metadata). See docs/cli_reconstruct.md.")
     rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
     rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
                      help="channel order of colour files, RGB or BGR (OpenCV .npy arrays); "

@@ -3,7 +3,9 @@
 - :mod:`.metrics` — Pearson (paper Eq. 14), SSIM, MSE/PSNR, the phase metric, PSF
   fidelity after registration;
 - :mod:`.baseline` — the magnification baseline (Xie et al.): one measured PSF magnified
-  to other depths, what the model must beat.
+  to other depths, what the model must beat;
+- :mod:`.volume` — the depth ridge of a tilted target in a reconstructed volume (tilt,
+  scatter, axial width, light outside the target) and its depth map.
 """
 
 from diffcam.evaluate.baseline import magnify_psf, relative_magnification

@@ -5,7 +5,8 @@
 * :func:`richardson_lucy_3d`, :func:`admm_tv_3d` — a volume from one image and a PSF stack.
 * :func:`focus_sweep` — deconvolve at every depth of a stack, pick the plane that
   explains the image best.
-* :func:`admm_tv` — the DiffuserCam ADMM-TV solver for the crop model.
+* :func:`admm_tv` — the DiffuserCam ADMM-TV solver for the crop model; its settings
+  (axial TV weight, L1 weight, residual balancing) in :class:`AdmmOptions`.
 * :func:`fista` — non-negative least squares (FISTA), the unregularised floor.
 * :func:`wiener` — Tikhonov inverse filter, the fast linear baseline.
 * :func:`convolution_model` — the forward model ``A`` and its adjoint.
@@ -13,7 +14,7 @@
 Every solver returns a :class:`Reconstruction`.
 """
 
-from diffcam.reconstruct.admm import admm_tv, admm_tv_3d
+from diffcam.reconstruct.admm import AdmmOptions, admm_tv, admm_tv_3d
 from diffcam.reconstruct.fista import fista, nonnegative_least_squares
 from diffcam.reconstruct.focus import FocusSweep, focus_sweep, sharpness
 from diffcam.reconstruct.loop import Reconstruction
@@ -30,6 +31,7 @@ __all__ = [
     "focus_sweep",
     "FocusSweep",
     "sharpness",
+    "AdmmOptions",
     "admm_tv",
     "admm_tv_3d",
     "wiener",

@@ -4,24 +4,32 @@
 The problem, for a sensor image ``b``, crop ``C`` and convolution ``H`` (the sum over
 depths for a volume)::
 
-    min_v  ½ ||C H v - b||²  +  tau ||Ψ v||₁    subject to  v >= 0
+    min_v  ½ ||C H v - b||²  +  tau ||Ψ v||₁  +  sparsity ||v||₁    subject to  v >= 0
 
 with ``Ψ`` anisotropic finite differences: circular along y and x (diagonal under the
-FFT, as in the DiffuserCam reference), and, for a volume with ``tv_axial=True``,
-Neumann (non-periodic) along depth (diagonal under the DCT-II). ADMM splits
+FFT, as in the DiffuserCam reference), and, for a volume, ``tau_axial / tau`` times the
+Neumann (non-periodic) differences along depth (diagonal under the DCT-II). ADMM splits
 ``x = H v`` (so the crop is a pixel-wise division), ``u = Ψ v`` (soft threshold) and
-``w = v`` (projection onto ``w >= 0``), with penalties ``mu1``, ``mu2``, ``mu3`` and
-scaled duals. The ``v`` update solves ``(mu1 HᵀH + mu2 ΨᵀΨ + mu3) v = r`` exactly: per
-lateral frequency, ``HᵀH`` over depth is the rank-one ``conj(h) hᵀ``, so
-Sherman–Morrison turns it into two applications of the (diagonal) TV-and-identity part.
-Everything that depends only on the PSF and the penalties is computed once, before the
-loop.
+``w = v`` (projection onto ``w >= 0``, shifted by the L1 weight), with penalties
+``mu1``, ``mu2``, ``mu3`` (fixed, or adapted by residual balancing) and unscaled duals.
+The ``v`` update solves ``(mu1 HᵀH + mu2 ΨᵀΨ + mu3) v = r`` exactly: per lateral
+frequency, ``HᵀH`` over depth is the rank-one ``conj(h) hᵀ``, so Sherman–Morrison
+turns it into divisions by the diagonal of the TV-and-identity part. The OTF stack is
+taken into the DCT basis once; the DCT of each iterate along depth is a product with
+the ``(nz, nz)`` DCT matrix applied to real volumes (one each way per iteration), so an
+iteration costs one real FFT pair of the stack, one of a plane, and element-wise work.
+
+The solvers return the non-negative split variable ``w``; ``final_residual`` and
+``final_objective`` are those of ``w`` itself, and ``split_gap`` is ``||v - w|| / ||w||``
+(the residual history is that of the iterates ``v``, which fit the data more closely
+than ``w`` until the split has closed).
 
 Scaling: like the DiffuserCam code (2-D tutorial and 3-D solver), the PSF (the whole
 stack for a volume) is divided by its L2 norm, so the penalties ``mu1..mu3`` do not
 depend on the PSF's units nor on the image's (every term of the augmented Lagrangian
-scales with ``||b||²``); ``tau`` does scale with the image: the tutorial's ``tau = 1e-4``
-is for an L2-normalised image (:func:`diffcam.io.normalise_l2`), the 3-D solver's
+scales with ``||b||²``); the weights ``tau``, ``tau_axial``, ``sparsity`` scale with the
+image: the tutorial's ``tau = 1e-4`` and :data:`VOLUME`'s weights are for an
+L2-normalised image (:func:`diffcam.io.normalise_l2`), the DiffuserCam 3-D solver's
 ``tau = 6e-4`` for raw counts minus the bias. The estimate is returned in the units of
 ``image / psf`` (so ``A x ≈ b`` with the PSF as given); the objective history is in
 units of the image squared, for the normalised PSF.
@@ -31,33 +39,101 @@ from __future__ import annotations
 
 import math
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.fft import dct, idct
 from jaxtyping import ArrayLike
 
 from diffcam.core.backend import irfft2, rfft2
-
 from diffcam.core.errors import DiffcamError, is_concrete
-from diffcam.core.progress import progress_bar
 from diffcam.core.grid import crop_to, pad_to
+from diffcam.core.options import Options
+from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
                                         check_iterations, check_psf, check_tol,
                                         float_dtype)
 from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import convolution_model, divergence, gradient
 
-__all__ = ["admm_tv", "admm_tv_3d"]
+__all__ = ["AdmmOptions", "TUTORIAL_2D", "VOLUME", "admm_tv", "admm_tv_3d"]
 
 _AXES = (-2, -1)
 _BOUNDARIES = ("crop", "circular")
 
 
-def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100, *,
-            mu1: float = 1e-6, mu2: float = 1e-5, mu3: float = 4e-5, tau: float = 1e-4,
-            boundary: str = "crop", tol: float | None = None,
-            progress: bool = True) -> Reconstruction:
+class AdmmOptions(Options):
+    """Settings of the ADMM-TV solvers (:func:`admm_tv`, :func:`admm_tv_3d`).
+
+    The PSF is divided by its L2 norm inside the solver, so the penalties ``mu1..mu3``
+    are dimensionless; the weights ``tau``, ``tau_axial`` and ``sparsity`` are in the
+    image's units (scale them with the image, or give an L2-normalised image).
+
+    Attributes:
+        mu1, mu2, mu3: penalties of the splits ``x = Hv``, ``u = Ψv``, ``w = v`` (the
+            starting values when ``balance`` is on).
+        tau: weight of the lateral TV (differences along y and x).
+        tau_axial: weight of the axial TV (differences along depth; volumes only).
+            ``None``: equal to ``tau`` (isotropic 3-D TV, as DiffuserCam); 0: the
+            planes are coupled only through the data.
+        sparsity: weight of ``||v||₁`` (with ``v >= 0``, a constant pull towards 0 that
+            empties planes whose light another plane explains as well).
+        balance: adapt ``mu1..mu3`` by residual balancing (Boyd et al., Found. Trends
+            Mach. Learn. 3, 2011, §3.4.1: a penalty doubles when its primal residual
+            exceeds 10× its dual residual, halves in the opposite case), so that the
+            splits close whatever the image's scale.
+        boundary: ``"crop"`` (the sensor sees the centre of the full convolution; the
+            estimate is on the larger object grid) or ``"circular"``.
+        tol: stop early when the objective changes by less than ``tol`` (relative).
+    """
+
+    mu1: float = 1e-3
+    mu2: float = 1e-3
+    mu3: float = 1e-3
+    tau: float = 6e-4
+    tau_axial: float | None = None
+    sparsity: float = 0.0
+    balance: bool = False
+    boundary: str = "crop"
+    tol: float | None = None
+
+    def __check_init__(self):
+        if self.boundary not in _BOUNDARIES:
+            raise DiffcamError(f"ADMM supports boundary in {_BOUNDARIES}, got "
+                               f"{self.boundary!r}; for a 'same'-size model use "
+                               f"richardson_lucy.")
+        check_tol(self.tol)
+        for name in ("mu1", "mu2", "mu3"):
+            value = getattr(self, name)
+            if is_concrete(value) and not 0 < float(value) < math.inf:
+                raise DiffcamError(f"{name} must be a finite number > 0, got {value!r}; "
+                                   f"DiffuserCam uses mu1=1e-6, mu2=1e-5, mu3=4e-5.")
+        for name in ("tau", "tau_axial", "sparsity"):
+            value = getattr(self, name)
+            if value is not None and is_concrete(value) and not 0 <= float(value) < math.inf:
+                raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")
+
+    def weights(self) -> tuple:
+        """``(tau, tau_axial, sparsity)`` with ``tau_axial`` resolved."""
+        axial = self.tau if self.tau_axial is None else self.tau_axial
+        return self.tau, axial, self.sparsity
+
+
+TUTORIAL_2D = AdmmOptions(mu1=1e-6, mu2=1e-5, mu3=4e-5, tau=1e-4)
+"""The DiffuserCam 2-D tutorial's settings, :func:`admm_tv`'s defaults (for an
+L2-normalised image)."""
+
+VOLUME = AdmmOptions(tau=1e-5, tau_axial=2e-6, sparsity=2e-5, balance=True)
+"""Settings for a volume from a capture scaled to unit L2 norm, chosen by measurement
+on the shipped DiffuserCam 3-D capture (docs/volume.md, ``benchmarks/bench_3d.py``):
+lateral TV 1e-5, a five times weaker axial TV (isotropic 3-D TV smears the tilted
+target into axial blocks), an L1 pull of 2e-5 (it empties the haze planes), residual
+balancing. ``diffcam reconstruct --3d`` uses them."""
+
+
+def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100,
+            options: AdmmOptions | None = None, *, progress: bool = True,
+            **overrides) -> Reconstruction:
     """DiffuserCam ADMM-TV reconstruction of a 2-D scene from one sensor image.
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
@@ -70,27 +146,21 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100, *,
             broadcast with the image's.
         iterations: iterations (static). The DiffuserCam tutorial shows 5; 50–200 converge
             much further.
-        mu1, mu2, mu3: ADMM penalties of the splits ``x = Hv``, ``u = Ψv``, ``w = v``
-            (defaults from the DiffuserCam tutorial).
-        tau: TV weight, in the image's units (1e-4 for an L2-normalised image).
-        boundary: ``"crop"`` (the sensor sees the centre of the full convolution; the
-            estimate is on the larger object grid) or ``"circular"``.
-        tol: stop early when the objective changes by less than ``tol`` (relative).
+        options: :class:`AdmmOptions`; default :data:`TUTORIAL_2D` (``tau = 1e-4`` is for
+            an L2-normalised image); keywords named after its fields replace them.
         progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
 
     Returns:
         :class:`Reconstruction`; ``image`` is the non-negative split variable ``w``,
         ``(..., oy, ox)``.
     """
-    return _admm(image, psf, iterations, mu1=mu1, mu2=mu2, mu3=mu3, tau=tau,
-                 boundary=boundary, tol=tol, volume=False, tv_axial=False,
-                 progress=progress)
+    options = AdmmOptions.of(options or TUTORIAL_2D, **overrides)
+    return _admm(image, psf, iterations, options, volume=False, progress=progress)
 
 
-def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *,
-               mu1: float = 1e-3, mu2: float = 1e-3, mu3: float = 1e-3, tau: float = 6e-4,
-               tv_axial: bool = True, boundary: str = "crop",
-               tol: float | None = None, progress: bool = True) -> Reconstruction:
+def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100,
+               options: AdmmOptions | None = None, *, progress: bool = True,
+               **overrides) -> Reconstruction:
     """DiffuserCam ADMM-TV reconstruction of a volume: ``b = crop(Σ_z h_z * v_z)``.
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
@@ -100,39 +170,25 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *,
         image: ``(..., ny, nx)`` sensor image.
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale, or a
             list of ``(my, mx)`` arrays.
-        tv_axial: include differences along depth in the TV (3-D TV, as DiffuserCam).
-        iterations, mu1, mu2, mu3, tau, boundary, tol, progress: as for
-            :func:`admm_tv`. Defaults
-            measured on the shipped DiffuserCam 3-D capture (raw counts minus the bias,
-            binned 2×, 40 iterations): the tilted USAF target's depth ramps steadily
-            across it (tests/test_real_data.py); ``tau`` = 6e-4 is DiffuserCam's 3-D TV
-            weight for raw counts minus the bias. (The 2-D tutorial's μ = 1e-6/1e-5/4e-5
-            leave the 3-D target unresolved.)
+        iterations: iterations (static).
+        options: :class:`AdmmOptions`; default ``AdmmOptions()``: DiffuserCam's 3-D
+            settings (μ = 1e-3, isotropic 3-D TV with ``tau = 6e-4`` for raw counts
+            minus the bias); keywords named after its fields replace them.
+        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
 
     Returns:
         :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)``.
     """
-    return _admm(image, as_psf_stack(psf_stack), iterations, mu1=mu1, mu2=mu2, mu3=mu3,
-                 tau=tau, boundary=boundary, tol=tol, volume=True, tv_axial=tv_axial,
+    options = AdmmOptions.of(options, **overrides)
+    return _admm(image, as_psf_stack(psf_stack), iterations, options, volume=True,
                  progress=progress)
 
 
-def _admm(image, psf, iterations, *, mu1, mu2, mu3, tau, boundary, tol, volume, tv_axial,
-          progress):
-    if boundary not in _BOUNDARIES:
-        raise DiffcamError(f"ADMM supports boundary in {_BOUNDARIES}, got {boundary!r}; "
-                           f"for a 'same'-size model use richardson_lucy.")
+def _admm(image, psf, iterations, options, *, volume, progress):
     iterations = check_iterations(iterations)
-    check_tol(tol)
     check_image(image, nonnegative=False)
     core = 3 if volume else 2
-    check_psf(psf, jnp.shape(image), min_ndim=core)
-    for name, value in (("mu1", mu1), ("mu2", mu2), ("mu3", mu3)):
-        if is_concrete(value) and not 0 < float(value) < math.inf:
-            raise DiffcamError(f"{name} must be a finite number > 0, got {value!r}; "
-                               f"DiffuserCam uses mu1=1e-6, mu2=1e-5, mu3=4e-5.")
-    if is_concrete(tau) and not 0 <= float(tau) < math.inf:
-        raise DiffcamError(f"tau must be a finite number >= 0, got {tau!r}.")
+    psf = check_psf(psf, jnp.shape(image), min_ndim=core)
     if is_concrete(image) and float(jnp.sum(jnp.asarray(image) ** 2)) == 0:
         raise DiffcamError("image is all zeros: there is nothing to reconstruct.")
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
@@ -141,127 +197,170 @@ def _admm(image, psf, iterations, *, mu1, mu2, mu3, tau, boundary, tol, volume, 
     psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
     if not volume:
         psf = psf[..., None, :, :]
+    tau, tau_axial, sparsity = options.weights()
+    axial = psf.shape[-3] > 1 and not (is_concrete(tau_axial) and float(tau_axial) == 0)
     flat = lambda a, k: a.reshape((-1,) + a.shape[a.ndim - k:])  # noqa: E731
-    penalties = jnp.asarray([mu1, mu2, mu3, tau], dtype)
+    settings = jnp.asarray([options.mu1, options.mu2, options.mu3, tau, tau_axial,
+                            sparsity], dtype)
+    tol = None if options.tol is None else jnp.asarray(options.tol, dtype)
     with progress_bar(iterations, "ADMM-TV", progress):
         out = jax.block_until_ready(_admm_batched(
-            flat(image, 2), flat(psf, 3), penalties,
-            None if tol is None else jnp.asarray(tol, dtype),
-            iterations=iterations, boundary=boundary, tv_axial=tv_axial))
+            flat(image, 2), flat(psf, 3), settings, tol, iterations=iterations,
+            boundary=options.boundary, axial=axial, balance=bool(options.balance)))
     if not volume:
         out = out._replace(image=out.image[:, 0])
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
-@partial(jax.jit, static_argnames=("iterations", "boundary", "tv_axial"))
-def _admm_batched(image, psf, penalties, tol, *, iterations, boundary, tv_axial):
+@partial(jax.jit, static_argnames=("iterations", "boundary", "axial", "balance"))
+def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, balance):
     def one(b, h):
-        return _admm_solve(b, h, penalties, tol, iterations=iterations, boundary=boundary,
-                           tv_axial=tv_axial)
+        return _admm_solve(b, h, settings, tol, iterations=iterations, boundary=boundary,
+                           axial=axial, balance=balance)
     return jax.vmap(one)(image, psf)
 
 
-def _tv(v, axial):
-    """Ψ v: ``(2 or 3, nz, oy, ox)`` lateral circular and axial Neumann differences."""
+def _tv(v, a):
+    """Ψ v: lateral circular differences and, for ``a`` not None, ``a`` times the axial
+    Neumann differences: ``(2 or 3, nz, oy, ox)``."""
     g = gradient(v)
-    if not axial:
+    if a is None:
         return g
     dz = jnp.concatenate([v[1:] - v[:-1], jnp.zeros_like(v[:1])], axis=0)
-    return jnp.concatenate([g, dz[None]], axis=0)
+    return jnp.concatenate([g, a * dz[None]], axis=0)
 
 
-def _tv_adjoint(g, axial):
+def _tv_adjoint(g, a):
     """Ψᵀ g."""
     out = -divergence(g[:2])
-    if axial:
-        dz = g[2, :-1]
+    if a is not None:
+        dz = a * g[2, :-1]
         out = out + jnp.pad(dz, [(1, 0), (0, 0), (0, 0)]) - jnp.pad(dz, [(0, 1), (0, 0), (0, 0)])
     return out
 
 
-def _admm_solve(b, psf, penalties, tol, *, iterations, boundary, tv_axial):
-    """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid."""
-    mu1, mu2, mu3, tau = penalties
-    h_norm = jnp.linalg.norm(psf)
-    model = convolution_model(psf / h_norm, b.shape, boundary, volume=True)
-    otf, grid = model.otf, model.fft_shape                  # (nz, fy, fxr), (fy, fx)
-    nz = psf.shape[0]
-    axial = tv_axial and nz > 1
-
-    v_solve = _v_solver(otf, grid, axial, (mu1, mu2, mu3), b.dtype)
-
-    if boundary == "crop":
-        crop_mask = pad_to(jnp.ones_like(b), grid)
-        data = pad_to(b, grid)
-    else:
-        crop_mask = jnp.ones_like(b)
-        data = b
-    rfft = rfft2
-    irfft = lambda a: irfft2(a, s=grid)       # noqa: E731
-
-    def step(state):
-        v, hv, tv_v, w, xi, eta, rho = state
-        # misfit and objective of the current v, from quantities already at hand
-        predicted = crop_to(hv, b.shape)
-        residual = relative_residual(predicted, b)
-        objective = 0.5 * jnp.sum((predicted - b) ** 2) + tau * jnp.sum(jnp.abs(tv_v))
-        u = _soft(tv_v + eta / mu2, tau / mu2)
-        x = (data + mu1 * hv + xi) / (crop_mask + mu1)
-        w = jnp.maximum(v + rho / mu3, 0)
-        rhs = (jnp.conj(otf) * rfft(mu1 * x - xi)[None]
-               + rfft(_tv_adjoint(mu2 * u - eta, axial) + mu3 * w - rho))
-        v_spec = v_solve(rhs)
-        v = irfft(v_spec)
-        hv = irfft(jnp.sum(otf * v_spec, axis=0))
-        tv_v = _tv(v, axial)
-        xi = xi + mu1 * (hv - x)
-        eta = eta + mu2 * (tv_v - u)
-        rho = rho + mu3 * (v - w)
-        return (v, hv, tv_v, w, xi, eta, rho), (residual, objective)
-
-    v0 = jnp.zeros((nz,) + grid, b.dtype)
-    plane = jnp.zeros(grid, b.dtype)
-    tv0 = _tv(v0, axial)
-    state = (v0, plane, tv0, v0, plane, tv0, v0)
-    state, res, obj, its, done = iterate(step, state, iterations, tol)
-    v, _, _, _, _, _, rho = state
-    estimate = jnp.maximum(v + rho / mu3, 0) / h_norm
-    return Reconstruction(image=estimate, residual=res, objective=obj, iterations=its,
-                          converged=done)
+def _dct_matrix(n, dtype):
+    """The orthonormal DCT-II as an ``(n, n)`` matrix: it diagonalises the Neumann
+    second difference along depth (eigenvalues ``2 - 2cos(πk/n)``). Applied by a
+    matrix product, which on a CPU costs a fraction of an FFT-based DCT along a
+    leading axis."""
+    k = jnp.arange(n)[:, None]
+    z = jnp.arange(n)[None, :]
+    c = jnp.sqrt(2 / n) * jnp.cos(jnp.pi * k * (2 * z + 1) / (2 * n))
+    return c.at[0].multiply(1 / jnp.sqrt(2)).astype(dtype)
 
 
-def _v_solver(otf, grid, axial, mu, dtype):
-    """r ↦ (mu1 HᵀH + mu2 ΨᵀΨ + mu3)⁻¹ r on lateral spectra ``(nz, fy, fxr)``.
+class _Basis(NamedTuple):
+    """The volume's spectral basis: lateral real FFT, and along depth the orthonormal
+    DCT-II (with axial TV) or nothing. ``otf`` is the PSF stack's OTF in that basis;
+    ``eig`` the eigenvalues of ΨᵀΨ."""
 
-    ΨᵀΨ is diagonal under the 2-D DFT (lateral circular differences) and the orthonormal
-    DCT-II over depth (axial Neumann differences); HᵀH couples the depths through one
-    rank-one term per frequency, inverted by Sherman–Morrison.
-    """
-    mu1, mu2, mu3 = mu
-    nz = otf.shape[0]
+    otf: jax.Array           # (nz, fy, fxr) complex
+    eig: jax.Array           # (nz or 1, fy, fxr) real
+    dct: jax.Array | None    # (nz, nz) or None
+    grid: tuple
+
+    def forward(self, v):
+        """Real volume → its spectrum in the basis."""
+        return rfft2(v if self.dct is None else jnp.tensordot(self.dct, v, 1))
+
+    def inverse(self, spectrum):
+        """Spectrum in the basis → real volume."""
+        v = irfft2(spectrum, s=self.grid)
+        return v if self.dct is None else jnp.tensordot(self.dct.T, v, 1)
+
+    def image(self, spectrum):
+        """``H v`` on the FFT grid from ``v``'s spectrum (Σ_z h_z * v_z; the basis along
+        depth is orthonormal, so the sum keeps its form)."""
+        return irfft2(jnp.sum(self.otf * spectrum, axis=0), s=self.grid)
+
+
+def _basis(otf, grid, a, dtype) -> _Basis:
+    """The basis of a model with OTF stack ``otf`` and axial TV scale ``a`` (None: no
+    axial TV)."""
     ky = 2 * jnp.pi * jnp.fft.fftfreq(grid[0])[:, None]
     kx = 2 * jnp.pi * jnp.fft.rfftfreq(grid[1])[None, :]
-    lateral = (4 - 2 * jnp.cos(ky) - 2 * jnp.cos(kx)).astype(dtype)
-    if axial:
-        axial_eig = (2 - 2 * jnp.cos(jnp.pi * jnp.arange(nz) / nz)).astype(dtype)
-        diag = mu2 * (lateral + axial_eig[:, None, None]) + mu3     # (nz, fy, fxr)
-    else:
-        diag = mu2 * lateral + mu3                                    # (fy, fxr)
+    lateral = (4 - 2 * jnp.cos(ky) - 2 * jnp.cos(kx)).astype(dtype)[None]
+    if a is None:
+        return _Basis(otf, lateral, None, grid)
+    nz = otf.shape[0]
+    dct = _dct_matrix(nz, dtype)
+    axial_eig = (2 - 2 * jnp.cos(jnp.pi * jnp.arange(nz) / nz)).astype(dtype)
+    return _Basis(jnp.tensordot(dct, otf, 1), lateral + a ** 2 * axial_eig[:, None, None],
+                  dct, grid)
 
-    def diag_solve(r):
-        """(mu2 ΨᵀΨ + mu3)⁻¹ r."""
-        if not axial:
-            return r / diag
-        return idct(dct(r, axis=0, norm="ortho") / diag, axis=0, norm="ortho")
 
-    dinv_g = diag_solve(jnp.conj(otf))
-    coupling = 1 + mu1 * jnp.real(jnp.sum(otf * dinv_g, axis=0))   # (fy, fxr)
+def _v_update(basis, data_spectrum, rest, mu):
+    """Solve ``(mu1 HᵀH + mu2 ΨᵀΨ + mu3) v = Hᵀ d + rest`` for ``v``; ``data_spectrum``
+    is the lateral spectrum of ``d`` (one plane). Per lateral frequency HᵀH is the
+    rank-one ``conj(h) hᵀ`` over depth and ΨᵀΨ is diagonal in the basis, so
+    Sherman–Morrison solves it exactly. Returns ``(v, H v)`` on the FFT grid."""
+    mu1, mu2, mu3 = mu
+    otf = basis.otf
+    diag = mu2 * basis.eig + mu3
+    t = (jnp.conj(otf) * data_spectrum[None] + basis.forward(rest)) / diag
+    coupling = 1 + mu1 * jnp.sum(jnp.abs(otf) ** 2 / diag, axis=0)
+    spectrum = t - jnp.conj(otf) / diag * (mu1 * jnp.sum(otf * t, axis=0) / coupling)
+    return basis.inverse(spectrum), basis.image(spectrum)
 
-    def v_solve(r):
-        t = diag_solve(r)
-        return t - dinv_g * (mu1 * jnp.sum(otf * t, axis=0) / coupling)
 
-    return v_solve
+def _balanced(mu, primal, dual):
+    """Residual balancing: a penalty doubles when its primal residual exceeds 10× its
+    dual residual and halves in the opposite case."""
+    return jnp.where(primal > 10 * dual, 2 * mu, jnp.where(dual > 10 * primal, mu / 2, mu))
+
+
+def _norm(a):
+    return jnp.sqrt(jnp.sum(a ** 2))
+
+
+def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
+    """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid."""
+    tau, tau_axial, sparsity = settings[3], settings[4], settings[5]
+    h_norm = jnp.linalg.norm(psf)
+    model = convolution_model(psf / h_norm, b.shape, boundary, volume=True)
+    grid = model.fft_shape
+    a = (tau_axial / jnp.where(tau > 0, tau, 1)) if axial else None
+    basis = _basis(model.otf, grid, a, b.dtype)
+    crop_mask = pad_to(jnp.ones_like(b), grid) if boundary == "crop" else jnp.ones_like(b)
+    data = pad_to(b, grid) if boundary == "crop" else b
+
+    def fit(v, hv, tv_v):
+        """Relative residual and objective of a volume."""
+        predicted = crop_to(hv, b.shape)
+        objective = (0.5 * jnp.sum((predicted - b) ** 2) + tau * jnp.sum(jnp.abs(tv_v))
+                     + sparsity * jnp.sum(v))
+        return relative_residual(predicted, b), objective
+
+    def step(state):
+        v, hv, tv_v, xi, eta, rho, mu = state
+        mu1, mu2, mu3 = mu
+        u = _soft(tv_v + eta / mu2, tau / mu2)
+        x = (data + mu1 * hv + xi) / (crop_mask + mu1)
+        w = jnp.maximum(v + (rho - sparsity) / mu3, 0)
+        rest = _tv_adjoint(mu2 * u - eta, a) + mu3 * w - rho
+        v_new, hv_new = _v_update(basis, rfft2(mu1 * x - xi), rest, mu)
+        tv_new = _tv(v_new, a)
+        primal = jnp.stack([_norm(hv_new - x), _norm(tv_new - u), _norm(v_new - w)])
+        dual = mu * jnp.stack([_norm(hv_new - hv), _norm(tv_new - tv_v), _norm(v_new - v)])
+        xi = xi + mu1 * (hv_new - x)
+        eta = eta + mu2 * (tv_new - u)
+        rho = rho + mu3 * (v_new - w)
+        mu = _balanced(mu, primal, dual) if balance else mu
+        return (v_new, hv_new, tv_new, xi, eta, rho, mu), fit(v, hv, tv_v)
+
+    v0 = jnp.zeros((psf.shape[0],) + grid, b.dtype)
+    plane = jnp.zeros(grid, b.dtype)
+    tv0 = _tv(v0, a)
+    state = (v0, plane, tv0, plane, tv0, v0, settings[:3])
+    state, res, obj, its, done = iterate(step, state, iterations, tol)
+    v, _, _, _, _, rho, mu = state
+    w = jnp.maximum(v + (rho - sparsity) / mu[2], 0)
+    final_residual, final_objective = fit(w, basis.image(basis.forward(w)), _tv(w, a))
+    return Reconstruction(image=w / h_norm, residual=res, objective=obj, iterations=its,
+                          converged=done, final_residual=final_residual,
+                          final_objective=final_objective,
+                          split_gap=_norm(v - w) / jnp.maximum(_norm(w), 1e-30))
 
 
 def _soft(x, threshold):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numbers
+import warnings
 from typing import Any, Sequence
 
 import jax
@@ -37,8 +38,13 @@ def as_psf_stack(psfs: Any) -> Any:
     return psfs
 
 
-def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> None:
-    """Shape, finiteness, sign and sum of a PSF (or stack) against the sensor image."""
+def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Any:
+    """Shape, finiteness, sign and sum of a PSF (or stack) against the sensor image.
+
+    Returns the PSF, with negatives down to ``-1e-5·max(psf)`` (the rounding left by a
+    background subtraction or an FFT) clipped to 0 and reported by one
+    :class:`diffcam.io.BackgroundWarning`; deeper negatives raise.
+    """
     check_field(psf, "psf")
     shape = np.shape(psf)
     if len(shape) < min_ndim:
@@ -52,19 +58,28 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Non
             f"PSF to at most the image size around its centre "
             f"(diffcam.core.grid.crop_to(psf, image.shape)) or capture a larger image.")
     if not is_concrete(psf):
-        return
+        return psf
     p = np.asarray(psf, dtype=np.float64)
     _check_range("psf", p, float_dtype(psf))
-    if p.min() < 0:
+    if p.min() < -_ROUNDING * p.max():
         raise DiffcamError(
-            f"psf has {int((p < 0).sum())} negative value(s) (min {p.min():.3g}); a PSF is "
-            f"an intensity: subtract the background with diffcam.io.subtract_background "
-            f"(which clips small negatives) or np.clip(psf, 0, None).")
+            f"psf has {int((p < 0).sum())} negative value(s) (min {p.min():.3g}, max "
+            f"{p.max():.3g}); a PSF is an intensity: subtract the background with "
+            f"diffcam.io.subtract_background (which clips small negatives) or "
+            f"np.clip(psf, 0, None).")
     sums = p.sum(axis=(-2, -1))
     if np.any(sums <= 0):
         raise DiffcamError(
             f"psf sums to zero in {int((sums <= 0).sum())} slice(s); every PSF needs some "
             f"light: check the file and the background subtraction.")
+    if p.min() >= 0:
+        return psf
+    from diffcam.io import BackgroundWarning
+
+    warnings.warn(f"psf: {int((p < 0).sum())} negative value(s) down to {p.min():.3g} "
+                  f"(rounding: at most {_ROUNDING:g} of the peak) clipped to 0.",
+                  BackgroundWarning, stacklevel=4)
+    return jnp.maximum(jnp.asarray(psf), 0)
 
 
 def check_image(image: Any, *, nonnegative: bool) -> None:

@@ -27,6 +27,13 @@ class Reconstruction(NamedTuple):
             Tikhonov functional); NaN after an early stop.
         iterations: ``(...)`` int, iterations run.
         converged: ``(...)`` bool, True if the tolerance stopped the loop.
+        final_residual: ``(...)`` relative data misfit of ``image`` itself (the
+            estimate returned), or ``None`` where the solver returns the last iterate
+            of ``residual``'s history.
+        final_objective: ``(...)`` the objective of ``image``, or ``None`` likewise.
+        split_gap: ``(...)`` ADMM: ``||v - w|| / ||w||`` between the iterate and the
+            returned non-negative split variable (0 when the split has closed);
+            ``None`` for other solvers.
     """
 
     image: Array
@@ -34,6 +41,9 @@ class Reconstruction(NamedTuple):
     objective: Array
     iterations: Array
     converged: Array
+    final_residual: Array | None = None
+    final_objective: Array | None = None
+    split_gap: Array | None = None
 
 
 def relative_residual(predicted: Array, data: Array) -> Array:

@@ -177,7 +177,7 @@ def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate
     check_tol(tol)
     check_image(image, nonnegative=True)
     core = 3 if volume else 2
-    check_psf(psf, jnp.shape(image), min_ndim=core)
+    psf = check_psf(psf, jnp.shape(image), min_ndim=core)
     for name, value in (("tv_weight", tv_weight), ("eps", eps)):
         if is_concrete(value) and not 0 <= float(value) < math.inf:
             raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")

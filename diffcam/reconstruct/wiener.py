@@ -63,7 +63,7 @@ def wiener(image: ArrayLike, psf: ArrayLike, regularization: float = 1e-3, *,
     if boundary not in BOUNDARIES:
         raise DiffcamError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}.")
     check_image(image, nonnegative=False)
-    check_psf(psf, jnp.shape(image))
+    psf = check_psf(psf, jnp.shape(image))
     if np.ndim(regularization) != 0:
         raise DiffcamError(f"regularization must be one number, got shape "
                            f"{np.shape(regularization)}.")
