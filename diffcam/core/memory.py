@@ -36,7 +36,7 @@ starts:
     GLIBC_TUNABLES=glibc.malloc.hugetlb=1:glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=17179869184 python run.py
 
 Measured on the same VM with the 4096² scaling PSF's ``value_and_grad`` (FFTW;
-``benchmarks/RESULTS.md``, ninth session). With huge pages alone, calls took 505–970 ms,
+``python -m benchmarks.bench_grad``). With huge pages alone, calls took 505–970 ms,
 about one in four slow, with 50–350 ms of system time each. With both settings, once
 the heap had grown, calls took 494–545 ms with 1.5–5 ms of system time and no fault.
 
