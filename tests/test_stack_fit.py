@@ -121,6 +121,18 @@ def test_predict_refuses_bad_planes(synthetic_fit, planes, match):
         synthetic_fit.predict(planes)
 
 
+@pytest.mark.parametrize("level", ["abc", "nan", "inf", "1e400"])
+def test_cli_fit_refuses_a_saturation_that_is_not_a_level(tmp_path, capsys, level):
+    """One usage error (exit 2, no traceback) before the stack is read."""
+    with pytest.raises(SystemExit) as exit_:
+        main(["fit", str(tmp_path / "missing.npy"), "--planes", "4,12", "--saturation", level,
+              "-o", str(tmp_path / "m.npz")])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "is not a pixel level" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("kappa", [math.nan, math.inf, 1e6, "1", True])
 def test_predict_refuses_bad_kappa(synthetic_fit, kappa):
     with pytest.raises(DiffcamError, match="kappa must be a number"):

@@ -14,6 +14,7 @@ name) or a quoted glob of them (``'psf/*.png'``). Planes are indices into it: ``
 from __future__ import annotations
 
 import argparse
+import math
 import json
 import time
 import zipfile
@@ -58,6 +59,20 @@ def _planes_arg(text):
         return parse_planes(text)
     except DiffcamError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _saturation_arg(text):
+    """A finite pixel level, or 'none' (no saturation check)."""
+    if text.strip().lower() == "none":
+        return "none"
+    try:
+        level = float(text)
+    except ValueError:
+        level = math.nan
+    if not math.isfinite(level):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a pixel level: give a finite "
+                                         f"number in the stack's units, or 'none'")
+    return level
 
 
 def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float | None]:
@@ -112,7 +127,7 @@ def _cmd_fit(args) -> int:
     check_output_path(args.out, suffixes=(".npz",))
     stack, level = read_stack(args.stack, args.key)
     if args.saturation is not None:
-        level = None if args.saturation.lower() == "none" else float(args.saturation)
+        level = None if args.saturation == "none" else args.saturation
     overrides = {k: v for k, v in (("max_steps", args.max_steps),
                                    ("time_budget", args.time_budget),
                                    ("patience", args.patience), ("seed", args.seed))
@@ -275,7 +290,8 @@ def _add_fit(sub) -> None:
     fit.add_argument("--seed", type=int, help="seed of the validation split (0)")
     fit.add_argument("--frozen", action="store_true",
                      help="frozen-distance ablation: ζ the same at every plane")
-    fit.add_argument("--saturation", help="pixel value counted as saturated, or 'none' "
+    fit.add_argument("--saturation", type=_saturation_arg,
+                     help="pixel value counted as saturated, or 'none' "
                                           "(default: 0.999 × full scale of integer data)")
     fit.add_argument("--pixel", type=_length("pixel"),
                      help="pixel pitch (reported: with --wavelength, the distance z2·M)")
