@@ -121,7 +121,7 @@ def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float |
 
 
 def _cmd_fit(args) -> int:
-    from diffcam.calibrate.stack_fit import fit_stack
+    from diffcam.calibrate import fit_stack
     from diffcam.io import check_output_path
 
     check_output_path(args.out, suffixes=(".npz",))
@@ -160,7 +160,7 @@ def _z2m(fit) -> str:
 
 def _cmd_predict(args) -> int:
     from diffcam.apps.cli import save_image
-    from diffcam.calibrate.stack_fit import load_stack_fit
+    from diffcam.calibrate import load_stack_fit
     from diffcam.io import check_output_path
 
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
@@ -183,7 +183,7 @@ def compare_stack(stack, fit) -> dict:
     """Per-plane Pearson of the model's prediction, its rendering alone (no carried
     residual), the scaling baseline and the frozen-distance prediction (κ = 0) against a
     measured stack (prepared like the fit's planes)."""
-    from diffcam.calibrate.stack_fit import prepare_planes
+    from diffcam.calibrate import prepare_planes
     from diffcam.evaluate.metrics import pearson
     from diffcam.evaluate.registration import scaling_baseline
 
@@ -218,7 +218,7 @@ def compare_stack(stack, fit) -> dict:
 
 def _cmd_compare_stack(args) -> int:
     from diffcam.apps.cli import save_figure
-    from diffcam.calibrate.stack_fit import load_stack_fit
+    from diffcam.calibrate import load_stack_fit
     from diffcam.io import atomic_output, check_output_path
 
     if args.out:

@@ -75,7 +75,7 @@ def is_stack_fit(path) -> bool:
     import json
     import zipfile
 
-    from diffcam.calibrate.stack_fit import FORMAT
+    from diffcam.calibrate.stack_result import FORMAT
     from diffcam.io import read_npz
 
     path = Path(path)
@@ -93,7 +93,7 @@ def is_stack_fit(path) -> bool:
 
 def _read_model(path, planes) -> PsfSource:
     """The planes (default all) a stack-fit model renders, clipped at 0."""
-    from diffcam.calibrate.stack_fit import load_stack_fit
+    from diffcam.calibrate import load_stack_fit
 
     fit = load_stack_fit(path)
     if planes is None:

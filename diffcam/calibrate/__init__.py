@@ -13,6 +13,9 @@
 - :mod:`.captures`    — preprocessing of captures, HDR merge, synthetic captures
 - :mod:`.simulation`  — the paper's Fig. 3 simulation (the cameraman diffuser)
 - :mod:`.phase_io`    — phase files
+- :mod:`.stack_model`, :mod:`.stack_fit`, :mod:`.stack_result`, :mod:`.stack_inputs`
+  — the wave model of a measured PSF stack, its fit to a few planes, the fitted result
+  (prediction, file) and the given planes' checks and preparation
 - :mod:`.result`      — :class:`RetrievalResult`, returned by every solver
 """
 
@@ -33,7 +36,13 @@ from diffcam.calibrate.projections import (ProjectionOptions, gerchberg_saxton, 
                                            retrieve_projections)
 from diffcam.calibrate.psf_fit import DepthLaw, fit_to_psfs, predict_psfs, resolve_twin
 from diffcam.calibrate.result import RetrievalResult
+from diffcam.calibrate.scene_psf import (ScenePsf, ScenePsfOptions, fit_psf_from_scenes,
+                                         predict_raw)
 from diffcam.calibrate.simulation import PaperSimulation, cameraman_phase, paper_simulation
+from diffcam.calibrate.stack_fit import StackFitOptions, StackFitWarning, fit_stack
+from diffcam.calibrate.stack_inputs import prepare_planes
+from diffcam.calibrate.stack_model import StackModel
+from diffcam.calibrate.stack_result import StackFit, load_stack_fit
 
 __all__ = [
     # geometry, forward model, result
@@ -49,16 +58,9 @@ __all__ = [
     "prepare_captures", "PreparedCaptures", "synthetic_captures", "merge_exposures",
     "normalise_min_max", "centroid", "centre_on_axis", "resample_capture",
     "resample_far_field",
+    # measured PSF stacks
+    "StackModel", "StackFitOptions", "StackFit", "StackFitWarning", "fit_stack",
+    "load_stack_fit", "prepare_planes",
+    # the PSF from scenes
+    "ScenePsf", "ScenePsfOptions", "fit_psf_from_scenes", "predict_raw",
 ]
-
-from diffcam.calibrate.stack_fit import (StackFit, StackFitOptions, StackFitWarning,  # noqa: E402
-                                         StackModel, fit_stack, load_stack_fit,
-                                         prepare_planes)
-
-__all__ += ["StackModel", "StackFitOptions", "StackFit", "StackFitWarning", "fit_stack",
-            "load_stack_fit", "prepare_planes"]
-
-from diffcam.calibrate.scene_psf import (ScenePsf, ScenePsfOptions,  # noqa: E402
-                                         fit_psf_from_scenes, predict_raw)
-
-__all__ += ["ScenePsf", "ScenePsfOptions", "fit_psf_from_scenes", "predict_raw"]
