@@ -19,7 +19,8 @@
 - :mod:`.result`      — :class:`RetrievalResult`, returned by every solver
 """
 
-from diffcam.calibrate.captures import (PreparedCaptures, centre_on_axis, centroid,
+from diffcam.calibrate.captures import (CaptureOptions, PreparedCaptures, SyntheticSensor,
+                                        centre_on_axis, centroid,
                                         merge_exposures, normalise_min_max, prepare_captures,
                                         resample_capture, resample_far_field,
                                         synthetic_captures)
@@ -34,7 +35,8 @@ from diffcam.calibrate.pipeline import retrieve_phase
 from diffcam.calibrate.planes import DefocusedPlane, psf_plane
 from diffcam.calibrate.projections import (ProjectionOptions, gerchberg_saxton, hio, initial_phase, raar,
                                            retrieve_projections)
-from diffcam.calibrate.psf_fit import DepthLaw, fit_to_psfs, predict_psfs, resolve_twin
+from diffcam.calibrate.psf_fit import (DepthLaw, PsfFitOptions, fit_to_psfs, predict_psfs,
+                                      resolve_twin)
 from diffcam.calibrate.result import RetrievalResult
 from diffcam.calibrate.scene_psf import (ScenePsf, ScenePsfOptions, fit_psf_from_scenes,
                                          predict_raw)
@@ -53,9 +55,10 @@ __all__ = [
     "retrieve_phase", "retrieve_projections", "gerchberg_saxton", "hio", "raar",
     "initial_phase", "ProjectionOptions", "DefocusedPlane", "psf_plane",
     "retrieve_lsq", "fit_phase", "FitOptions", "near_far_model", "PhaseGrid",
-    "fit_to_psfs", "DepthLaw", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
+    "fit_to_psfs", "PsfFitOptions", "DepthLaw", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
     # captures
-    "prepare_captures", "PreparedCaptures", "synthetic_captures", "merge_exposures",
+    "prepare_captures", "PreparedCaptures", "CaptureOptions", "synthetic_captures",
+    "SyntheticSensor", "merge_exposures",
     "normalise_min_max", "centroid", "centre_on_axis", "resample_capture",
     "resample_far_field",
     # measured PSF stacks

@@ -91,6 +91,10 @@ class StackFitOptions(Options):
             amplitude envelope, fine samples.
         dark_ring: width of the frame-border ring whose median is the dark level
             (:func:`prepare_planes`), pixels.
+        saturation: pixel value at or above which a given pixel is saturated (input
+            units): ``"auto"`` is 0.999 × the full scale of an integer input and no
+            check for float input; ``None`` skips the check. Saturated pixels raise.
+        progress: show a progress bar over the steps.
         step_field, step_zeta, step_magnification, step_centre, step_blur, step_kappa:
             Adam step sizes of the field coefficients (of a field of unit mean
             intensity), log ζ, log s, centre (pixels), log σ and κ.
@@ -120,6 +124,8 @@ class StackFitOptions(Options):
     step_centre: float = 0.02
     step_blur: float = 0.01
     step_kappa: float = 0.01
+    saturation: float | str | None = "auto"
+    progress: bool = True
 
     def __check_init__(self):
         for name in ("max_steps", "patience", "oversample", "field_stride"):
@@ -276,7 +282,6 @@ def _validation_masks(shape, n, fraction, seed):
 
 
 def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None = None,
-              progress: bool = True, saturation: float | str | None = "auto",
               pixel_pitch: float | None = None, wavelength: float | None = None,
               z2: float | None = None, registration: Registration | None = None,
               **overrides) -> StackFit:
@@ -289,11 +294,8 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
         stack: (n_planes, ny, nx) array (any gain and dark level: each given plane is
             prepared by :func:`prepare_planes`), or ``{plane index: (ny, nx) image}``.
         planes: two or more distinct plane indices; the first is the reference.
-        options: :class:`StackFitOptions`; keywords named after its fields replace them.
-        progress: show a tqdm bar over the steps.
-        saturation: pixel value at or above which a pixel is saturated (input units):
-            ``"auto"`` is 0.999 × the full scale of an integer input and no check for
-            float input; ``None`` skips the check. Saturated pixels raise.
+        options: :class:`StackFitOptions`; keywords named after its fields replace them
+            (``saturation=``, ``progress=``, ``max_steps=``, ...).
         pixel_pitch, wavelength, z2: optional physical inputs, metres; they turn ζ into
             z2·M(t) and, with z2, into z1(t) in ``identifiable`` (nothing is fitted from
             them).
@@ -312,7 +314,7 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     """
     opts = StackFitOptions.of(options, **overrides)
     frames, planes, n_planes, dtype = given_planes(stack, planes)
-    check_saturation(frames, planes, saturation_level(saturation, dtype))
+    check_saturation(frames, planes, saturation_level(opts.saturation, dtype))
     phys = check_physical(pixel_pitch, wavelength, z2)
     t0 = time.perf_counter()
     imgs = [p.astype(np.float32) for p in prepare_planes(np.stack(frames), opts.dark_ring,
@@ -326,7 +328,7 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     data = _Data(jnp.asarray(np.stack(imgs)), jnp.asarray(train), jnp.asarray(val),
                  jnp.asarray(planes, jnp.float32))
     model, scan = _start(imgs, planes, registration, data, opts)
-    run = _descend(model, data, opts, t0, progress)
+    run = _descend(model, data, opts, t0)
     render_planes(run.model, planes[:1])      # compiles the predictor inside the fit
     base = _baseline_validation(imgs, planes, registration, val, ref, anchor)
     ident = identifiable(phys, run.model, n_planes)
@@ -368,8 +370,7 @@ class _Run(NamedTuple):
     reason: str              # why it stopped
 
 
-def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float,
-             progress: bool) -> _Run:
+def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -> _Run:
     """Adam from ``model`` until validation stalls, ``max_steps`` or the time budget
     (counted from ``t0``, perf_counter seconds)."""
     from tqdm.auto import tqdm
@@ -380,7 +381,7 @@ def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float,
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
     reason = f"max_steps ({opts.max_steps})"
-    with tqdm(total=opts.max_steps, disable=not progress, desc="stack fit", unit="step",
+    with tqdm(total=opts.max_steps, disable=not opts.progress, desc="stack fit", unit="step",
               leave=False) as bar:
         for k in range(opts.max_steps):
             new_model, state, r_tr, r_va = _adam_step(model, state, data, lr)
