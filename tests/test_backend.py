@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from diffcam.core.backend import (fft2, fft_size, ifft2, irfft2, rfft2, staged,
-                                  transfer_step, transfer_step_with_spectrum, vector)
+                                  transfer_step, transfer_step_with_spectrum,
+                                  separable_factor)
 
 
 def _complex(rng, shape):
@@ -83,12 +84,12 @@ def test_transfer_step_derivatives_in_both_modes():
 
 @pytest.mark.usefixtures("debug_nans")
 @pytest.mark.parametrize("n", [1, 511, 512, 513, 2000])
-def test_vector_equals_the_elementwise_function(n):
+def test_separable_factor_equals_the_elementwise_function(n):
     """Any length, whole blocks or not: a complex chirp exp(j·z·k²), k = i − n//2, with a
     traced z (phases up to 1 rad, so float32 holds 1e-6), and its derivative in z,
     Σ k² cos(z k²) for the imaginary part."""
     def chirp(z):
-        return vector(lambda i: jnp.exp(1j * z * (i - n // 2) ** 2), n)
+        return separable_factor(lambda i: jnp.exp(1j * z * (i - n // 2) ** 2), n)
     k2 = (np.arange(n) - n // 2) ** 2.0
     z = 1e-6
     np.testing.assert_allclose(np.asarray(jax.jit(chirp)(jnp.float32(z))),

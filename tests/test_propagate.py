@@ -10,7 +10,7 @@ from scipy.special import j1
 from diffcam.core import grid
 from diffcam.core.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
 from diffcam.optics.elements import circular_aperture, thin_lens
-from diffcam.optics.fourier_lens import fourier_lens, inverse_fourier_lens
+from diffcam.optics.lens import fourier_lens, inverse_fourier_lens
 from diffcam.optics.propagation import (angular_spectrum, apply_transfer, choose_propagation,
                                         fresnel_ir, fresnel_tf, plan_propagation, propagate,
                                         transfer_function)

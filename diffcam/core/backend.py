@@ -22,7 +22,7 @@ clears JAX's caches so that jitted functions trace again.
 What is also here, and only here, are the scheduling aids that XLA's CPU FFT needs.
 None changes a result; each is differentiable and ``vmap``-able, and each is justified
 by a benchmark (``benchmarks/RESULTS.md``); with FFTW or on other backends they reduce
-to the plain expression (:func:`vector` stays on CPU: it is not about the FFT).
+to the plain expression (:func:`separable_factor` stays on CPU: it is not about the FFT).
 
 **The FFT rule (CPU).** XLA splits a large elementwise fusion over its intra-op thread
 pool and goes on with the program on whichever pool thread finishes last; an FFT that
@@ -36,7 +36,7 @@ while on one core (``taskset``) the same programs cost the same. So on CPU:
   conjugated cotangent, so a gradient keeps the aid too (JAX's own transpose put
   both reverse FFTs after products: the direct PSF's value_and_grad at 1024², 2.06 →
   1.70× the forward);
-- :func:`vector` computes the 1-D factors of separable kernels in a loop, which XLA
+- :func:`separable_factor` computes the 1-D factors of separable kernels in a loop, which XLA
   neither splits nor fuses into the N² product that consumes them;
 - :func:`staged` runs a computation whose FFT follows a large product as two jitted
   calls, so the FFT starts a call of its own.
@@ -58,10 +58,11 @@ from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
 from diffcam.core import fftw
+from diffcam.core.deprecation import renamed
 from diffcam.core.errors import DiffcamError
 
 __all__ = ["fft2", "ifft2", "rfft2", "irfft2", "fft_size", "transfer_step",
-           "transfer_step_with_spectrum", "vector", "staged", "on_cpu",
+           "transfer_step_with_spectrum", "separable_factor", "staged", "on_cpu",
            "set_fft", "fft_backend", "fft_status"]
 
 _AXES = (-2, -1)
@@ -308,7 +309,7 @@ ad.primitive_transposes[_rows_step_p] = _rows_step_transpose
 batching.primitive_batchers[_rows_step_p] = _rows_step_batch
 
 
-def vector(f: Callable[[Array], Array], n: int, block: int = 512) -> Array:
+def separable_factor(f: Callable[[Array], Array], n: int, block: int = 512) -> Array:
     """``f(i)`` for the int32 indices ``i = 0 … n − 1``, ``f`` elementwise: shape ``(n,)``.
 
     For the 1-D factors of separable kernels (chirps). On CPU they are computed block by
@@ -324,6 +325,9 @@ def vector(f: Callable[[Array], Array], n: int, block: int = 512) -> Array:
     def one_block(b):
         return f(b * block + lax.iota(jnp.int32, block))
     return lax.map(one_block, jnp.arange(-(-n // block), dtype=jnp.int32)).reshape(-1)[:n]
+
+
+vector = renamed(separable_factor, "diffcam.core.backend.vector")
 
 
 STAGED_FROM = 192 * 192  # samples of the first argument from which staged() splits

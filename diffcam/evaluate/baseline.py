@@ -24,6 +24,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
+from diffcam.core.deprecation import renamed
 from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
                                  check_positive, is_concrete)
 from diffcam.model.sensor import resample
@@ -114,11 +115,7 @@ def _magnify(ref, dx, m, centre, *, kind, max_width):
     return jax.vmap(one)(m.reshape(-1)).reshape(m.shape + shape)
 
 
-def scale_psf(*args, **kwargs):
-    """Deprecated name of :func:`magnify_psf` (same arguments)."""
-    warnings.warn("diffcam.evaluate.baseline.scale_psf is now magnify_psf", DeprecationWarning,
-                  stacklevel=2)
-    return magnify_psf(*args, **kwargs)
+scale_psf = renamed(magnify_psf, "diffcam.evaluate.baseline.scale_psf")
 
 
 def scale_factor(z1, z1_ref, z2):

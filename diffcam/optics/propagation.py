@@ -45,7 +45,8 @@ from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_
                                  sampling_problem)
 from diffcam.core.grid import (check_grid_size, coord_at, crop_to, fft_freq_at, fft_freqs,
                                int_pair, pad_by, pitch_yx)
-from diffcam.core.backend import fft2, fft_size, ifft2, transfer_step, vector
+from diffcam.core.backend import (fft2, fft_size, ifft2, separable_factor,
+                                  transfer_step)
 from diffcam.core.phasor import expj
 
 __all__ = [
@@ -151,17 +152,18 @@ def _check_kernel_sampling(method, shape, dx, wavelength, z, pad, accept_undersa
 def spherical_chirp(n: int, dx, wavelength, z, centre=0.0):
     """exp(jπ(t − centre)²/(λz)) on the centred axis t of ``n`` samples at pitch ``dx``:
     the 1-D factor of a paraxial spherical wave (metres). Computed on its own, not once
-    per sample of the N² product that consumes it (:func:`diffcam.core.backend.vector`)."""
+    per sample of the N² product that consumes it
+    (:func:`diffcam.core.backend.separable_factor`)."""
     def chirp(i):
         t = coord_at(i, n, dx) - centre
         return expj(jnp.pi * (t * t) / (wavelength * z))
-    return vector(chirp, n)
+    return separable_factor(chirp, n)
 
 
 def fresnel_tf_factors(shape, dy, dx, wavelength, z):
     """The Fresnel transfer function exp(−jπλz(fy² + fx²)), piston left out, as its two
     1-D factors in FFT order, ``(ny, 1)`` and ``(1, nx)`` (each computed on its own:
-    :func:`diffcam.core.backend.vector`); pitches, wavelength and z in metres."""
+    :func:`diffcam.core.backend.separable_factor`); pitches, wavelength and z in metres."""
     return _chirp_factors(shape, dy, dx, wavelength * z)
 
 
@@ -175,7 +177,8 @@ def fresnel_number_factors(shape, zeta):
 def _chirp_factors(shape, dy, dx, lambda_z):
     """The factors of exp(−jπ·λz·(fy² + fx²)) in FFT order (``lambda_z`` = λ·z)."""
     def factor(n, d):
-        return vector(lambda i: expj(-jnp.pi * lambda_z * fft_freq_at(i, n, d) ** 2), n)
+        return separable_factor(
+            lambda i: expj(-jnp.pi * lambda_z * fft_freq_at(i, n, d) ** 2), n)
     return factor(shape[-2], dy)[:, None], factor(shape[-1], dx)[None, :]
 
 

@@ -1,0 +1,27 @@
+"""Old names still import and give the new function's result; each warns once."""
+
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffcam.core import deprecation
+from diffcam.core.backend import separable_factor, vector
+from diffcam.evaluate.baseline import magnify_psf, scale_psf
+
+
+@pytest.mark.parametrize("old, new, args", [
+    (vector, separable_factor, (lambda i: jnp.cos(0.1 * i), 37)),
+    (scale_psf, magnify_psf, (np.outer(np.hanning(32), np.hanning(32)), 20e-3, 30e-3, 1e-3,
+                              2e-6)),
+])
+def test_renamed_functions_warn_once_and_agree(old, new, args, monkeypatch):
+    monkeypatch.setattr(deprecation, "_warned", set())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        first, second = old(*args), old(*args)
+    messages = [str(w.message) for w in caught if issubclass(w.category, DeprecationWarning)]
+    assert len(messages) == 1 and new.__name__ in messages[0]
+    np.testing.assert_array_equal(np.asarray(first), np.asarray(new(*args)))
+    np.testing.assert_array_equal(np.asarray(second), np.asarray(first))
