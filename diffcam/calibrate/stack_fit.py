@@ -10,7 +10,7 @@ nearest measured plane.
 The fit (:func:`fit_stack`): register the reference plane (the first given one) with
 the given plane farthest from it; for each candidate ζ_ref run Gerchberg–Saxton between
 the given planes, take the least-squares spline coefficients of its field, and keep
-the best start; then Adam with per-group step sizes on
+the best start; then Adam (optax) with per-group step sizes on
 Σ_k (1 − Pearson over the training pixels of plane k). A fraction of the pixels of every
 given plane (fixed seed) is held out for validation; the parameters with the best
 validation Pearson are kept, and the fit stops when validation has not improved for
@@ -36,6 +36,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import scipy.ndimage as ndi
 from jax import Array
 
@@ -251,27 +252,25 @@ def _evaluate(model, data):
     return _loss(model, data)[1]
 
 
-@eqx.filter_jit
-def _adam_step(model, state, data, lr):
-    """One Adam step (β = 0.9, 0.999); returns the new model and state and the
-    (training, validation) Pearson of the model *before* the step."""
-    (_, (r_tr, r_va)), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(model, data)
-    m, v, k = state
-    k = k + 1
-    m = jax.tree.map(lambda a, g: 0.9 * a + 0.1 * g, m, grads)
-    v = jax.tree.map(lambda a, g: 0.999 * a + 0.001 * g * g, v, grads)
-    c1, c2 = 1 - 0.9 ** k, 1 - 0.999 ** k
-    update = jax.tree.map(lambda a, b, s: -s * (a / c1) / (jnp.sqrt(b / c2) + 1e-12), m, v, lr)
-    return eqx.apply_updates(model, update), (m, v, k), r_tr, r_va
-
-
-def _step_sizes(model: StackModel, opts: StackFitOptions):
+def _optimiser(model: StackModel, opts: StackFitOptions) -> optax.GradientTransformation:
+    """Adam (β = 0.9, 0.999, ε = 1e-12) with one step size per parameter group."""
     kappa = opts.step_kappa if (opts.fit_kappa and not opts.frozen) else 0.0
     sizes = dict(field_real=opts.step_field, field_imag=opts.step_field,
                  log_zeta=opts.step_zeta, log_s=opts.step_magnification,
                  centre=opts.step_centre, log_sigma=opts.step_blur, kappa=kappa)
     params = eqx.filter(model, eqx.is_array)
-    return dataclasses.replace(params, **{k: jnp.float32(v) for k, v in sizes.items()})
+    steps = dataclasses.replace(params, **{k: jnp.float32(-v) for k, v in sizes.items()})
+    per_group = optax.stateless(lambda updates, _: jax.tree.map(jnp.multiply, updates, steps))
+    return optax.chain(optax.scale_by_adam(b1=0.9, b2=0.999, eps=1e-12), per_group)
+
+
+@eqx.filter_jit
+def _step(model, state, data, optimiser):
+    """One optimiser step; returns the new model and state and the (training,
+    validation) Pearson of the model *before* the step."""
+    (_, (r_tr, r_va)), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(model, data)
+    updates, state = optimiser.update(grads, state)
+    return eqx.apply_updates(model, updates), state, r_tr, r_va
 
 
 def _validation_masks(shape, n, fraction, seed):
@@ -375,16 +374,15 @@ def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -
     (counted from ``t0``, perf_counter seconds)."""
     from tqdm.auto import tqdm
 
-    lr = _step_sizes(model, opts)
-    zeros = jax.tree.map(jnp.zeros_like, eqx.filter(model, eqx.is_array))
-    state = (zeros, zeros, jnp.int32(0))
+    optimiser = _optimiser(model, opts)
+    state = optimiser.init(eqx.filter(model, eqx.is_array))
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
     reason = f"max_steps ({opts.max_steps})"
     with tqdm(total=opts.max_steps, disable=not opts.progress, desc="stack fit", unit="step",
               leave=False) as bar:
         for k in range(opts.max_steps):
-            new_model, state, r_tr, r_va = _adam_step(model, state, data, lr)
+            new_model, state, r_tr, r_va = _step(model, state, data, optimiser)
             r_va = float(r_va)
             if not np.isfinite(r_va):
                 reason = f"diverged (validation Pearson {r_va}) at step {k}"
