@@ -172,6 +172,7 @@ def main(argv=None) -> None:
     parser.add_argument("--options", type=json.loads, default={},
                         help="fit options as JSON, e.g. '{\"field_stride\": 3}' or "
                              "'{\"fit_kappa\": true}' (the ablations of docs/stack_fit.md)")
+    parser.add_argument("--name", default="stack_fit", help="results file name")
     parser.add_argument("--spread", type=int, nargs="*", default=[3, 5],
                         help="also fit this many planes spread over the stack (each count "
                              "once on the original and once transformed)")
@@ -200,7 +201,7 @@ def main(argv=None) -> None:
                   f"{row['frozen_cost_outside']}, z2·M {row['z2M_ref_m']}, "
                   f"fit {row['fit_s']:.1f} s "
                   f"({row['stop_reason']})", flush=True)
-            write_json("stack_fit", rows, {"seed": args.seed, "pairs": len(cases),
+            write_json(args.name, rows, {"seed": args.seed, "pairs": len(cases),
                                            "crop": args.crop, "options": args.options})
     for r in rows:
         r["z2M_ref_mm"] = None if r["z2M_ref_m"] is None else 1e3 * r["z2M_ref_m"]
@@ -230,7 +231,7 @@ def main(argv=None) -> None:
 
     table = [{k: fmt(k, v) for k, v in r.items()} for r in table]
     print(markdown_table(table, COLUMNS))
-    print("wrote", write_json("stack_fit", rows, {"seed": args.seed, "pairs": len(cases),
+    print("wrote", write_json(args.name, rows, {"seed": args.seed, "pairs": len(cases),
                                                   "crop": args.crop, "options": args.options}))
 
 

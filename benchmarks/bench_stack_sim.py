@@ -1,7 +1,8 @@
 """Benchmark: the paper's Fig. 9 (PSF Pearson over depth, model against the scaling
 baseline) on simulated data that the fitted model did not make.
 
-Usage: python -m benchmarks.bench_stack_sim [--planes 2,9] [--figure PATH]
+Usage: python -m benchmarks.bench_stack_sim [--planes 2,9] [--z2 MM] [--z1 NEAR:FAR]
+       [--n-planes N] [--name NAME] [--figure PATH]
 
 The stack is :func:`diffcam.calibrate.simulation.measured_stack_simulation`: diffcam's
 full PSF model on a 768² grid at 1 µm, three wavelengths, 4×4 pixel integration to
@@ -11,12 +12,17 @@ monochromatic, 2×-oversampled thin-phase stack model that :func:`fit_stack` fit
 Pearson against the noisy "measured" plane and against the noise-free expectation,
 for the model's prediction, the scaling baseline from the same two planes, the
 frozen-distance ablation and the model's rendering alone. Results go to
-``benchmarks/results/stack_sim.json``, the curves to ``--figure``.
+``benchmarks/results/<name>.json`` (default ``stack_sim``), the curves to ``--figure``.
+``--z2``/``--z1`` change the camera (the default: z2 = 0.6 mm, z1 2–10 mm;
+``--z2 5 --z1 20:200 --dx 2 --planes 3,8`` is a DiffuserCam-scale camera with planes on
+both sides of the given pair). ``above_baseline`` counts the held-out planes where a
+predictor beats the baseline.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import warnings
 
@@ -29,17 +35,21 @@ from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import scaling_baseline
 
 
-def curves(planes: list[int]) -> tuple[dict, np.ndarray, object]:
+def curves(planes: list[int], fit_options: dict | None = None, **camera
+           ) -> tuple[dict, np.ndarray, object]:
     """Per-plane Pearson of every predictor against the noisy and the noise-free
-    planes: ({(predictor, truth): (n,) array}, z1 (m), fit)."""
-    noisy, z1 = measured_stack_simulation()
-    clean, _ = measured_stack_simulation(noise=False)
+    planes: ({(predictor, truth): (n,) array}, z1 (m), fit). ``camera``: keywords of
+    :class:`~diffcam.calibrate.simulation.StackSimulation` and ``n_planes``;
+    ``fit_options``: keywords of :class:`~diffcam.calibrate.StackFitOptions`."""
+    fit_options = fit_options or {}
+    noisy, z1 = measured_stack_simulation(**camera)
+    clean, _ = measured_stack_simulation(**camera, noise=False)
     n = len(z1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", StackFitWarning)
-        fit = fit_stack(noisy, planes, progress=False, time_budget=math.inf)
-        frozen = fit_stack(noisy, planes, progress=False, frozen=True, time_budget=math.inf,
-                           registration=fit.registration)
+        fit = fit_stack(noisy, planes, progress=False, time_budget=math.inf, **fit_options)
+        frozen = fit_stack(noisy, planes, progress=False, time_budget=math.inf,
+                           registration=fit.registration, **{**fit_options, "frozen": True})
     measured = prepare_planes(noisy)
     predictors = {"model": fit.predict(n), "frozen": frozen.predict(n),
                   "rendered": fit.predict(n, residual=False),
@@ -76,20 +86,38 @@ def figure(scores: dict, z1: np.ndarray, planes: list[int], path) -> None:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--planes", default="2,9", help="the two given planes")
-    parser.add_argument("--figure", default="benchmarks/results/stack_sim.png")
+    parser.add_argument("--z2", type=float, default=0.6, help="diffuser → sensor, mm")
+    parser.add_argument("--z1", default="2:10", help="nearest:farthest source depth, mm")
+    parser.add_argument("--dx", type=float, default=1.0, help="field pitch, µm")
+    parser.add_argument("--n-planes", type=int, default=12)
+    parser.add_argument("--name", default="stack_sim", help="results file name")
+    parser.add_argument("--options", default="{}",
+                        help="StackFitOptions overrides as JSON, e.g. '{\"zetas\": [16, 180]}'")
+    parser.add_argument("--figure", default=None,
+                        help="default benchmarks/results/<name>.png")
     args = parser.parse_args(argv)
     planes = [int(p) for p in args.planes.split(",")]
-    scores, z1, fit = curves(planes)
+    near, far = (float(v) * 1e-3 for v in args.z1.split(":"))
+    scores, z1, fit = curves(planes, json.loads(args.options), n_planes=args.n_planes, z2=args.z2 * 1e-3,
+                             z1_near=near, z1_far=far, dx=args.dx * 1e-6)
     held = [t for t in range(len(z1)) if t not in planes]
     rows = [{"predictor": p, "truth": t, "held_out_mean": float(v[held].mean()),
-             "worst": float(v[held].min()), "per_plane": v.tolist()}
+             "worst": float(v[held].min()),
+             "above_baseline": f"{int((v[held] > scores[('baseline', t)][held]).sum())}"
+                               f"/{len(held)}",
+             "per_plane": v.tolist()}
             for (p, t), v in scores.items()]
+    args.figure = args.figure or f"benchmarks/results/{args.name}.png"
     figure(scores, z1, planes, args.figure)
     print(markdown_table([{k: (f"{v:.4f}" if isinstance(v, float) else v)
                            for k, v in r.items() if k != "per_plane"} for r in rows],
-                         ["predictor", "truth", "held_out_mean", "worst"]))
-    print("wrote", write_json("stack_sim", rows, {"planes": planes, "z1_m": z1.tolist(),
-                                                  "fit": fit.summary()}),
+                         ["predictor", "truth", "held_out_mean", "worst",
+                          "above_baseline"]))
+    print("wrote", write_json(args.name, rows, {"planes": planes, "z1_m": z1.tolist(),
+                                                "z2_m": args.z2 * 1e-3,
+                                                "dx_m": args.dx * 1e-6,
+                                                "options": json.loads(args.options),
+                                                "fit": fit.summary()}),
           "and", args.figure)
 
 

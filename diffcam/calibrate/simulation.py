@@ -5,12 +5,14 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 from jaxtyping import Float
 
 from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.options import Options
 from diffcam.core.grid import pad_to
 from diffcam.model import Camera
 from diffcam.model.camera import random_diffuser
@@ -75,37 +77,62 @@ def paper_simulation(n: int = 1024, size: int = 512, phase=None) -> PaperSimulat
     return PaperSimulation(phase, aperture, geometry, near, far, truth, mask)
 
 
-def measured_stack_simulation(n_planes: int = 12, *, grid: int = 768, dx: float = 1e-6,
-                              binning: int = 4, photons: float = 150.0, dark: float = 5.0,
-                              seed: int = 3, noise: bool = True
-                              ) -> tuple[np.ndarray, np.ndarray]:
+class StackSimulation(Options):
+    """The camera and sensor of :func:`measured_stack_simulation` (lengths in metres).
+
+    Attributes:
+        z2: diffuser → sensor distance.
+        z1_near, z1_far: the nearest and farthest source depths (the planes are
+            equally spaced in 1/z1 between them).
+        grid: field samples per side; ``dx``: their pitch.
+        binning: field samples per sensor pixel (per side).
+        photons: expected counts at the brightest pixel of the stack.
+        dark: dark level, counts.
+        seed: the diffuser's seed.
+        noise: Poisson noise (else the expected counts, the truth the noisy planes
+            scatter about).
+    """
+
+    z2: float = 0.6e-3
+    z1_near: float = 2e-3
+    z1_far: float = 10e-3
+    grid: int = 768
+    dx: float = 1e-6
+    binning: int = 4
+    photons: float = 150.0
+    dark: float = 5.0
+    seed: int = 3
+    noise: bool = True
+
+
+def measured_stack_simulation(n_planes: int = 12, *, options: StackSimulation | None = None,
+                              **overrides) -> tuple[np.ndarray, np.ndarray]:
     """A PSF stack as a camera would measure it, made by a higher-fidelity model than
     the stack model that fits it (:func:`diffcam.calibrate.fit_stack`: monochromatic,
-    thin phase, 2× oversampled): a ``grid``² field at ``dx`` (m) behind a random 30 µm
-    diffuser (1.5° deflection, aperture radius 0.2·grid·dx), z2 = 0.6 mm, three
-    wavelengths (515/532/549 nm, weights ½/1/½), z1 from 2 to 10 mm equally spaced in
-    1/z1, integrated over ``binning``×``binning`` pixels, Poisson noise at a peak of
-    ``photons`` and a dark level of ``dark`` counts (``noise=False``: the expected counts,
-    the truth the noisy planes scatter about).
+    thin phase, 2× oversampled): a ``grid``² field at ``dx`` behind a random 30 µm
+    diffuser (1.5° deflection, aperture radius 0.2·grid·dx), three wavelengths
+    (515/532/549 nm, weights ½/1/½), ``n_planes`` depths from ``z1_near`` to ``z1_far``
+    equally spaced in 1/z1, integrated over ``binning``×``binning`` pixels, Poisson
+    noise at a peak of ``photons`` and a dark level of ``dark`` counts
+    (:class:`StackSimulation`; keywords named after its fields replace them).
 
     Returns:
         (float32 counts (n_planes, grid/(2·binning), grid/(2·binning)), z1 in m).
     """
-    import jax
-
-
-    camera = Camera(wavelength=532e-9, z2=0.6e-3, dx=dx, aperture_radius=0.2 * grid * dx,
+    o = StackSimulation.of(options, **overrides)
+    grid, dx, binning = o.grid, o.dx, o.binning
+    camera = Camera(wavelength=532e-9, z2=o.z2, dx=dx, aperture_radius=0.2 * grid * dx,
                     shape=(grid, grid), pad=26, crop=(grid // 2, grid // 2))
-    phase = random_diffuser(jax.random.key(seed), (grid, grid), dx, 532e-9,
+    phase = random_diffuser(jax.random.key(o.seed), (grid, grid), dx, 532e-9,
                             feature_size=30e-6, deflection=np.deg2rad(1.5))
-    z1 = 1e-3 / np.linspace(1 / 2, 1 / 10, n_planes)
+    z1 = 1 / np.linspace(1 / o.z1_near, 1 / o.z1_far, n_planes)
     spectrum = (np.array([515e-9, 532e-9, 549e-9]), np.array([0.5, 1.0, 0.5]))
     stack = psf_stack(phase, camera, z1, spectrum=spectrum, progress=False)
     pixels = np.asarray(bin_pixels(stack, dx, binning * dx))
-    pixels = pixels / pixels.max() * photons
-    if noise:
+    pixels = pixels / pixels.max() * o.photons
+    if o.noise:
         pixels = np.random.default_rng(0).poisson(pixels)
-    counts = pixels.astype(np.float32) + dark
+    counts = pixels.astype(np.float32) + o.dark
     return counts, z1
 
 
@@ -117,8 +144,6 @@ the higher-fidelity simulations below (a filtered LED or a laser diode's width).
 def _finer(phase, oversample: int):
     """The diffuser phase cubic-interpolated onto a grid ``oversample``× finer (the true
     diffuser is continuous; diffcam's model sees it at the sensor pitch)."""
-    import jax
-
     phase = jnp.asarray(phase)
     ny, nx = phase.shape[-2:]
     return jax.image.resize(phase, (ny * oversample, nx * oversample), "cubic")
