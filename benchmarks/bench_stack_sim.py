@@ -29,7 +29,7 @@ import warnings
 import numpy as np
 
 from benchmarks.harness import markdown_table, write_json
-from diffcam.calibrate.simulation import measured_stack_simulation
+from diffcam.calibrate.simulation import StackSimulation, measured_stack_simulation
 from diffcam.calibrate import StackFitWarning, fit_stack, prepare_planes
 from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import scaling_baseline
@@ -41,7 +41,11 @@ def curves(planes: list[int], fit_options: dict | None = None, **camera
     planes: ({(predictor, truth): (n,) array}, z1 (m), fit). ``camera``: keywords of
     :class:`~diffcam.calibrate.simulation.StackSimulation` and ``n_planes``;
     ``fit_options``: keywords of :class:`~diffcam.calibrate.StackFitOptions`."""
-    fit_options = fit_options or {}
+    sim = StackSimulation.of(**{k: v for k, v in camera.items() if k != "n_planes"})
+    # what a user of such a camera knows: pixel pitch, wavelength, z2 (nothing is fitted
+    # from them; they set the start of the fitted distance)
+    fit_options = {"pixel_pitch": sim.binning * sim.dx, "wavelength": 532e-9, "z2": sim.z2,
+                   **(fit_options or {})}
     noisy, z1 = measured_stack_simulation(**camera)
     clean, _ = measured_stack_simulation(**camera, noise=False)
     n = len(z1)
@@ -89,6 +93,9 @@ def main(argv=None) -> None:
     parser.add_argument("--z2", type=float, default=0.6, help="diffuser → sensor, mm")
     parser.add_argument("--z1", default="2:10", help="nearest:farthest source depth, mm")
     parser.add_argument("--dx", type=float, default=1.0, help="field pitch, µm")
+    parser.add_argument("--camera", default="{}",
+                        help="other StackSimulation fields as JSON (SI units), e.g. "
+                             "'{\"deflection\": 3, \"source_radius\": 2e-5}'")
     parser.add_argument("--n-planes", type=int, default=12)
     parser.add_argument("--name", default="stack_sim", help="results file name")
     parser.add_argument("--options", default="{}",
@@ -99,7 +106,8 @@ def main(argv=None) -> None:
     planes = [int(p) for p in args.planes.split(",")]
     near, far = (float(v) * 1e-3 for v in args.z1.split(":"))
     scores, z1, fit = curves(planes, json.loads(args.options), n_planes=args.n_planes, z2=args.z2 * 1e-3,
-                             z1_near=near, z1_far=far, dx=args.dx * 1e-6)
+                             z1_near=near, z1_far=far, dx=args.dx * 1e-6,
+                             **json.loads(args.camera))
     held = [t for t in range(len(z1)) if t not in planes]
     rows = [{"predictor": p, "truth": t, "held_out_mean": float(v[held].mean()),
              "worst": float(v[held].min()),
@@ -117,6 +125,7 @@ def main(argv=None) -> None:
                                                 "z2_m": args.z2 * 1e-3,
                                                 "dx_m": args.dx * 1e-6,
                                                 "options": json.loads(args.options),
+                                                "camera": json.loads(args.camera),
                                                 "fit": fit.summary()}),
           "and", args.figure)
 

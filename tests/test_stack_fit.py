@@ -365,3 +365,18 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     # a bad planes argument is a usage error; a plane out of range is a DiffcamError
     assert main(["fit", str(src), "--planes", "4,40", "-o", str(model)]) == 2
     assert "out of range" in capsys.readouterr().err
+
+
+def test_distance_starts_from_the_physical_inputs(synthetic_stack):
+    """With pixel pitch, wavelength and z2 the ζ start is the far-source value
+    o²·λ·z2/pitch² (fine samples²); a scan keeps the candidate with the best validation
+    after its short descent, and records every candidate's."""
+    pitch, lam, z2 = 4e-6, 532e-9, 0.6e-3
+    fit = fit_stack(synthetic_stack, [2, 9], progress=False, max_steps=1,
+                    pixel_pitch=pitch, wavelength=lam, z2=z2)
+    assert list(fit.zeta_scan) == [pytest.approx(4 * lam * z2 / pitch ** 2)]
+    scan = fit_stack(synthetic_stack, [2, 9], progress=False, max_steps=1, scan_steps=3,
+                     zetas=(4.0, 64.0))
+    assert sorted(scan.zeta_scan) == [4.0, 64.0]
+    best = max(scan.zeta_scan, key=scan.zeta_scan.get)
+    assert scan.model.zeta_pixels * 4 == pytest.approx(best, rel=0.05)

@@ -77,6 +77,15 @@ def paper_simulation(n: int = 1024, size: int = 512, phase=None) -> PaperSimulat
     return PaperSimulation(phase, aperture, geometry, near, far, truth, mask)
 
 
+def _disc(radius: float):
+    """Source offsets (y1, x1) sampling a disc of ``radius`` (m): None for a point."""
+    if radius <= 0:
+        return None
+    angles = np.arange(6) * np.pi / 3
+    ring = 0.7 * radius * np.stack([np.sin(angles), np.cos(angles)], axis=1)
+    return np.concatenate([np.zeros((1, 2)), ring])
+
+
 class StackSimulation(Options):
     """The camera and sensor of :func:`measured_stack_simulation` (lengths in metres).
 
@@ -91,6 +100,11 @@ class StackSimulation(Options):
         seed: the diffuser's seed.
         noise: Poisson noise (else the expected counts, the truth the noisy planes
             scatter about).
+        deflection: the diffuser's r.m.s. deflection, degrees (its strength).
+        bandwidth: half-width of the light's spectrum around 532 nm: three lines at
+            532 nm ∓ ``bandwidth`` (weights ½, 1, ½); 0 for one line.
+        source_radius: radius of the point source (a disc, sampled by its centre and
+            six points at 0.7·radius, weighted alike); 0 for a point.
     """
 
     z2: float = 0.6e-3
@@ -103,15 +117,19 @@ class StackSimulation(Options):
     dark: float = 5.0
     seed: int = 3
     noise: bool = True
+    deflection: float = 1.5
+    bandwidth: float = 17e-9
+    source_radius: float = 0.0
 
 
 def measured_stack_simulation(n_planes: int = 12, *, options: StackSimulation | None = None,
                               **overrides) -> tuple[np.ndarray, np.ndarray]:
     """A PSF stack as a camera would measure it, made by a higher-fidelity model than
     the stack model that fits it (:func:`diffcam.calibrate.fit_stack`: monochromatic,
-    thin phase, 2× oversampled): a ``grid``² field at ``dx`` behind a random 30 µm
-    diffuser (1.5° deflection, aperture radius 0.2·grid·dx), three wavelengths
-    (515/532/549 nm, weights ½/1/½), ``n_planes`` depths from ``z1_near`` to ``z1_far``
+    thin phase, 2× oversampled, a point source): a ``grid``² field at ``dx`` behind a
+    random 30 µm diffuser (``deflection`` 1.5°, aperture radius 0.2·grid·dx), three
+    wavelengths (515/532/549 nm, weights ½/1/½), a point or disc source,
+    ``n_planes`` depths from ``z1_near`` to ``z1_far``
     equally spaced in 1/z1, integrated over ``binning``×``binning`` pixels, Poisson
     noise at a peak of ``photons`` and a dark level of ``dark`` counts
     (:class:`StackSimulation`; keywords named after its fields replace them).
@@ -124,10 +142,14 @@ def measured_stack_simulation(n_planes: int = 12, *, options: StackSimulation | 
     camera = Camera(wavelength=532e-9, z2=o.z2, dx=dx, aperture_radius=0.2 * grid * dx,
                     shape=(grid, grid), pad=26, crop=(grid // 2, grid // 2))
     phase = random_diffuser(jax.random.key(o.seed), (grid, grid), dx, 532e-9,
-                            feature_size=30e-6, deflection=np.deg2rad(1.5))
+                            feature_size=30e-6, deflection=np.deg2rad(o.deflection))
     z1 = 1 / np.linspace(1 / o.z1_near, 1 / o.z1_far, n_planes)
-    spectrum = (np.array([515e-9, 532e-9, 549e-9]), np.array([0.5, 1.0, 0.5]))
-    stack = psf_stack(phase, camera, z1, spectrum=spectrum, progress=False)
+    lines = 532e-9 + o.bandwidth * np.array([-1.0, 0.0, 1.0])
+    spectrum = (lines, np.array([0.5, 1.0, 0.5])) if o.bandwidth > 0 else None
+    stack = psf_stack(phase, camera, z1, spectrum=spectrum, offsets=_disc(o.source_radius),
+                      progress=False)
+    if o.source_radius > 0:
+        stack = stack.mean(axis=1)
     pixels = np.asarray(bin_pixels(stack, dx, binning * dx))
     pixels = pixels / pixels.max() * o.photons
     if o.noise:

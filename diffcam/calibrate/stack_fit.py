@@ -76,8 +76,14 @@ class StackFitOptions(Options):
             step later); ``math.inf`` for none.
         validation_fraction: share of each given plane's pixels held out (0 < f < 0.5).
         seed: the validation split's and the GS start's seed.
-        zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²);
-            the best start by training Pearson is kept.
+        zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²).
+            ``None``: the far-source value o²·λ·z2/pitch² when ``pixel_pitch``,
+            ``wavelength`` and ``z2`` are given to :func:`fit_stack`, else 16 (the
+            shipped stack's scale). With several, each start descends ``scan_steps``
+            steps and the best validation Pearson is kept.
+        scan_steps: steps each candidate of a ζ scan descends before one is chosen
+            (the ranking of the starts themselves can differ from the ranking after
+            descent: docs/stack_fit.md).
         gs_iterations: Gerchberg–Saxton sweeps per candidate.
         oversample: fine samples per pixel (2: the prototype's).
         pad: fine samples of field grid beyond the frame on each side.
@@ -106,9 +112,10 @@ class StackFitOptions(Options):
     time_budget: float = 55.0
     validation_fraction: float = 0.1
     seed: int = 0
-    zetas: tuple[float, ...] = eqx.field(
-        default=(16.0,),
-        converter=lambda z: tuple(float(v) for v in np.atleast_1d(z)))
+    zetas: tuple[float, ...] | None = eqx.field(
+        default=None,
+        converter=lambda z: None if z is None else tuple(float(v) for v in np.atleast_1d(z)))
+    scan_steps: int = 80
     gs_iterations: int = 30
     oversample: int = 2
     pad: int = 40
@@ -129,7 +136,7 @@ class StackFitOptions(Options):
     progress: bool = True
 
     def __check_init__(self):
-        for name in ("max_steps", "patience", "oversample", "field_stride"):
+        for name in ("max_steps", "patience", "oversample", "field_stride", "scan_steps"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise DiffcamError(f"{name} must be a positive int, got {v!r}.")
@@ -142,7 +149,7 @@ class StackFitOptions(Options):
                                f"{self.validation_fraction!r}.")
         if not float(self.time_budget) > 0:
             raise DiffcamError(f"time_budget must be > 0 s, got {self.time_budget!r}.")
-        zetas = tuple(self.zetas)
+        zetas = (16.0,) if self.zetas is None else tuple(self.zetas)
         if not zetas or not all(np.isfinite(float(z)) and float(z) > 0 for z in zetas):
             raise DiffcamError(f"zetas must be positive distances (fine samples²), got "
                                f"{self.zetas!r}.")
@@ -157,15 +164,24 @@ class StackFitOptions(Options):
 
 
     def to_dict(self) -> dict:
-        return {f.name: (list(getattr(self, f.name)) if f.name == "zetas"
+        return {f.name: (list(getattr(self, f.name)) if f.name == "zetas" and self.zetas
                          else getattr(self, f.name)) for f in dataclasses.fields(self)}
 
 
 # -------------------------------------------------------------------- initialisation
 
-def _to_field_grid(img, s, centre, model: StackModel):
+def _training_only(img, train):
+    """``img`` with its validation pixels (``train`` = 0) replaced by the mean of their
+    training neighbours (a normalised Gaussian of 1 pixel): the start never sees them."""
+    weight = ndi.gaussian_filter(train, 1.0)
+    fill = ndi.gaussian_filter(img * train, 1.0) / np.maximum(weight, 1e-6)
+    return np.where(train > 0, img, fill)
+
+
+def _to_field_grid(img, s, centre, model: StackModel, order: int = 3):
     """A measured plane at magnification ``s`` (relative to the reference) resampled
-    onto the field grid (at s = m0): (intensity ≥ 0, where-measured mask)."""
+    onto the field grid (at s = m0), spline ``order``: (intensity ≥ 0, where-measured
+    mask)."""
     o, (h, w) = model.oversample, model.frame
     s = s / model.grid_magnification
     half = (o - 1) / 2.0
@@ -174,7 +190,7 @@ def _to_field_grid(img, s, centre, model: StackModel):
     sy = centre[0] + s * (py - centre[0])
     sx = centre[1] + s * (px - centre[1])
     yy, xx = np.meshgrid(sy, sx, indexing="ij")
-    val = ndi.map_coordinates(img, [yy, xx], order=3, mode="constant", cval=0.0)
+    val = ndi.map_coordinates(img, [yy, xx], order=order, mode="constant", cval=0.0)
     known = (yy >= -0.5) & (yy <= h - 0.5) & (xx >= -0.5) & (xx <= w - 0.5)
     return np.clip(val, 0, None) * known, known
 
@@ -192,10 +208,11 @@ def _gs(amp, mods, knowns, kernels, theta, n_iter):
     return jax.lax.fori_loop(0, n_iter, body, theta)
 
 
-def _initial_model(imgs, planes, reg: Registration, zeta, opts: StackFitOptions
+def _initial_model(imgs, train, planes, reg: Registration, zeta, opts: StackFitOptions
                    ) -> StackModel:
-    """Amplitude from the blurred reference plane, phase from GS between the planes;
-    the field's spline coefficients by least squares to A·e^{jθ}."""
+    """Amplitude from the blurred reference plane, phase from GS between the planes
+    on their training pixels (``train``: 1 there, per plane); the field's spline
+    coefficients by least squares to A·e^{jθ}."""
     h, w = imgs[0].shape
     o, pad = opts.oversample, opts.pad
     grid = (fft_size(o * h + 2 * pad), fft_size(o * w + 2 * pad))
@@ -213,7 +230,10 @@ def _initial_model(imgs, planes, reg: Registration, zeta, opts: StackFitOptions
         reference=ref, anchor=anchor, oversample=o, frozen=bool(opts.frozen),
         grid_magnification=float(np.sqrt(min(ss) * max(ss))))
     taper = np.outer(edge_taper(grid[0], pad), edge_taper(grid[1], pad))
-    grids = [_to_field_grid(img, s, reg.centre, shell) for img, s in zip(imgs, ss)]
+    grids = [_to_field_grid(_training_only(img, m), s, reg.centre, shell)
+             for img, m, s in zip(imgs, train, ss)]
+    knowns = [k & (_to_field_grid(m, s, reg.centre, shell, order=0)[0] > 0.5)
+              for (_, k), m, s in zip(grids, train, ss)]
     env = np.where(grids[0][1], ndi.gaussian_filter(grids[0][0], opts.amplitude_blur), 0.0)
     amp = np.sqrt(np.clip(env, 0, None)) * taper
     energy = (amp ** 2).sum()
@@ -221,7 +241,7 @@ def _initial_model(imgs, planes, reg: Registration, zeta, opts: StackFitOptions
     kernels = [fresnel_kernel(grid, jnp.float32(zeta * s ** (-kappa0))) for s in ss]
     th0 = (0.1 * np.random.default_rng(opts.seed).standard_normal(grid)).astype(np.float32)
     theta = _gs(jnp.asarray(amp, jnp.float32), [jnp.asarray(m, jnp.float32) for m in mods],
-                [jnp.asarray(k) for _, k in grids], kernels,
+                [jnp.asarray(k) for k in knowns], kernels,
                 jnp.asarray(th0), int(opts.gs_iterations))
     c = coefficients_of(jnp.asarray(amp, jnp.float32) * expj(theta), grid, stride)
     return dataclasses.replace(shell, field_real=c.real, field_imag=c.imag)
@@ -326,7 +346,8 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
                                    opts.seed)
     data = _Data(jnp.asarray(np.stack(imgs)), jnp.asarray(train), jnp.asarray(val),
                  jnp.asarray(planes, jnp.float32))
-    model, scan = _start(imgs, planes, registration, data, opts)
+    model, scan = _start(imgs, planes, registration, data,
+                         dataclasses.replace(opts, zetas=_zetas(opts, phys)), t0)
     run = _descend(model, data, opts, t0)
     render_planes(run.model, planes[:1])      # compiles the predictor inside the fit
     base = _baseline_validation(imgs, planes, registration, val, ref, anchor)
@@ -347,17 +368,32 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     return fit
 
 
-def _start(imgs, planes, registration, data, opts: StackFitOptions):
-    """The GS start for every candidate ζ_ref; the best training Pearson wins.
-    Returns (model, {ζ: training Pearson})."""
-    scan, best = {}, None
-    for zeta in opts.zetas:
-        model = _initial_model(imgs, planes, registration, float(zeta), opts)
-        r_tr, _ = _evaluate(model, data)
-        scan[float(zeta)] = float(r_tr)
-        if best is None or float(r_tr) > best[0]:
-            best = (float(r_tr), model)
-    return best[1], scan
+def _zetas(opts: StackFitOptions, phys: dict) -> tuple[float, ...]:
+    """The ζ_ref candidates: as given, else the far-source value o²·λ·z2/pitch² (fine
+    samples²; M ≥ 1 makes the true one larger by M(ref)) when the physical inputs
+    allow it, else 16."""
+    if opts.zetas is not None:
+        return opts.zetas
+    if None in (phys["pixel_pitch"], phys["wavelength"], phys["z2"]):
+        return (16.0,)
+    return (opts.oversample ** 2 * phys["wavelength"] * phys["z2"]
+            / phys["pixel_pitch"] ** 2,)
+
+
+def _start(imgs, planes, registration, data, opts: StackFitOptions, t0: float):
+    """The GS start (on the training pixels only) for every candidate ζ_ref; with
+    several, each descends ``scan_steps`` steps and the best validation Pearson wins.
+    Returns (model, {ζ: its validation Pearson})."""
+    train = np.asarray(data.train)
+    starts = {float(z): _initial_model(imgs, train, planes, registration, float(z), opts)
+              for z in opts.zetas}
+    if len(starts) == 1:
+        (zeta, model), = starts.items()
+        return model, {zeta: float(_evaluate(model, data)[1])}
+    short = dataclasses.replace(opts, max_steps=opts.scan_steps, progress=False)
+    runs = {z: _descend(m, data, short, t0) for z, m in starts.items()}
+    best = max(runs, key=lambda z: runs[z].best_validation)
+    return runs[best].model, {z: r.best_validation for z, r in runs.items()}
 
 
 class _Run(NamedTuple):

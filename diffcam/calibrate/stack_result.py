@@ -81,7 +81,7 @@ class StackFit:
         baseline_validation: the scaling baseline's Pearson on the same validation
             pixels (each given plane predicted from the nearest other given plane).
         worse_than_baseline: ``validation_score < baseline_validation``.
-        zeta_scan: ``{ζ candidate (fine samples²): training Pearson of its GS start}``.
+        zeta_scan: ``{ζ candidate (fine samples²): validation Pearson of its GS start}``.
         identifiable: what the data fix: ζ_ref in pixel units; with the pixel pitch and
             wavelength z2·M at the reference plane and over the stack (m), with z2 too
             the magnifications and z1 over the stack (:func:`_identifiable`).
