@@ -61,6 +61,8 @@ __all__ = [
     "normalise_l2",
     "BackgroundWarning",
     "read_npz",
+    "npz_keys",
+    "file_kind",
     "check_output_path",
     "atomic_output",
     "Terminated",
@@ -303,14 +305,9 @@ def read_npz(path: str | os.PathLike, keys: Sequence[str], *, what: str = "an .n
         ``{key: array}``, the arrays as stored (any dtype and shape: check them).
     """
     path = Path(path)
-    _check_file(path)
     limit = _limit(max_bytes)
-    if not zipfile.is_zipfile(path):
-        raise DiffcamError(f"{path}: not {what} (not an .npz/zip archive); it may be "
-                           f"truncated or another format with an .npz name.")
+    members = _npz_members(path, what)
     with _file_errors(path, f"as {what}"):
-        with zipfile.ZipFile(path) as archive:
-            members = {info.filename: info for info in archive.infolist()}
         names = sorted(n[:-4] for n in members if n.endswith(".npy"))
         missing = [k for k in keys if k + ".npy" not in members]
         if missing:
@@ -324,6 +321,44 @@ def read_npz(path: str | os.PathLike, keys: Sequence[str], *, what: str = "an .n
                                    f"diffcam.io.MAX_READ_BYTES); the file may be damaged.")
         with np.load(path, allow_pickle=False) as arrays:
             return {k: np.asarray(arrays[k]) for k in keys}
+
+
+def npz_keys(path: str | os.PathLike, *, what: str = "an .npz file") -> list[str]:
+    """The names of the arrays an ``.npz`` file holds, read from its zip directory only
+    (nothing is decompressed); every failure a DiffcamError naming ``what``."""
+    return sorted(n[:-4] for n in _npz_members(Path(path), what) if n.endswith(".npy"))
+
+
+def _npz_members(path: Path, what: str) -> dict[str, zipfile.ZipInfo]:
+    """The zip directory of ``path``: ``{member name: ZipInfo}``."""
+    _check_file(path)
+    if not zipfile.is_zipfile(path):
+        kind = file_kind(path)
+        found = f"it is {kind}" if kind else "not an .npz/zip archive; it may be truncated"
+        raise DiffcamError(f"{path}: not {what} ({found}).")
+    with _file_errors(path, f"as {what}"):
+        with zipfile.ZipFile(path) as archive:
+            return {info.filename: info for info in archive.infolist()}
+
+
+_SIGNATURES = ((b"\x89PNG\r\n\x1a\n", "a PNG image"), (b"II*\x00", "a TIFF image"),
+               (b"MM\x00*", "a TIFF image"), (b"II+\x00", "a BigTIFF image"),
+               (b"MM\x00+", "a BigTIFF image"), (b"\x93NUMPY", "a NumPy .npy array"),
+               (b"\xff\xd8\xff", "a JPEG image"), (b"\x89HDF\r\n\x1a\n",
+                                                    "an HDF5 file (MATLAB v7.3?)"),
+               (b"MATLAB", "a MATLAB .mat file"), (b"\x1f\x8b", "a gzip file"),
+               (b"PK\x03\x04", "a zip archive"), (b"%PDF", "a PDF document"))
+
+
+def file_kind(path: str | os.PathLike) -> str | None:
+    """What a file's first bytes say it is (``"a PNG image"``, ``"a TIFF image"``, …),
+    whatever its name; ``None`` when they match no format known here."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        return None
+    return next((kind for magic, kind in _SIGNATURES if head.startswith(magic)), None)
 
 
 def border_dark_level(images, ring: int = 6) -> np.ndarray:
@@ -489,7 +524,8 @@ def check_output_path(path: str | os.PathLike, *,
         if not target.is_file():
             raise DiffcamError(f"{path}: exists and is not a regular file; remove it or "
                                f"choose another name.")
-        if not os.access(target, os.W_OK):
+        # the mode bits too: os.access says yes to root for a read-only file
+        if not os.access(target, os.W_OK) or not target.stat().st_mode & 0o222:
             raise DiffcamError(f"{path}: the existing file is read-only; diffcam will not "
                                f"replace it. Make it writable or choose another name.")
     try:

@@ -107,6 +107,15 @@ class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+class Parser(argparse.ArgumentParser):
+    """A subcommand's parser: a usage error is one line, ``diffcam CMD: error: …
+    (see diffcam CMD --help)``, exit status 2, instead of the whole usage block."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message.rstrip('.')} (see {self.prog} "
+                     f"--help)\n")
+
+
 def save_figure(fig, path) -> None:
     """Lay out ``fig`` (unless it has a layout engine, e.g. ``layout="constrained"``),
     write it atomically to ``path`` (format from the suffix), close it."""
@@ -253,13 +262,14 @@ def _grid_for(aperture_radius, dx):
 def _cmd_calibrate(args) -> int:
     import jax
 
-    from diffcam.io import read_image
+    from diffcam.io import check_output_path, read_image
     from diffcam.optics.elements import circular_aperture
     from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane, resolve_twin,
                             retrieve_projections)
     from diffcam.calibrate.pipeline import retrieve_phase
     from diffcam.calibrate.phase_io import PhaseFile, save_phase
 
+    check_output_path(args.out, suffixes=(".npz",))
     dx = args.dx or args.pixel
     n = args.grid or _grid_for(args.aperture_radius, dx)
     geometry = CalibrationGeometry(dx=dx, wavelength=args.wavelength,
@@ -294,8 +304,7 @@ def _cmd_calibrate(args) -> int:
         psf_ref, camera = reference
         phase, info["twin_chosen"] = resolve_twin(phase, psf_ref, camera, args.psf_z1)
         info.update(twin_resolved=True, psf=str(args.psf))
-    with atomic_output(args.out) as tmp:
-        save_phase(tmp, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
+    save_phase(args.out, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
     twin = "twin resolved by the PSF" if info["twin_resolved"] else \
         "phase known up to piston and the conjugate twin: pass --psf to resolve it"
     print(f"diffcam calibrate: final error {info['final_error']:.3g} → {args.out} ({twin})")
@@ -419,6 +428,9 @@ def _add_demo(sub) -> None:
 def _cmd_data(args) -> int:
     from diffcam.data import export_captures
 
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise DiffcamError(f"{args.out}: is a file; -o names the folder the capture files "
+                           f"go to.")
     paths = export_captures(args.name, args.out, overwrite=args.force)
     print(f"diffcam data: {len(paths)} files → {args.out}")
     return 0
@@ -560,7 +572,7 @@ def _add_compare(sub) -> None:
     cmp_.set_defaults(func=_cmd_compare)
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.")
     talk = parser.add_mutually_exclusive_group()
@@ -570,12 +582,49 @@ def build_parser() -> argparse.ArgumentParser:
                       help="also print the FFT backend, JAX's device and the wall time")
     sub = parser.add_subparsers(dest="command", required=True)
     # every subcommand's --help shows its defaults (a parser may still pass its own)
-    sub._parser_class = functools.partial(argparse.ArgumentParser,
-                                          formatter_class=DefaultsFormatter)
+    sub._parser_class = functools.partial(Parser, formatter_class=DefaultsFormatter)
     for add in (_add_demo, _add_data, _add_plan, _add_reconstruct, _add_calibrate,
                 _add_calibrate_psf, _add_psf, _add_compare, _add_fit):
         add(sub)
+    for name, command in sub.choices.items():
+        command.epilog = limits(name)
     return parser
+
+
+def limits(command: str) -> str:
+    """The resource caps a subcommand enforces before any work, for its ``--help``."""
+    from diffcam.calibrate.stack_fit import MAX_PLANES
+    from diffcam.core.grid import MAX_GRID_SAMPLES
+    from diffcam.io import MAX_READ_BYTES
+    from diffcam.reconstruct.checks import MAX_ITERATIONS
+
+    caps = [] if command in ("data", "demo", "plan") else [
+        f"each array read at most {MAX_READ_BYTES / 2**30:g} GiB (diffcam.io.MAX_READ_BYTES)"]
+    if command in ("reconstruct", "predict", "psf", "fit", "compare", "compare-stack"):
+        caps.append(f"at most {MAX_PLANES} planes (diffcam.calibrate.stack_fit.MAX_PLANES)")
+    if command == "reconstruct":
+        caps.append(f"at most {MAX_ITERATIONS} iterations "
+                    f"(diffcam.reconstruct.checks.MAX_ITERATIONS)")
+    if command in ("demo", "plan", "calibrate", "psf", "compare"):
+        caps.append(f"a propagation grid of at most {MAX_GRID_SAMPLES} samples, padding "
+                    f"included (diffcam.core.grid.MAX_GRID_SAMPLES)")
+    said = ("Limits, checked before any work (raise them from Python by assigning to "
+            "the constants named): " + "; ".join(caps) + ". ") if caps else ""
+    return said + ("Errors are one line on stderr with exit status 2; an existing output "
+                   "is replaced whole or not at all.")
+
+
+def check_environment() -> None:
+    """The environment's settings, checked before any work: ``DIFFCAM_FFT`` (a backend,
+    :func:`diffcam.core.backend.fft_backend`) and ``DIFFCAM_FFT_THREADS`` (a positive
+    integer when set, whichever backend runs)."""
+    from diffcam.core.backend import fft_backend
+
+    fft_backend()
+    threads = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
+    if threads and not (threads.isdigit() and int(threads) > 0):
+        raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
+                           f"{threads!r:.40}; unset it to use every CPU.")
 
 
 @contextlib.contextmanager
@@ -617,6 +666,7 @@ def main(argv=None) -> int:
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
         with interrupts_as_keyboard_interrupt(), _talk(args):
+            check_environment()
             return args.func(args)
     except DiffcamError as e:
         report_error(args.command, str(e))

@@ -17,7 +17,6 @@ import argparse
 import math
 import json
 import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -29,29 +28,32 @@ from diffcam.core.errors import DiffcamError
 def parse_planes(text: str) -> list[int]:
     """``"5,25"`` → [5, 25]; ``"0:43"`` → 0 … 43 (both ends included); ``"0:10:2,30"``
     (a step) and mixes of both."""
-    out: list[int] = []
-    for item in str(text).split(","):
-        item = item.strip()
-        if not item:
-            continue
-        try:
-            if ":" in item:
-                parts = [int(p) for p in item.split(":")]
-                if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] <= 0):
-                    raise ValueError
-                a, b = parts[0], parts[1]
-                step = parts[2] if len(parts) == 3 else 1
-                if b < a:
-                    raise ValueError
-                out.extend(range(a, b + 1, step))
-            else:
-                out.append(int(item))
-        except ValueError:
-            raise DiffcamError(f"planes {text!r}: give indices as 5,25 or a range 0:43 "
-                               f"(both ends included, a ≤ b).") from None
+    from diffcam.calibrate.stack_fit import MAX_PLANES
+
+    items = [_plane_items(item, text) for item in str(text).split(",") if item.strip()]
+    count = sum(len(r) for r in items)
+    if count > MAX_PLANES:
+        raise DiffcamError(f"planes {text!r}: {count} planes, more than the {MAX_PLANES} "
+                           f"one run takes (diffcam.calibrate.stack_fit.MAX_PLANES).")
+    out = [t for r in items for t in r]
     if not out:
         raise DiffcamError(f"planes {text!r}: no plane index given.")
     return out
+
+
+def _plane_items(item: str, text: str) -> range:
+    """One comma-separated item of a plane list as a range (not yet expanded)."""
+    try:
+        if ":" not in item:
+            return range(int(item), int(item) + 1)
+        parts = [int(p) for p in item.split(":")]
+        if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] <= 0) \
+                or parts[1] < parts[0]:
+            raise ValueError
+        return range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1)
+    except ValueError:
+        raise DiffcamError(f"planes {text!r}: give indices as 5,25 or a range 0:43 "
+                           f"(both ends included, a ≤ b).") from None
 
 
 def _planes_arg(text):
@@ -78,7 +80,8 @@ def _saturation_arg(text):
 def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float | None]:
     """A PSF stack from a file, folder or glob → (float32 (n, ny, nx), saturation level
     in the stack's units or ``None`` for float data)."""
-    from diffcam.io import image_files, read_image, read_mat_stack, read_npz, read_psf_stack
+    from diffcam.io import (image_files, npz_keys, read_image, read_mat_stack, read_npz,
+                            read_psf_stack)
 
     path = Path(source)
     full_scale = None
@@ -87,13 +90,7 @@ def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float |
         stack = read_psf_stack(files)
         full_scale = read_image(files[0]).full_scale
     elif path.suffix.lower() == ".npz":
-        if not path.is_file():
-            raise DiffcamError(f"{path}: no such file.")
-        try:
-            with zipfile.ZipFile(path) as z:
-                names = [n[:-4] for n in z.namelist() if n.endswith(".npy")]
-        except (zipfile.BadZipFile, OSError) as err:
-            raise DiffcamError(f"{path}: not an .npz archive ({err}).") from None
+        names = npz_keys(path, what="a PSF stack (.npz)")
         if key is None:
             arrays = read_npz(path, names, what="a PSF stack (.npz)") if len(names) <= 16 \
                 else {}
@@ -117,6 +114,10 @@ def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float |
     if np.ndim(stack) != 3:
         raise DiffcamError(f"{source}: expected a stack of planes (n, ny, nx), got shape "
                            f"{np.shape(stack)}.")
+    bad = np.flatnonzero(~np.isfinite(stack).all(axis=(1, 2)))
+    if bad.size:
+        raise DiffcamError(f"{source}: plane(s) {bad[:5].tolist()} hold NaN or Inf values; "
+                           f"clean the stack (np.nan_to_num) first.")
     return np.asarray(stack), None if full_scale is None else 0.999 * full_scale
 
 
@@ -166,17 +167,30 @@ def _cmd_predict(args) -> int:
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
     fit = load_stack_fit(args.model)
     t0 = time.perf_counter()
-    planes = args.planes
-    if planes is None:
-        if fit.n_planes is None:
-            raise DiffcamError(f"{args.model} does not record the stack's plane count; "
-                               f"give --planes.")
-        planes = list(range(fit.n_planes))
+    planes = model_planes(fit, args.planes, args.model)
     pred = fit.predict(planes, kappa=args.kappa, residual=not args.rendered_only)
     save_image(args.out, pred)
     print(f"diffcam predict: {len(planes)} planes of {pred.shape[1]}×{pred.shape[2]} "
           f"({time.perf_counter() - t0:.1f} s) → {args.out}")
     return 0
+
+
+def model_planes(fit, planes: list[int] | None, path) -> list[int]:
+    """``planes`` (``--planes``), or by default every plane of the model's stack: its
+    recorded plane count, checked (a damaged file may declare 0 or 10⁹)."""
+    from diffcam.calibrate.stack_fit import MAX_PLANES
+
+    if planes is not None:
+        return planes
+    n = fit.n_planes
+    if n is None:
+        raise DiffcamError(f"{path}: the model does not record its stack's plane count; "
+                           f"choose planes with --planes (e.g. 0:43).")
+    if not 1 <= n <= MAX_PLANES:
+        raise DiffcamError(f"{path}: the model declares {n} planes, outside 1 … "
+                           f"{MAX_PLANES} (diffcam.calibrate.stack_fit.MAX_PLANES): the file "
+                           f"is damaged; choose planes with --planes.")
+    return list(range(n))
 
 
 def compare_stack(stack, fit) -> dict:
