@@ -50,7 +50,7 @@ import warnings
 import numpy as np
 
 from benchmarks.harness import markdown_table, write_json
-from diffcam.calibrate.stack_fit import StackFitWarning, fit_stack, prepare_planes
+from diffcam.calibrate import StackFitWarning, fit_stack, prepare_planes
 from diffcam.data import load_psf_stack_3d
 from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import scaling_baseline

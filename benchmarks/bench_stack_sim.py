@@ -24,7 +24,7 @@ import numpy as np
 
 from benchmarks.harness import markdown_table, write_json
 from diffcam.calibrate.simulation import measured_stack_simulation
-from diffcam.calibrate.stack_fit import StackFitWarning, fit_stack, prepare_planes
+from diffcam.calibrate import StackFitWarning, fit_stack, prepare_planes
 from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import scaling_baseline
 

@@ -37,7 +37,7 @@ import warnings
 import numpy as np
 
 from benchmarks.harness import markdown_table, write_json
-from diffcam.calibrate.stack_fit import StackFitWarning, fit_stack, prepare_planes
+from diffcam.calibrate import StackFitWarning, fit_stack, prepare_planes
 from diffcam.core.grid import crop_to
 from diffcam.data import load_psf_stack_3d, load_raw_3d
 from diffcam.evaluate.metrics import pearson

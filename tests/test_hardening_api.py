@@ -33,7 +33,8 @@ from diffcam.model import Camera, HeightMap
 from diffcam.model.camera import with_method
 from diffcam.model.point_spread import MIN_SAMPLES_ACROSS
 from diffcam.model.sensor import resample
-from diffcam.optics.propagation import (angular_spectrum, fourier_lens, fresnel_ir,
+from diffcam.optics.fourier_lens import fourier_lens
+from diffcam.optics.propagation import (angular_spectrum, fresnel_ir,
                                         fresnel_tf, propagate)
 from diffcam.reconstruct import admm_tv, richardson_lucy, richardson_lucy_3d, wiener
 

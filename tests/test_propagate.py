@@ -10,10 +10,10 @@ from scipy.special import j1
 from diffcam.core import grid
 from diffcam.core.errors import DiffcamError, SamplingError, ShapeError, UndersamplingWarning
 from diffcam.optics.elements import circular_aperture, thin_lens
+from diffcam.optics.fourier_lens import fourier_lens, inverse_fourier_lens
 from diffcam.optics.propagation import (angular_spectrum, apply_transfer, choose_propagation,
-                                        plan_propagation,
-                               fourier_lens, fresnel_ir, fresnel_tf, inverse_fourier_lens,
-                               propagate, transfer_function)
+                                        fresnel_ir, fresnel_tf, plan_propagation, propagate,
+                                        transfer_function)
 from conftest import assert_float32_gradient_matches_float64, assert_grad_matches_fd
 
 LAM = 0.5e-6

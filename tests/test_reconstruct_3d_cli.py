@@ -173,7 +173,7 @@ def test_dark_levels(scene):
 def models(tmp_path_factory):
     """Stack-fit models of the shipped stack at 1/8 size (10 steps: a quick, rough fit):
     one knowing its 44 planes, one fitted from a dict (plane count unknown)."""
-    from diffcam.calibrate.stack_fit import fit_stack
+    from diffcam.calibrate import fit_stack
     from diffcam.data import load_psf_stack_3d, load_raw_3d
 
     d = tmp_path_factory.mktemp("models")

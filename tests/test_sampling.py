@@ -37,7 +37,7 @@ def test_diffuser_bandwidth_adds_to_chirp():
     x = (np.arange(n) - n // 2) * dx
     ramp = 2 * np.pi * 20e3 * np.broadcast_to(x, (n, n))
     assert np.isclose(phase_bandwidth(ramp, dx), 20e3, rtol=1e-6)
-    plan = plan_sampling(532e-9, dx, n, 30e-3, 1e-3, 0.6e-3, phase=ramp)
+    plan = plan_sampling(532e-9, dx, n, 30e-3, 1e-3, 0.6e-3, diffuser=ramp)
     assert np.isclose(plan.min_direct_z1, 0.6e-3 / (532e-9 * (1e5 - 20e3)), rtol=1e-6)
 
 

@@ -11,8 +11,8 @@ import pytest
 import scipy.ndimage as ndi
 
 from diffcam.apps.cli import main
-from diffcam.calibrate.stack_fit import (StackFitOptions, StackFitWarning, fit_stack,
-                                         load_stack_fit, prepare_planes)
+from diffcam.calibrate import (StackFitOptions, StackFitWarning, fit_stack, load_stack_fit,
+                               prepare_planes)
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import (Registration, magnify_about,

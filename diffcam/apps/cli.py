@@ -593,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def limits(command: str) -> str:
     """The resource caps a subcommand enforces before any work, for its ``--help``."""
-    from diffcam.calibrate.stack_fit import MAX_PLANES
+    from diffcam.calibrate.stack_result import MAX_PLANES
     from diffcam.core.grid import MAX_GRID_SAMPLES
     from diffcam.io import MAX_READ_BYTES
     from diffcam.reconstruct.checks import MAX_ITERATIONS
@@ -601,7 +601,7 @@ def limits(command: str) -> str:
     caps = [] if command in ("data", "demo", "plan") else [
         f"each array read at most {MAX_READ_BYTES / 2**30:g} GiB (diffcam.io.MAX_READ_BYTES)"]
     if command in ("reconstruct", "predict", "psf", "fit", "compare", "compare-stack"):
-        caps.append(f"at most {MAX_PLANES} planes (diffcam.calibrate.stack_fit.MAX_PLANES)")
+        caps.append(f"at most {MAX_PLANES} planes (diffcam.calibrate.stack_result.MAX_PLANES)")
     if command == "reconstruct":
         caps.append(f"at most {MAX_ITERATIONS} iterations "
                     f"(diffcam.reconstruct.checks.MAX_ITERATIONS)")

@@ -28,13 +28,13 @@ from diffcam.core.errors import DiffcamError
 def parse_planes(text: str) -> list[int]:
     """``"5,25"`` → [5, 25]; ``"0:43"`` → 0 … 43 (both ends included); ``"0:10:2,30"``
     (a step) and mixes of both."""
-    from diffcam.calibrate.stack_fit import MAX_PLANES
+    from diffcam.calibrate.stack_result import MAX_PLANES
 
     items = [_plane_items(item, text) for item in str(text).split(",") if item.strip()]
     count = sum(len(r) for r in items)
     if count > MAX_PLANES:
         raise DiffcamError(f"planes {text!r}: {count} planes, more than the {MAX_PLANES} "
-                           f"one run takes (diffcam.calibrate.stack_fit.MAX_PLANES).")
+                           f"one run takes (diffcam.calibrate.stack_result.MAX_PLANES).")
     out = [t for r in items for t in r]
     if not out:
         raise DiffcamError(f"planes {text!r}: no plane index given.")
@@ -122,7 +122,7 @@ def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float |
 
 
 def _cmd_fit(args) -> int:
-    from diffcam.calibrate.stack_fit import fit_stack
+    from diffcam.calibrate import fit_stack
     from diffcam.io import check_output_path
 
     check_output_path(args.out, suffixes=(".npz",))
@@ -161,7 +161,7 @@ def _z2m(fit) -> str:
 
 def _cmd_predict(args) -> int:
     from diffcam.apps.cli import save_image
-    from diffcam.calibrate.stack_fit import load_stack_fit
+    from diffcam.calibrate import load_stack_fit
     from diffcam.io import check_output_path
 
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
@@ -178,7 +178,7 @@ def _cmd_predict(args) -> int:
 def model_planes(fit, planes: list[int] | None, path) -> list[int]:
     """``planes`` (``--planes``), or by default every plane of the model's stack: its
     recorded plane count, checked (a damaged file may declare 0 or 10⁹)."""
-    from diffcam.calibrate.stack_fit import MAX_PLANES
+    from diffcam.calibrate.stack_result import MAX_PLANES
 
     if planes is not None:
         return planes
@@ -188,7 +188,7 @@ def model_planes(fit, planes: list[int] | None, path) -> list[int]:
                            f"choose planes with --planes (e.g. 0:43).")
     if not 1 <= n <= MAX_PLANES:
         raise DiffcamError(f"{path}: the model declares {n} planes, outside 1 … "
-                           f"{MAX_PLANES} (diffcam.calibrate.stack_fit.MAX_PLANES): the file "
+                           f"{MAX_PLANES} (diffcam.calibrate.stack_result.MAX_PLANES): the file "
                            f"is damaged; choose planes with --planes.")
     return list(range(n))
 
@@ -197,7 +197,7 @@ def compare_stack(stack, fit) -> dict:
     """Per-plane Pearson of the model's prediction, its rendering alone (no carried
     residual), the scaling baseline and the frozen-distance prediction (κ = 0) against a
     measured stack (prepared like the fit's planes)."""
-    from diffcam.calibrate.stack_fit import prepare_planes
+    from diffcam.calibrate import prepare_planes
     from diffcam.evaluate.metrics import pearson
     from diffcam.evaluate.registration import scaling_baseline
 
@@ -232,7 +232,7 @@ def compare_stack(stack, fit) -> dict:
 
 def _cmd_compare_stack(args) -> int:
     from diffcam.apps.cli import save_figure
-    from diffcam.calibrate.stack_fit import load_stack_fit
+    from diffcam.calibrate import load_stack_fit
     from diffcam.io import atomic_output, check_output_path
 
     if args.out:

@@ -74,7 +74,7 @@ def is_stack_fit(path) -> bool:
     """Whether ``path`` is an ``.npz`` whose ``metadata`` says ``diffcam-stack-fit``."""
     import json
 
-    from diffcam.calibrate.stack_fit import FORMAT
+    from diffcam.calibrate.stack_result import FORMAT
     from diffcam.io import npz_keys, read_npz
 
     path = Path(path)
@@ -92,7 +92,7 @@ def is_stack_fit(path) -> bool:
 def _read_model(path, planes) -> PsfSource:
     """The planes (default all) a stack-fit model renders, clipped at 0."""
     from diffcam.apps.fit_cli import model_planes
-    from diffcam.calibrate.stack_fit import load_stack_fit
+    from diffcam.calibrate import load_stack_fit
 
     fit = load_stack_fit(path)
     planes = model_planes(fit, planes, path)
@@ -566,7 +566,7 @@ def _add_reconstruct(sub) -> None:
     """Add ``reconstruct`` to the ``diffcam`` subcommands."""
     from diffcam.apps.cli import DefaultsFormatter, _length
     from diffcam.apps.fit_cli import _planes_arg
-    from diffcam.calibrate.stack_fit import MAX_PLANES
+    from diffcam.calibrate.stack_result import MAX_PLANES
     from diffcam.reconstruct.checks import MAX_ITERATIONS
 
     rec = sub.add_parser(

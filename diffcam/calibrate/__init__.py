@@ -13,10 +13,14 @@
 - :mod:`.captures`    — preprocessing of captures, HDR merge, synthetic captures
 - :mod:`.simulation`  — the paper's Fig. 3 simulation (the cameraman diffuser)
 - :mod:`.phase_io`    — phase files
+- :mod:`.stack_model`, :mod:`.stack_fit`, :mod:`.stack_result`, :mod:`.stack_inputs`
+  — the wave model of a measured PSF stack, its fit to a few planes, the fitted result
+  (prediction, file) and the given planes' checks and preparation
 - :mod:`.result`      — :class:`RetrievalResult`, returned by every solver
 """
 
-from diffcam.calibrate.captures import (PreparedCaptures, centre_on_axis, centroid,
+from diffcam.calibrate.captures import (CaptureOptions, PreparedCaptures, SyntheticSensor,
+                                        centre_on_axis, centroid,
                                         merge_exposures, normalise_min_max, prepare_captures,
                                         resample_capture, resample_far_field,
                                         synthetic_captures)
@@ -31,9 +35,16 @@ from diffcam.calibrate.pipeline import retrieve_phase
 from diffcam.calibrate.planes import DefocusedPlane, psf_plane
 from diffcam.calibrate.projections import (ProjectionOptions, gerchberg_saxton, hio, initial_phase, raar,
                                            retrieve_projections)
-from diffcam.calibrate.psf_fit import DepthLaw, fit_to_psfs, predict_psfs, resolve_twin
+from diffcam.calibrate.psf_fit import (DepthLaw, PsfFitOptions, fit_to_psfs, predict_psfs,
+                                      resolve_twin)
 from diffcam.calibrate.result import RetrievalResult
+from diffcam.calibrate.scene_psf import (ScenePsf, ScenePsfOptions, fit_psf_from_scenes,
+                                         predict_raw)
 from diffcam.calibrate.simulation import PaperSimulation, cameraman_phase, paper_simulation
+from diffcam.calibrate.stack_fit import StackFitOptions, StackFitWarning, fit_stack
+from diffcam.calibrate.stack_inputs import prepare_planes
+from diffcam.calibrate.stack_model import StackModel
+from diffcam.calibrate.stack_result import StackFit, load_stack_fit
 
 __all__ = [
     # geometry, forward model, result
@@ -44,21 +55,15 @@ __all__ = [
     "retrieve_phase", "retrieve_projections", "gerchberg_saxton", "hio", "raar",
     "initial_phase", "ProjectionOptions", "DefocusedPlane", "psf_plane",
     "retrieve_lsq", "fit_phase", "FitOptions", "near_far_model", "PhaseGrid",
-    "fit_to_psfs", "DepthLaw", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
+    "fit_to_psfs", "PsfFitOptions", "DepthLaw", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
     # captures
-    "prepare_captures", "PreparedCaptures", "synthetic_captures", "merge_exposures",
+    "prepare_captures", "PreparedCaptures", "CaptureOptions", "synthetic_captures",
+    "SyntheticSensor", "merge_exposures",
     "normalise_min_max", "centroid", "centre_on_axis", "resample_capture",
     "resample_far_field",
+    # measured PSF stacks
+    "StackModel", "StackFitOptions", "StackFit", "StackFitWarning", "fit_stack",
+    "load_stack_fit", "prepare_planes",
+    # the PSF from scenes
+    "ScenePsf", "ScenePsfOptions", "fit_psf_from_scenes", "predict_raw",
 ]
-
-from diffcam.calibrate.stack_fit import (StackFit, StackFitOptions, StackFitWarning,  # noqa: E402
-                                         StackModel, fit_stack, load_stack_fit,
-                                         prepare_planes)
-
-__all__ += ["StackModel", "StackFitOptions", "StackFit", "StackFitWarning", "fit_stack",
-            "load_stack_fit", "prepare_planes"]
-
-from diffcam.calibrate.scene_psf import (ScenePsf, ScenePsfOptions,  # noqa: E402
-                                         fit_psf_from_scenes, predict_raw)
-
-__all__ += ["ScenePsf", "ScenePsfOptions", "fit_psf_from_scenes", "predict_raw"]

@@ -31,6 +31,7 @@ from jax import Array
 from jaxtyping import Float
 
 from diffcam.core.errors import DiffcamError, check_field, check_positive
+from diffcam.core.options import Options
 from diffcam.io import subtract_background
 from diffcam.model.sensor import bin_pixels, quantise, resample, saturate, shot_noise
 from diffcam.calibrate.near_far import (CalibrationGeometry, calibration_intensities,
@@ -38,7 +39,7 @@ from diffcam.calibrate.near_far import (CalibrationGeometry, calibration_intensi
 
 __all__ = ["normalise_min_max", "merge_exposures", "centroid", "centre_on_axis", "resample_capture",
            "resample_far_field", "prepare_captures", "PreparedCaptures",
-           "synthetic_captures"]
+           "synthetic_captures", "CaptureOptions", "SyntheticSensor"]
 
 
 def normalise_min_max(image: Float[Array, "ny nx"]) -> np.ndarray:
@@ -177,10 +178,44 @@ def _clean(raw, name, background, exposure, saturation):
     return normalise_min_max(image), ok
 
 
+class CaptureOptions(Options):
+    """How :func:`prepare_captures` cleans the raw captures.
+
+    Attributes:
+        background: per capture (near, far), a level or a dark frame (counts).
+        exposure: per capture, exposure time (s, or any common unit), or k times for
+            an exposure series.
+        saturation: raw count at or above which a pixel is saturated (e.g. 4095 for a
+            12-bit sensor); ``None`` skips the check.
+        centre: move the far capture's centroid onto the optical axis first.
+    """
+
+    background: object = (0.0, 0.0)
+    exposure: object = (1.0, 1.0)
+    saturation: float | None = None
+    centre: bool = True
+
+
+class SyntheticSensor(Options):
+    """The sensor :func:`synthetic_captures` records with.
+
+    Attributes:
+        photons: electrons at the brightest pixel of each capture.
+        bit_depth: bits of the digital numbers.
+        background: uniform background, fraction of full scale.
+        far_exposures: relative exposure times of a far-field exposure series (e.g.
+            ``(1, 30, 1000)``), or ``None`` for one far capture.
+    """
+
+    photons: float = 1e4
+    bit_depth: int = 12
+    background: float = 0.02
+    far_exposures: tuple | None = None
+
+
 def prepare_captures(near_raw, far_raw, geometry: CalibrationGeometry, shape, *,
-                     sensor_pitch: float, background=(0.0, 0.0), exposure=(1.0, 1.0),
-                     saturation: float | None = None, centre: bool = True
-                     ) -> PreparedCaptures:
+                     sensor_pitch: float, options: CaptureOptions | None = None,
+                     **overrides) -> PreparedCaptures:
     """Raw near and far captures → :class:`PreparedCaptures` on the ``shape`` grid.
 
     Args:
@@ -190,21 +225,19 @@ def prepare_captures(near_raw, far_raw, geometry: CalibrationGeometry, shape, *,
         shape: ``(ny, nx)`` of the calibration grid (the near capture at pitch dx, the
             far one at λf/(N·dx)); wide enough for the captures' content.
         sensor_pitch: camera pixel pitch, metres.
-        background: per capture, a level or a dark frame (counts).
-        exposure: per capture, exposure time (s, or any common unit), or k times for
-            an exposure series.
-        saturation: raw count at or above which a pixel is saturated (e.g. 4095 for a
-            12-bit sensor); ``None`` skips the check.
-        centre: move the far capture's centroid onto the optical axis first.
+        options: :class:`CaptureOptions` (background, exposure, saturation, centre);
+            keywords named after its fields replace them.
 
     Warns (:class:`~diffcam.core.errors.GeometryWarning`) when the far capture's speckle
     is ≳ 2× finer or coarser than the near capture predicts at the Fourier-lens pitch
     (:func:`~diffcam.calibrate.near_far.check_far_speckle`): f, λ or ``sensor_pitch``
     is wrong, and the retrieval would return a confident wrong phase.
     """
-    near, near_ok = _clean(near_raw, "near", background[0], exposure[0], saturation)
-    far, far_ok = _clean(far_raw, "far", background[1], exposure[1], saturation)
-    if centre:
+    o = CaptureOptions.of(options, **overrides)
+    background, exposure = o.background, o.exposure
+    near, near_ok = _clean(near_raw, "near", background[0], exposure[0], o.saturation)
+    far, far_ok = _clean(far_raw, "far", background[1], exposure[1], o.saturation)
+    if o.centre:
         far, shift = centre_on_axis(far)
         far_ok = np.roll(far_ok, shift, axis=(-2, -1))
     near_g = resample_capture(near, sensor_pitch, geometry.dx, shape)
@@ -219,9 +252,8 @@ def prepare_captures(near_raw, far_raw, geometry: CalibrationGeometry, shape, *,
 
 def synthetic_captures(phase: Float[Array, "ny nx"], aperture: Float[Array, "ny nx"],
                        geometry: CalibrationGeometry, key: Array, *, sensor_pitch: float,
-                       sensor_shape, photons: float = 1e4, bit_depth: int = 12,
-                       background: float = 0.02, far_exposures=None
-                       ) -> tuple[np.ndarray, np.ndarray]:
+                       sensor_shape, options: SyntheticSensor | None = None,
+                       **overrides) -> tuple[np.ndarray, np.ndarray]:
     """Raw near and far captures of a diffuser, as a camera would record them.
 
     The forward model (:func:`calibration_intensities`) runs on the phase's grid; each
@@ -233,11 +265,18 @@ def synthetic_captures(phase: Float[Array, "ny nx"], aperture: Float[Array, "ny 
     field as an exposure series instead: exposure t collects t·``photons`` at the peak and
     saturates.
 
+    The sensor (``photons``, ``bit_depth``, ``background``, ``far_exposures``) is a
+    :class:`SyntheticSensor` given as ``options``; keywords named after its fields
+    replace them.
+
     Returns:
         ``(near_counts, far_counts)`` float arrays of digital numbers (far: (k, ny, nx)
         with ``far_exposures``); the background in counts is
         ``round(background · (2**bit_depth − 1))``.
     """
+    sensor = SyntheticSensor.of(options, **overrides)
+    photons, bit_depth = sensor.photons, sensor.bit_depth
+    background, far_exposures = sensor.background, sensor.far_exposures
     near, far = calibration_intensities(phase, aperture, geometry)
     shape = np.shape(phase)
     images = (bin_pixels(near, geometry.dx, sensor_pitch, tuple(sensor_shape)),

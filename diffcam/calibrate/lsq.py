@@ -372,6 +372,13 @@ class FitOptions(Options):
         iterations: solver steps.
         smoothness, tv: regularisation weights (per unit residual², dimensionless, ≥ 0).
         fit_background: fit the per-image background b_k (else b_k = 0).
+        coarse: phase unknowns every ``coarse`` samples, upsampled (cubic).
+        key: ``jax.random`` key of a ``"random"`` start.
+        warm_start_iterations: RAAR iterations of the ``"raar"`` start of
+            :func:`retrieve_lsq`.
+        far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
+        progress: a progress bar for fits over 2 s (:mod:`diffcam.core.progress`;
+            ``DIFFCAM_PROGRESS=0`` turns every bar off).
     """
 
     loss: str = "weighted_intensity"
@@ -380,6 +387,11 @@ class FitOptions(Options):
     smoothness: float = 0.0
     tv: float = 0.0
     fit_background: bool = True
+    coarse: int = 1
+    key: object = None
+    warm_start_iterations: int = 30
+    far_pitch: float | None = None
+    progress: bool = True
 
     def __check_init__(self):
         if self.loss not in LOSSES:
@@ -395,8 +407,7 @@ class FitOptions(Options):
 
 def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
               phase_grid: PhaseGrid, *, support=None, masks=None,
-              options: FitOptions = FitOptions(), extra0=None,
-              progress: bool = True) -> RetrievalResult:
+              options: FitOptions = FitOptions(), extra0=None) -> RetrievalResult:
     """Fit the phase (and per-image scale and background) to measured intensities.
 
     The engine under :func:`retrieve_lsq` and :func:`diffcam.calibrate.fit_to_psfs`.
@@ -411,10 +422,9 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
         phase_grid: the phase parameterisation.
         support: (ny, nx) mask where the regularisers act (default: everywhere).
         masks: K weight images (0 = ignore, e.g. saturated pixels), or ``None``.
-        options: :class:`FitOptions` (loss, solver, iterations, regularisation).
+        options: :class:`FitOptions` (loss, solver, iterations, regularisation,
+            progress).
         extra0: starting extra parameters passed to ``model`` (fitted too).
-        progress: a progress bar for fits over 2 s (:mod:`diffcam.core.progress`;
-            ``DIFFCAM_PROGRESS=0`` turns every bar off).
 
     Returns:
         :class:`RetrievalResult`; ``stats["status"]`` is :func:`fit_status` of the run.
@@ -445,7 +455,7 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
                        bool(fit_background), (float(smoothness) > 0, float(tv) > 0))
     params = {"theta": jnp.asarray(theta0, dtype),
               "extra": jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), extra0)}
-    with progress_bar(int(iterations), "least squares", progress):
+    with progress_bar(int(iterations), "least squares", options.progress):
         start, history, params, scale, background = jax.block_until_ready(
             _run_fit(problem, params, opt, int(iterations)))
     phase = jnp.angle(expj(phase_grid.expand(params["theta"])))
@@ -461,8 +471,7 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
 
 def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
                  geometry: CalibrationGeometry, aperture: Float[Array, "ny nx"], *,
-                 init="raar", key=None, coarse: int = 1, far_pitch=None, masks=None,
-                 warm_start_iterations: int = 30, options: FitOptions | None = None,
+                 init="raar", masks=None, options: FitOptions | None = None,
                  **overrides) -> RetrievalResult:
     """Diffuser phase from near/far intensities by least squares through the forward model.
 
@@ -475,25 +484,25 @@ def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
             start, which puts the fit in the right basin: from a flat start a 128² near/far
             fit can stall at a phase Pearson of 0.82, from 30 RAAR iterations it reaches
             1.000), ``"flat"``, ``"random"`` (with ``key``) or a full-grid phase (radians).
-        coarse: phase unknowns every ``coarse`` samples, upsampled (cubic).
-        far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
         masks: ``(near_mask, far_mask)`` weights, 0 at saturated or bad pixels.
         options: :class:`FitOptions`; keyword ``**overrides`` replace its fields
-            (``loss=``, ``iterations=``, ...).
+            (``loss=``, ``iterations=``, ``coarse=``, ``key=``, ``far_pitch=``, ...).
     """
+    opts = FitOptions.of(options, **overrides)
     check_captures(near, far)
     shape = np.shape(near)
     if np.shape(aperture) != shape:
         raise ShapeError(f"aperture {np.shape(aperture)} and captures {shape} differ in shape.")
-    if far_pitch is not None:
-        check_far_pitch(far_pitch, geometry, shape)
-    grid = PhaseGrid.for_aperture(aperture, coarse)
+    if opts.far_pitch is not None:
+        check_far_pitch(opts.far_pitch, geometry, shape)
+    grid = PhaseGrid.for_aperture(aperture, opts.coarse)
     dtype = _real_dtype(near, far)
     if isinstance(init, str) and init == "raar":
         init = retrieve_projections(near, far, geometry, method="raar", init="flat",
-                                    iterations=warm_start_iterations).phase
-    theta0 = grid.restrict(initial_phase(init, shape, key)[0].astype(dtype))
+                                    iterations=opts.warm_start_iterations,
+                                    progress=opts.progress).phase
+    theta0 = grid.restrict(initial_phase(init, shape, opts.key)[0].astype(dtype))
     model = near_far_model(jnp.asarray(aperture, dtype), geometry)
     return warn_if_stalled(fit_phase(model, (near, far), theta0, grid,
                                      support=jnp.asarray(aperture) > 0, masks=masks,
-                                     options=FitOptions.of(options, **overrides)), init)
+                                     options=opts), init)

@@ -78,7 +78,7 @@ class CalibrationGeometry(eqx.Module):
 class NearFarModel(eqx.Module):
     """θd → (near, far) intensities, each in energy units (each sums to Σ|C|²): the far
     field is the unitary centred DFT of the diffuser field, which differs from
-    :func:`diffcam.optics.propagation.fourier_lens` by the constant
+    :func:`diffcam.optics.fourier_lens.fourier_lens` by the constant
     (N·dy·dx/(λf))² in intensity (:func:`calibration_intensities` applies it).
 
     Attributes:

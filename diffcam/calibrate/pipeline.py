@@ -26,8 +26,8 @@ POLISH = FitOptions(loss="intensity", iterations=100)
 
 def retrieve_phase(near, far, geometry: CalibrationGeometry, aperture, *,
                    projections: ProjectionOptions | None = None,
-                   refine: FitOptions | None = POLISH, key=None, masks=None, far_pitch=None,
-                   planes=(), **overrides) -> RetrievalResult:
+                   refine: FitOptions | None = POLISH, masks=None,
+                   **overrides) -> RetrievalResult:
     """Diffuser phase from near/far intensities: projections (RAAR, 300 iterations,
     ``restarts`` random starts), then a least-squares polish (``refine``; ``None`` skips
     it). The polish uses plain intensity residuals by default (:data:`POLISH`, 100
@@ -42,27 +42,26 @@ def retrieve_phase(near, far, geometry: CalibrationGeometry, aperture, *,
         aperture: diffuser-plane amplitude C (ny, nx).
         projections: :class:`~diffcam.calibrate.ProjectionOptions` of the first stage
             (default: RAAR, 300 iterations, 4 random starts; with ``planes`` one flat
-            start); ``**overrides`` replace its fields (``iterations=``, ``restarts=``).
+            start); ``**overrides`` replace its fields (``iterations=``, ``restarts=``,
+            ``key=`` (default ``jax.random.key(0)``), ``far_pitch=``, ``planes=``: extra
+            intensities, :class:`~diffcam.calibrate.DefocusedPlane`, e.g. a captured PSF
+            through :func:`~diffcam.calibrate.psf_plane`, that break the twin and let
+            strongly scattering diffusers converge).
         refine: :class:`~diffcam.calibrate.FitOptions` of the polish, or ``None``.
-        key: ``jax.random`` key (default ``jax.random.key(0)``).
         masks: ``(near_mask, far_mask)``, 0 at saturated pixels (least-squares stage).
-        far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
-        planes: extra intensities for the projection stage
-            (:class:`~diffcam.calibrate.DefocusedPlane`, e.g. a captured PSF through
-            :func:`~diffcam.calibrate.psf_plane`): they break the twin and let strongly
-            scattering diffusers converge.
 
     Returns:
         :class:`RetrievalResult` of the last stage (``history`` its error history);
         ``stats["stages"]`` holds each stage's stats and history.
     """
     t0 = time.perf_counter()
-    key = jax.random.key(0) if key is None else key
     first_options = ProjectionOptions.of(projections, **overrides)
+    if first_options.key is None:
+        first_options = dataclasses.replace(first_options, key=jax.random.key(0))
     if first_options.restarts is None:
-        first_options = dataclasses.replace(first_options, restarts=1 if planes else 4)
-    first = retrieve_projections(near, far, geometry, options=first_options, key=key,
-                                 far_pitch=far_pitch, planes=planes)
+        first_options = dataclasses.replace(first_options,
+                                            restarts=1 if first_options.planes else 4)
+    first = retrieve_projections(near, far, geometry, options=first_options)
     stages = [dict(first.stats, history=first.history)]
     result = first
     if refine is not None:

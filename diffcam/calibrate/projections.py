@@ -167,6 +167,13 @@ class ProjectionOptions(Options):
             plane when ``near_distance > 0``). ``None``: ``"flat"`` with extra planes and
             one start (it converges; random starts can stall on a slightly inconsistent
             plane), else ``"random"``.
+        key: ``jax.random`` key for random starts.
+        planes: extra intensities, :class:`~diffcam.calibrate.DefocusedPlane` (a
+            captured PSF through :func:`~diffcam.calibrate.psf_plane`): each adds a
+            projection (one FFT pair) averaged with the far-field one; they break the
+            twin and un-stall strongly scattering diffusers.
+        far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
+        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
     """
 
     method: str = "raar"
@@ -174,6 +181,10 @@ class ProjectionOptions(Options):
     beta: float = 0.9
     restarts: int | None = None
     init: object = None
+    key: object = None
+    planes: tuple = ()
+    far_pitch: float | None = None
+    progress: bool = True
 
     def __check_init__(self):
         if self.method not in METHODS:
@@ -190,8 +201,8 @@ class ProjectionOptions(Options):
 
 def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
                          geometry: CalibrationGeometry, *,
-                         options: ProjectionOptions | None = None, key=None, far_pitch=None,
-                         planes=(), progress: bool = True, **overrides) -> RetrievalResult:
+                         options: ProjectionOptions | None = None,
+                         **overrides) -> RetrievalResult:
     """Retrieve the diffuser phase from near- and far-field intensities by projections.
 
     Args:
@@ -200,15 +211,9 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
         far: far-field intensity at the Fourier-lens pitch λf/(N·dx) (any scale; it is
             matched to the near field's energy).
         geometry: the set-up, SI units.
-        options: :class:`ProjectionOptions` (method, iterations, beta, restarts, init);
-            ``**overrides`` replace its fields (``method=``, ``iterations=``, ...).
-        key: ``jax.random`` key for ``init="random"``.
-        far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
-        planes: extra intensities, :class:`~diffcam.calibrate.DefocusedPlane` (a captured
-            PSF through :func:`~diffcam.calibrate.psf_plane`): each adds a projection
-            (one FFT pair) averaged with the far-field one; they break the twin and
-            un-stall strongly scattering diffusers.
-        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
+        options: :class:`ProjectionOptions` (method, iterations, beta, restarts, init,
+            key, extra planes, far_pitch, progress); ``**overrides`` replace its fields
+            (``method=``, ``iterations=``, ``key=``, ``planes=``, ...).
 
     Returns:
         :class:`RetrievalResult`; ``stats["restart_errors"]`` holds each run's final error.
@@ -218,8 +223,9 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
     o = ProjectionOptions.of(options, **overrides)
     method, iterations, beta, init = o.method, int(o.iterations), o.beta, o.init
     restarts = 1 if o.restarts is None else int(o.restarts)
-    if far_pitch is not None:
-        check_far_pitch(far_pitch, geometry, shape)
+    key, planes, progress = o.key, tuple(o.planes), o.progress
+    if o.far_pitch is not None:
+        check_far_pitch(o.far_pitch, geometry, shape)
     t0 = time.perf_counter()
     near_amp = jnp.sqrt(jnp.asarray(near, jnp.float32))
     far_amp = jnp.sqrt(jnp.asarray(far, jnp.float32))

@@ -39,6 +39,8 @@ from diffcam.model import Camera, psf
 from diffcam.model.camera import real_dtype
 from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_positive
 from diffcam.model.sensor import bin_pixels
+from diffcam.model.stack import psf_stack
+from diffcam.evaluate.metrics import psf_fidelity, twin_phase
 from diffcam.calibrate.near_far import NearFarModel, check_captures
 from diffcam.calibrate.lsq import FitOptions, PhaseGrid, fit_phase, near_far_model, warn_if_stalled
 from diffcam.calibrate.projections import initial_phase
@@ -145,9 +147,26 @@ def _depth_law(depth) -> DepthLaw:
     return DepthLaw(depth)
 
 
+class PsfFitOptions(FitOptions):
+    """How :func:`fit_to_psfs` runs: the fields of
+    :class:`~diffcam.calibrate.lsq.FitOptions`, and
+
+    Attributes:
+        depth: a :class:`DepthLaw` (or its kind): which distances are fitted.
+        init: ``"flat"``, ``"random"`` (with ``key``) or a phase on the camera grid.
+        sensor_pitch: pixel pitch of the measured PSFs (m) when it is coarser than the
+            camera's grid: the model then integrates each PSF over those pixels
+            (:func:`diffcam.model.sensor.bin_pixels`), so the phase can live on a finer
+            grid than binned data.
+    """
+
+    depth: object = "fixed"
+    init: object = "flat"
+    sensor_pitch: float | None = None
+
+
 def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[float], *,
-                depth: DepthLaw | str = "fixed", near_far=None, init="flat", key=None,
-                coarse: int = 1, masks=None, spectrum=None, sensor_pitch=None,
+                near_far=None, masks=None, spectrum=None,
                 options: FitOptions | None = None, **overrides) -> RetrievalResult:
     """Fit θd (with or without near/far captures) to one or more captured PSFs.
 
@@ -158,28 +177,24 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
         camera: the :class:`~diffcam.model.camera.Camera`: grid, pitch dx, λ, z2 (the start
             value when the depth law fits z2), aperture.
         z1: depths of the PSFs, metres, (k,): known values, or start values.
-        depth: a :class:`DepthLaw` (or its kind): which distances are fitted.
         near_far: optional ``(near, far, geometry)``: calibration intensities on the
             camera grid (``camera.shape``, pitch ``camera.dx``; far at the Fourier-lens
             pitch) and their :class:`CalibrationGeometry` (``dx`` the camera's).
-        init: ``"flat"``, ``"random"`` (with ``key``) or a phase on the camera grid.
-        coarse: phase unknowns every ``coarse`` samples.
         masks: K (or K + 2 with near/far) weight images, 0 at saturated pixels.
         spectrum: broadband light as in :func:`diffcam.model.point_spread.psf`.
-        sensor_pitch: pixel pitch of the measured PSFs (m) when it is coarser than the
-            camera's grid: the model then integrates each PSF over those pixels
-            (:func:`diffcam.model.sensor.bin_pixels`), so the phase can live on a finer grid
-            than binned data.
-        options: :class:`~diffcam.calibrate.lsq.FitOptions` (default loss
+        options: :class:`PsfFitOptions` (or a
+            :class:`~diffcam.calibrate.lsq.FitOptions`; default loss
             ``"weighted_intensity"``: each residual over √(y + ȳ), y the measured intensity
             and ȳ its mean, which keeps the dim tails of a far field in the fit);
-            ``**overrides`` replace its fields (``iterations=``, ...).
+            ``**overrides`` replace its fields (``depth=``, ``init=``, ``sensor_pitch=``,
+            ``coarse=``, ``key=``, ``iterations=``, ...).
 
     Returns:
         :class:`RetrievalResult`; ``stats`` adds ``z1`` and ``z2`` (m), ``zeta1`` and
         ``zeta2`` (λz/dx²) and ``depth_model``.
     """
-    depth = _depth_law(depth)
+    opts = PsfFitOptions.of(options, **overrides)
+    depth, init, sensor_pitch = _depth_law(opts.depth), opts.init, opts.sensor_pitch
     dtype = real_dtype(camera)
     psfs = _check_psfs(psfs, camera, sensor_pitch)
     z1 = np.asarray(z1, np.float64).reshape(-1)
@@ -189,14 +204,14 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
     extra = depth.start(z1.size, dtype)
     nf_model, nf_measured = _near_far(near_far, camera)
     aperture = np.asarray(camera.aperture())
-    grid = PhaseGrid.for_aperture(aperture, coarse)
-    theta0 = grid.restrict(initial_phase(init, camera.shape, key)[0].astype(dtype))
+    grid = PhaseGrid.for_aperture(aperture, opts.coarse)
+    theta0 = grid.restrict(initial_phase(init, camera.shape, opts.key)[0].astype(dtype))
     plane_index = None if depth.plane_index is None else jnp.asarray(depth.plane_index, dtype)
     model = PSFModel(camera, jnp.asarray(z1, dtype), plane_index, spectrum, nf_model,
                      depth.kind, _sensor(camera, sensor_pitch))
     result = warn_if_stalled(fit_phase(model, list(psfs) + nf_measured, theta0, grid,
                                        support=aperture > 0, masks=masks, extra0=extra or None,
-                                       options=FitOptions.of(options, **overrides)), init)
+                                       options=opts), init)
     fitted = result.stats["extra"] or {}
     z2 = float(camera.z2) * float(np.exp(fitted.get("log_z2", 0.0)))
     z1_fit = np.asarray(depths(fitted, z1, depth.kind, depth.plane_index), np.float64)
@@ -255,7 +270,6 @@ def predict_psfs(phase: Float[Array, "ny nx"], camera: Camera, z1, *, z2=None,
     """PSFs (nz, cy, cx), unit sum, of a (retrieved) phase at depths ``z1`` (m), with an
     optional fitted ``z2`` (m), integrated over pixels of ``sensor_pitch`` (m) if given;
     :func:`diffcam.model.stack.psf_stack` underneath."""
-    from diffcam.model.stack import psf_stack
     if z2 is not None:
         camera = eqx.tree_at(lambda c: c.z2, camera, jnp.asarray(z2, camera.z2.dtype))
     stack = psf_stack(phase, camera, np.asarray(z1, np.float64), spectrum=spectrum,
@@ -274,7 +288,6 @@ def resolve_twin(phase: Float[Array, "ny nx"], reference_psf: Float[Array, "cy c
     ``True`` if that was the twin. For a fit that also refines the phase against the
     PSF, use :func:`fit_to_psfs` with ``init=phase``.
     """
-    from diffcam.evaluate.metrics import psf_fidelity, twin_phase
 
     twin = twin_phase(jnp.asarray(phase))
     candidates = jnp.stack([psf(jnp.asarray(phase), camera, z1), psf(twin, camera, z1)])

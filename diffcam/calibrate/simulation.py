@@ -10,7 +10,13 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from diffcam.core.errors import ShapeError
+from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.grid import pad_to
+from diffcam.model import Camera
+from diffcam.model.camera import random_diffuser
+from diffcam.model.sensor import bin_pixels, resample
+from diffcam.model.stack import psf_stack
+from diffcam.optics.elements import circular_aperture
 from diffcam.calibrate.near_far import CalibrationGeometry, calibration_intensities
 
 __all__ = ["cameraman_phase", "PaperSimulation",
@@ -54,8 +60,6 @@ def paper_simulation(n: int = 1024, size: int = 512, phase=None) -> PaperSimulat
     f = 5 cm, λ = 532 nm, embedded in an ``n``² grid; ``size < 512`` shrinks the diffuser,
     the aperture and the scored square (300 px at 512) in proportion, for fast tests.
     ``phase`` (``size``², radians) replaces the cameraman, e.g. a random diffuser (Fig. 6)."""
-    from diffcam.core.grid import pad_to
-    from diffcam.optics.elements import circular_aperture
     dx = PAPER_DX
     geometry = CalibrationGeometry(dx=dx, wavelength=PAPER_WAVELENGTH,
                                    focal_length=PAPER_FOCAL_LENGTH)
@@ -89,10 +93,6 @@ def measured_stack_simulation(n_planes: int = 12, *, grid: int = 768, dx: float 
     """
     import jax
 
-    from diffcam.model import Camera
-    from diffcam.model.camera import random_diffuser
-    from diffcam.model.sensor import bin_pixels
-    from diffcam.model.stack import psf_stack
 
     camera = Camera(wavelength=532e-9, z2=0.6e-3, dx=dx, aperture_radius=0.2 * grid * dx,
                     shape=(grid, grid), pad=26, crop=(grid // 2, grid // 2))
@@ -150,9 +150,6 @@ def high_fidelity_psfs(phase, camera, z1, *, oversample: int = 2,
     """
     import dataclasses
 
-    from diffcam.core.errors import DiffcamError
-    from diffcam.model.sensor import bin_pixels
-    from diffcam.model.stack import psf_stack
 
     if camera.aperture_radius is None:
         raise DiffcamError("high_fidelity_psfs draws the aperture on its finer grid: give "
@@ -202,8 +199,6 @@ def high_fidelity_captures(phase, aperture_radius: float, geometry: CalibrationG
     """
     import dataclasses
 
-    from diffcam.model.sensor import bin_pixels, resample
-    from diffcam.optics.elements import circular_aperture
 
     k = int(oversample)
     fine_phase = _finer(phase, k)

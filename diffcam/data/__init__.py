@@ -22,7 +22,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from diffcam.io import BackgroundWarning, downsample
+from diffcam.core.errors import DiffcamError
+from diffcam.io import BackgroundWarning, atomic_output, downsample
 from diffcam.io import subtract_background as _subtract
 
 __all__ = ["DATA_DIR", "TutorialPair", "load_tutorial_pair", "ScenePairs",
@@ -197,8 +198,6 @@ def export_captures(name: str, folder, *, overwrite: bool = False) -> list[Path]
     import tifffile
     from skimage.io import imsave
 
-    from diffcam.core.errors import DiffcamError
-    from diffcam.io import atomic_output
 
     if name not in CAPTURES:
         raise DiffcamError(f"unknown capture set {name!r}; choose one of {CAPTURES}.")

@@ -11,11 +11,9 @@
 from diffcam.evaluate.baseline import magnify_psf, relative_magnification
 from diffcam.evaluate.metrics import (mse, pearson, phase_scores, psf_fidelity, psnr,
                                       ssim)
-
-__all__ = ["magnify_psf", "relative_magnification", "mse", "pearson", "phase_scores",
-           "psf_fidelity", "psnr", "ssim"]
-
-from diffcam.evaluate.registration import (Registration, magnify_about,  # noqa: E402
+from diffcam.evaluate.registration import (Registration, magnify_about,
                                            register_magnification, scaling_baseline)
 
-__all__ += ["Registration", "register_magnification", "scaling_baseline", "magnify_about"]
+__all__ = ["magnify_psf", "relative_magnification", "mse", "pearson", "phase_scores",
+           "psf_fidelity", "psnr", "ssim", "Registration", "register_magnification",
+           "scaling_baseline", "magnify_about"]

@@ -10,7 +10,8 @@
 
 from diffcam.model.camera import Camera, HeightMap, Spectrum, random_diffuser, with_method
 from diffcam.model.point_spread import psf
-from diffcam.model.stack import iter_psf_stack, load_stack, psf_stack, save_stack
+from diffcam.model.stack import (PsfStackOptions, iter_psf_stack, load_stack, psf_stack,
+                                 save_stack)
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "random_diffuser", "psf", "psf_stack",
-           "iter_psf_stack", "save_stack", "load_stack", "with_method"]
+           "iter_psf_stack", "PsfStackOptions", "save_stack", "load_stack", "with_method"]

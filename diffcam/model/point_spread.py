@@ -163,7 +163,7 @@ def fields_for_fft(prepared, camera: Camera, wavelengths, z1, positions) -> Arra
     return jax.vmap(per_wavelength)(prepared, wavelengths)
 
 
-def _irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions, normalise):
+def irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions, normalise):
     """:func:`irradiance`, and the two field-sized arrays its FFTs wrote (the executor in
     :mod:`diffcam.model.stack` hands them back as the next call's buffers)."""
     def per_wavelength(u, lam):
@@ -186,7 +186,7 @@ def irradiance(fields, camera: Camera, wavelengths, weights, z1, positions,
     """PSFs of one depth, (npos, ny, nx) on the crop, from :func:`fields_for_fft`:
     |P_z2{·}|² (direct) or the magnified z_eff field (scaling), normalised per wavelength
     if asked, then averaged with the spectrum's ``weights``."""
-    return _irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions,
+    return irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions,
                                   normalise)[0]
 
 

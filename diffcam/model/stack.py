@@ -43,13 +43,14 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
 from diffcam.model.camera import Camera, as_spectrum, real_dtype
-from diffcam.model.point_spread import (_irradiance_and_fields, check_inputs, diffuser_fields,
+from diffcam.model.point_spread import (irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
 from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.options import Options
 from diffcam.core.progress import enabled
 from diffcam.io import atomic_output, check_output_path, check_read_size, read_npz
 
-__all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
+__all__ = ["psf_stack", "iter_psf_stack", "PsfStackOptions", "StackMeta", "save_stack", "load_stack",
            "FORMAT_VERSION"]
 
 FORMAT_VERSION = 2  # 2: lateral offsets stored as (y1, x1)
@@ -147,7 +148,7 @@ def _chunk_outputs(inputs, scratch, camera, wavelengths, weights, z1, positions,
     """PSFs of a chunk, and the two buffers its FFTs wrote: ``inputs`` and ``scratch``
     (both donated) are written over, so no fresh N² buffer is page-faulted in per chunk."""
     del scratch
-    psfs = jax.vmap(lambda u, z, c, w, g, x: _irradiance_and_fields(u, c, w, g, z, x,
+    psfs = jax.vmap(lambda u, z, c, w, g, x: irradiance_and_fields(u, c, w, g, z, x,
                                                                     normalise),
                     in_axes=(0, 0, None, None, None, None))
     return _per_device(psfs, sharding, (inputs, z1), (camera, wavelengths, weights,
@@ -183,6 +184,38 @@ def _offsets_array(positions):
     return pos
 
 
+class PsfStackOptions(Options):
+    """How :func:`psf_stack` and :func:`iter_psf_stack` compute.
+
+    Attributes:
+        normalise: each PSF sums to one (default) or is the physical irradiance.
+        batch_size: depths per device per chunk; working memory grows with it.
+            Default: about 2**20 field samples per chunk (one depth from 1024², or
+            from fewer samples with several wavelengths or direct-path positions).
+        devices: devices to shard the depth axis over (default ``jax.devices()``:
+            every process's, after ``jax.distributed.initialize()``).
+        accept_undersampling: turn sampling errors into warnings.
+        progress: :func:`psf_stack` shows a tqdm bar (on process 0 of several);
+            default on from 32 depths; ``DIFFCAM_PROGRESS=0`` turns it off.
+        to_host: :func:`iter_psf_stack` yields host numpy arrays (default) or device
+            arrays.
+    """
+
+    normalise: bool = True
+    batch_size: int | None = None
+    devices: Sequence | None = None
+    accept_undersampling: bool = False
+    progress: bool | None = None
+    to_host: bool = True
+
+
+def _options_and_offsets(options, offsets, overrides):
+    """The :class:`PsfStackOptions` and the source offsets (y1, x1); the deprecated
+    ``positions=`` (x1, y1) keyword among ``overrides`` is turned into offsets."""
+    positions = overrides.pop("positions", None)
+    return PsfStackOptions.of(options, **overrides), _legacy_positions(offsets, positions)
+
+
 def _legacy_positions(offsets, positions):
     """``offsets`` (y1, x1), or the deprecated ``positions`` (x1, y1) turned into them."""
     if positions is None:
@@ -192,14 +225,12 @@ def _legacy_positions(offsets, positions):
                            "not both.")
     warnings.warn("positions= (x1, y1) is deprecated: pass offsets= with (y1, x1) rows, "
                   "the array order every lateral pair in diffcam uses.", DeprecationWarning,
-                  stacklevel=3)
+                  stacklevel=4)
     return np.asarray(positions, dtype=np.float64)[:, ::-1]
 
 
 def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
-                   normalise: bool = True, batch_size: int | None = None,
-                   devices: Sequence | None = None, accept_undersampling: bool = False,
-                   to_host: bool = True, positions=None
+                   options: PsfStackOptions | None = None, **overrides
                    ) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
     """Yield ``(start, psfs)`` chunk by chunk: ``psfs[i]`` is depth ``z1[start + i]``,
     shape ``(n, npos, ny, nx)``: host numpy, or with ``to_host=False`` the device array
@@ -217,8 +248,10 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
     if depths.size == 0:
         raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
-    pos = _offsets_array(_legacy_positions(offsets, positions))
+    opts, offsets = _options_and_offsets(options, offsets, overrides)
+    pos = _offsets_array(offsets)
     wavelengths, weights = as_spectrum(spectrum, camera)
+    batch_size, devices = opts.batch_size, opts.devices
     if batch_size is None:  # about 2**20 field samples per device per call
         fields = len(wavelengths) * (len(pos) if camera.method == "direct" else 1)
         batch_size = max(1, 2 ** 20 // (camera.padded_shape[0] * camera.padded_shape[1]
@@ -226,14 +259,14 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
         raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
     check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
-                 accept_undersampling)
+                 opts.accept_undersampling)
     devices = list(jax.devices()) if devices is None else list(devices)
     # no larger than the depths need, to a power of two (few compilations): a chunk is
     # padded to its full size, and 64 slots for 32 depths computed twice the PSFs (128²)
     need = -(-depths.size // len(devices))
     batch_size = min(int(batch_size), 1 << (need - 1).bit_length())
-    return _chunks(phase, camera, depths, pos, wavelengths, weights, normalise,
-                   batch_size, devices, to_host)
+    return _chunks(phase, camera, depths, pos, wavelengths, weights, opts.normalise,
+                   batch_size, devices, opts.to_host)
 
 
 def _chunks(phase, camera, depths, pos, wavelengths, weights, normalise, batch_size,
@@ -291,10 +324,8 @@ def _all_gather(out, replicate):
 
 
 def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
-              normalise: bool = True, batch_size: int | None = None,
-              out: str | os.PathLike | None = None, progress: bool | None = None,
-              devices: Sequence | None = None, accept_undersampling: bool = False,
-              positions=None) -> np.ndarray:
+              out: str | os.PathLike | None = None,
+              options: PsfStackOptions | None = None, **overrides) -> np.ndarray:
     """PSFs for every depth in ``z1`` and every lateral position, chunk by chunk.
 
     It runs on the host (it loops over chunks and may write a file), so it cannot be traced
@@ -312,10 +343,6 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             (the position axis is then dropped). ``positions=`` of (x1, y1) rows is the
             deprecated spelling.
         spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.model.point_spread.psf`.
-        normalise: each PSF sums to one (default) or is the physical irradiance.
-        batch_size: depths per device per chunk; working memory grows with it.
-            Default: about 2**20 field samples per chunk (one depth from 1024², or
-            from fewer samples with several wavelengths or direct-path positions).
         out: stream the stack to this file instead of memory: ``.npy`` (a memory-mapped
             array; metadata in ``<out>.json``), ``.npz`` (uncompressed, ``stack`` and
             ``meta`` members, as :func:`save_stack` writes) or ``.tif``/``.tiff``
@@ -328,11 +355,9 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             it as it was, with no temporary file behind. With several processes
             (``jax.distributed``) process 0 writes it, and every process returns its
             memory map once it is written: the folder must be one they all see.
-        progress: show a tqdm bar (on process 0 of several); default on from 32
-            depths; ``DIFFCAM_PROGRESS=0`` turns it off.
-        devices: devices to shard the depth axis over (default ``jax.devices()``:
-            every process's, after ``jax.distributed.initialize()``).
-        accept_undersampling: turn sampling errors into warnings.
+        options: :class:`PsfStackOptions` (``normalise``, ``batch_size``, ``devices``,
+            ``accept_undersampling``, ``progress``); keywords named after its fields
+            replace them.
 
     Returns:
         float array ``(nz, npos, ny, nx)`` (or ``(nz, ny, nx)`` without positions):
@@ -341,17 +366,16 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     """
     outputs = _output_paths(out)  # before any work: a bad path costs nothing
     depths = np.asarray(z1, dtype=np.float64).reshape(-1)
-    offsets = _legacy_positions(offsets, positions)
+    opts, offsets = _options_and_offsets(options, offsets, overrides)
     chunks = iter_psf_stack(phase, camera, depths, offsets=offsets, spectrum=spectrum,
-                            normalise=normalise, batch_size=batch_size, devices=devices,
-                            accept_undersampling=accept_undersampling)
+                            options=dataclasses.replace(opts, to_host=True))
     npos = 1 if offsets is None else len(offsets)
     full = (depths.size, npos) + tuple(camera.out_shape)
     shape = full if offsets is not None else (full[0],) + full[2:]
-    show = depths.size >= _PROGRESS_FROM if progress is None else progress
+    show = depths.size >= _PROGRESS_FROM if opts.progress is None else opts.progress
     show = enabled(show) and jax.process_index() == 0  # one bar, however many processes
     bar = tqdm(total=depths.size, unit="depth", disable=not show, desc="PSF stack")
-    meta = _meta(camera, depths, offsets, spectrum, normalise)
+    meta = _meta(camera, depths, offsets, spectrum, opts.normalise)
 
     def pages():
         for start, block in chunks:

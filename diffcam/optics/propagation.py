@@ -1,14 +1,12 @@
-"""Free-space propagation (paper Eqs. 1–2, 6) and the Fourier lens (Eqs. 9–13).
+"""Free-space propagation (paper Eqs. 1–2, 6).
 
-Four propagators, all pure, jitted, differentiable in their array and physical
+Three propagators, all pure, jitted, differentiable in their array and physical
 arguments, broadcasting over leading batch axes, complex64 unless given complex128:
 
 - :func:`fresnel_tf`       Fresnel transfer function  H = e^{jkz} e^{-jπλz(fx²+fy²)}
 - :func:`fresnel_ir`       Fresnel impulse response   h = e^{jkz}/(jλz) e^{jk(x²+y²)/(2z)}
 - :func:`angular_spectrum` exact scalar (Rayleigh–Sommerfeld) transfer function,
   band-limited after Matsushima & Shimobaba (2009), evanescent waves dropped
-- :func:`fourier_lens`     the field at the back focal plane of a lens of focal length f,
-  U'(u) = e^{jkf}/(jλf) ∫ U(x) e^{-j2π x·u/(λf)} dx, at pitch λf/(N·dx) per axis
 
 and :func:`propagate`, which picks the method (and the padding) from the sampling
 criterion: for a grid of width L = N·dx a transfer function is sampled while
@@ -46,7 +44,7 @@ from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_
                                  found_false, is_concrete, fmt_length, plain_numbers,
                                  sampling_problem)
 from diffcam.core.grid import (check_grid_size, coord_at, crop_to, fft_freq_at, fft_freqs,
-                               fft2c, ifft2c, int_pair, pad_by, pitch_yx)
+                               int_pair, pad_by, pitch_yx)
 from diffcam.core.backend import fft2, fft_size, ifft2, transfer_step, vector
 from diffcam.core.phasor import expj
 
@@ -56,8 +54,6 @@ __all__ = [
     "transfer_factors",
     "fresnel_ir",
     "angular_spectrum",
-    "fourier_lens",
-    "inverse_fourier_lens",
     "propagate",
     "PropagationChoice",
     "choose_propagation",
@@ -68,6 +64,9 @@ __all__ = [
     "spherical_chirp",
     "magnification",
     "effective_distance",
+    "fresnel_number_factors",
+    "complex_dtype",
+    "pack_geometry",
 ]
 
 METHODS = ("fresnel_tf", "fresnel_ir", "angular_spectrum")
@@ -75,7 +74,9 @@ METHODS = ("fresnel_tf", "fresnel_ir", "angular_spectrum")
 
 # --------------------------------------------------------------------------- helpers
 
-def _complex_dtype(field):
+def complex_dtype(field):
+    """The complex dtype a propagator computes ``field`` in: complex128 for float64 or
+    complex128 input (with x64 enabled), else complex64."""
     dtype = field.dtype if hasattr(field, "dtype") else np.asarray(field).dtype
     dtype = jax.dtypes.canonicalize_dtype(dtype)   # float64 is float32 without x64
     return jnp.complex128 if dtype in (jnp.float64, jnp.complex128) else jnp.complex64
@@ -160,10 +161,21 @@ def spherical_chirp(n: int, dx, wavelength, z, centre=0.0):
 def fresnel_tf_factors(shape, dy, dx, wavelength, z):
     """The Fresnel transfer function exp(−jπλz(fy² + fx²)), piston left out, as its two
     1-D factors in FFT order, ``(ny, 1)`` and ``(1, nx)`` (each computed on its own:
-    :func:`diffcam.core.backend.vector`). In sample units (``dy = dx = 1``) ``λz`` is
-    the Fresnel number ζ = λz/dx², the one distance a sampled field can identify."""
+    :func:`diffcam.core.backend.vector`); pitches, wavelength and z in metres."""
+    return _chirp_factors(shape, dy, dx, wavelength * z)
+
+
+def fresnel_number_factors(shape, zeta):
+    """The Fresnel transfer function of a field in sample units (pitch 1): the factors
+    of exp(−jπζ(fy² + fx²)), f in cycles per sample, ζ = λz/dx² the Fresnel number —
+    the one distance a sampled field without a known pitch can identify."""
+    return _chirp_factors(shape, 1.0, 1.0, zeta)
+
+
+def _chirp_factors(shape, dy, dx, lambda_z):
+    """The factors of exp(−jπ·λz·(fy² + fx²)) in FFT order (``lambda_z`` = λ·z)."""
     def factor(n, d):
-        return vector(lambda i: expj(-jnp.pi * wavelength * z * fft_freq_at(i, n, d) ** 2), n)
+        return vector(lambda i: expj(-jnp.pi * lambda_z * fft_freq_at(i, n, d) ** 2), n)
     return factor(shape[-2], dy)[:, None], factor(shape[-1], dx)[None, :]
 
 
@@ -256,7 +268,7 @@ def _step(u, H, in_place=True):
 @partial(jax.jit, static_argnames=("method", "pad", "band_limit"))
 def _propagate_core(field, geometry, *, method, pad, band_limit):
     shape = field.shape
-    u = field.astype(_complex_dtype(field))
+    u = field.astype(complex_dtype(field))
     dy, dx, wavelength, z = geometry[0], geometry[1], geometry[2], geometry[3]
     p = lax.complex(geometry[4], geometry[5]).astype(u.dtype)
     if pad != (0, 0):
@@ -272,7 +284,7 @@ def _run(method, field, dx, wavelength, z, pad, accept_undersampling, band_limit
     # the NaN/Inf check of a device field is computed inside the jitted call (one
     # dispatch instead of two: 130 µs of a 128² step's 440) and raised after it
     check_field(field, finite="host")
-    args = (method, np.shape(field), _complex_dtype(field), dx, wavelength, z, pad,
+    args = (method, np.shape(field), complex_dtype(field), dx, wavelength, z, pad,
             accept_undersampling)
     plain = not accept_undersampling and plain_numbers(dx, wavelength, z, pad)
     eager = isinstance(field, jax.Array) and not isinstance(field, jax.core.Tracer)
@@ -298,7 +310,7 @@ def _prepare(method, shape, cdt, dx, wavelength, z, pad, accept_undersampling):
     if is_concrete(z) and float(np.max(np.abs(np.asarray(z)))) == 0.0:
         return None
     rdt = jnp.float64 if cdt == jnp.complex128 else jnp.float32
-    return pad, _geometry((*pitch_yx(dx), wavelength, z), piston(wavelength, z), rdt)
+    return pad, pack_geometry((*pitch_yx(dx), wavelength, z), piston(wavelength, z), rdt)
 
 
 @lru_cache(maxsize=256)
@@ -323,7 +335,7 @@ def _prepare_on_device(*args):
     return None if prepared is None else (prepared[0], jax.device_put(prepared[1]))
 
 
-def _geometry(lengths, p, dtype):
+def pack_geometry(lengths, p, dtype):
     """``(dy, dx, λ, z)`` and the piston's real and imaginary parts as one (6,) vector:
     a NumPy array when all are concrete, so a call pays one host-to-device copy instead
     of five (10 µs each, against 250 µs for a 128² step); else the traced values
@@ -392,81 +404,6 @@ def angular_spectrum(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0
 
 
 # ---------------------------------------------------------------------- Fourier lens
-
-@partial(jax.jit, static_argnames=("inverse",))
-def _fourier_lens_core(field, geometry, *, inverse):
-    u = field.astype(_complex_dtype(field))
-    dy, dx, wavelength, focal_length = geometry[0], geometry[1], geometry[2], geometry[3]
-    p = lax.complex(geometry[4], geometry[5]).astype(u.dtype)
-    finite = jnp.isfinite(field).all()
-    if not inverse:
-        return p / (1j * wavelength * focal_length) * dy * dx * fft2c(u), finite
-    ny, nx = u.shape[-2:]
-    # dy, dx here are the far-field pitches; ifft2c carries 1/(ny·nx)
-    return (jnp.conj(p) / (-1j * wavelength * focal_length) * dy * dx * (ny * nx)
-            * ifft2c(u), finite)
-
-
-def _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse):
-    check_field(field, finite="host")   # a device array: inside the jitted call, as in _run
-    for q in pitch_yx(dx):
-        check_positive("dx (pixel pitch)", q, "m")
-    check_positive("wavelength", wavelength, "m")
-    check_positive("focal_length", focal_length, "m")
-    check_grid_size(np.shape(field), pad)
-    field = jnp.asarray(field)
-    if pad:
-        field = pad_by(field, pad)
-    ny, nx = field.shape[-2:]
-    dy, dxx = pitch_yx(dx)
-    out_pitch = (wavelength * focal_length / (ny * dy), wavelength * focal_length / (nx * dxx))
-    cdt = _complex_dtype(field)
-    rdt = jnp.float64 if cdt == jnp.complex128 else jnp.float32
-    out, finite = _fourier_lens_core(
-        field, _geometry((dy, dxx, wavelength, focal_length), piston(wavelength, focal_length),
-                         rdt), inverse=inverse)
-    if found_false(finite):
-        check_finite("field", field)
-    return out, out_pitch
-
-
-def fourier_lens(field: Num[Array, "... ny nx"], dx, wavelength, focal_length, *, pad=0
-                 ) -> tuple[Complex[Array, "... my mx"], tuple]:
-    """Field at the back focal plane of a lens with ``field`` at its front focal plane.
-
-    Paper Eq. 13: U'(u) = e^{jkf}/(jλf) ∫ U(x) e^{-j2π x·u/(λf)} dx, evaluated on the
-    centred grid of pitch λf/(N·dx) per axis. Energy-preserving in physical units:
-    Σ|U'|²·du_y·du_x = Σ|U|²·dy·dx.
-
-    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
-    (shapes are still checked) — call once eagerly to validate.
-
-    Args:
-        field: field at the front focal plane, last two axes space.
-        dx: its pitch, metres (scalar or ``(dy, dx)``).
-        wavelength: metres.
-        focal_length: metres.
-        pad: zero samples added on each side first; the output keeps the padded shape
-            and so has a finer pitch λf/((N + 2·pad)·dx). The padded grid holds at
-            most ``diffcam.core.grid.MAX_GRID_SAMPLES``.
-
-    Returns:
-        ``(far_field, (du_y, du_x))``: the field and its pitch in metres.
-    """
-    return _fourier_lens_run(field, dx, wavelength, focal_length, pad, inverse=False)
-
-
-def inverse_fourier_lens(field: Num[Array, "... ny nx"], du, wavelength, focal_length
-                         ) -> tuple[Complex[Array, "... ny nx"], tuple]:
-    """Front-focal-plane field from the back-focal-plane field: inverse of
-    :func:`fourier_lens`. ``du`` is the far-field pitch (metres); returns the field and
-    its pitch λf/(N·du).
-
-    Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
-    (shapes are still checked) — call once eagerly to validate.
-    """
-    return _fourier_lens_run(field, du, wavelength, focal_length, 0, inverse=True)
-
 
 # --------------------------------------------------------------- Fresnel scaling theorem
 

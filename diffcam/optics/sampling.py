@@ -136,13 +136,14 @@ def _method_for(z: float, z_crit: float) -> str:
     return f"impulse response (z = {fmt_length(z)} > N·dx²/λ; a transfer function would alias)"
 
 
-def _diffuser_bandwidth(phase, dx, diffuser_frequency, notes) -> float:
-    """The diffuser's bandwidth (cycles/m) from its phase or as given; 0 with a note."""
-    if phase is not None:
-        return phase_bandwidth(phase, dx)
-    if diffuser_frequency is not None:
-        check_positive("diffuser_frequency", diffuser_frequency, "cycles/m", allow_zero=True)
-        return float(diffuser_frequency)
+def _diffuser_bandwidth(diffuser, dx, notes) -> float:
+    """The diffuser's bandwidth (cycles/m): measured from its phase (an array), or as
+    given (a number); 0 with a note when ``None``."""
+    if diffuser is not None and np.ndim(diffuser) >= 2:
+        return phase_bandwidth(diffuser, dx)
+    if diffuser is not None:
+        check_positive("diffuser bandwidth", diffuser, "cycles/m", allow_zero=True)
+        return float(diffuser)
     notes.append("no diffuser phase given: its bandwidth (a 1° diffuser adds about "
                  "16–33 cycles/mm) is not included")
     return 0.0
@@ -157,8 +158,8 @@ def _footprint(wavelength, z1, z2, aperture_radius, offset, diffuser_frequency) 
 
 
 def plan_sampling(wavelength: float, dx: float, n: int, z1: float, z2: float,
-                  aperture_radius: float, max_offset: float = 0.0, phase=None,
-                  diffuser_frequency: float | None = None) -> SamplingPlan:
+                  aperture_radius: float, max_offset: float = 0.0,
+                  diffuser=None) -> SamplingPlan:
     """Check the sampling of the PSF model of paper Eq. 7 before running it.
 
     Args:
@@ -169,10 +170,9 @@ def plan_sampling(wavelength: float, dx: float, n: int, z1: float, z2: float,
         z2: diffuser-to-sensor distance, metres.
         aperture_radius: metres.
         max_offset: largest lateral source offset √(x1² + y1²), metres.
-        phase: optional diffuser phase (radians, on the same grid or its own with
-            pitch ``dx``) whose bandwidth adds to the chirp's.
-        diffuser_frequency: the diffuser's bandwidth in cycles/m if no ``phase`` is
-            given (e.g. tan(1°)/λ ≈ 33 cycles/mm for a 1° diffuser at 532 nm).
+        diffuser: optional: the diffuser phase (a 2-D array, radians, pitch ``dx``),
+            whose bandwidth adds to the chirp's, or that bandwidth in cycles/m (a number,
+            e.g. tan(1°)/λ ≈ 33 cycles/mm for a 1° diffuser at 532 nm).
 
     Returns:
         A :class:`SamplingPlan`; ``print(plan)`` gives a readable report.
@@ -190,7 +190,7 @@ def plan_sampling(wavelength: float, dx: float, n: int, z1: float, z2: float,
         raise DiffcamError(f"aperture radius {fmt_length(R)} exceeds the grid half-width "
                            f"{fmt_length(half_width)}; use more samples.")
     notes = []
-    f_diff = _diffuser_bandwidth(phase, dx, diffuser_frequency, notes)
+    f_diff = _diffuser_bandwidth(diffuser, dx, notes)
     nyquist = 1 / (2 * dx)
     f_chirp = point_source_max_frequency(lam, z1, R, rho)
     total = f_chirp + f_diff

@@ -19,7 +19,8 @@ from diffcam.reconstruct.fista import fista, nonnegative_least_squares
 from diffcam.reconstruct.focus import FocusSweep, focus_sweep, sharpness
 from diffcam.reconstruct.loop import Reconstruction
 from diffcam.reconstruct.operators import ConvolutionModel, convolution_model
-from diffcam.reconstruct.richardson_lucy import richardson_lucy, richardson_lucy_3d
+from diffcam.reconstruct.richardson_lucy import (RichardsonLucyOptions, richardson_lucy,
+                                                richardson_lucy_3d)
 from diffcam.reconstruct.wiener import wiener
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "convolution_model",
     "richardson_lucy",
     "richardson_lucy_3d",
+    "RichardsonLucyOptions",
     "focus_sweep",
     "FocusSweep",
     "sharpness",

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffcam.core.errors import DiffcamError, ShapeError, check_field, is_concrete
+from diffcam.io import BackgroundWarning
 
 _ROUNDING = 1e-5  # negatives this small (relative to max|image|) are rounding, not data
 
@@ -74,8 +75,6 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Any
             f"light: check the file and the background subtraction.")
     if p.min() >= 0:
         return psf
-    from diffcam.io import BackgroundWarning
-
     warnings.warn(f"psf: {int((p < 0).sum())} negative value(s) down to {p.min():.3g} "
                   f"(rounding: at most {_ROUNDING:g} of the peak) clipped to 0.",
                   BackgroundWarning, stacklevel=4)

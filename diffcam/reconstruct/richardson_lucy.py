@@ -49,7 +49,7 @@ from __future__ import annotations
 import math
 import warnings
 from functools import partial
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -60,6 +60,7 @@ from jaxtyping import ArrayLike
 
 from diffcam.core.errors import (ConvergenceWarning, DiffcamError, ShapeError, check_finite,
                                  is_concrete)
+from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
                                         check_iterations, check_psf, check_tol,
@@ -68,7 +69,7 @@ from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import (BOUNDARIES, convolution_model, divergence,
                                            gradient, grid_shapes)
 
-__all__ = ["richardson_lucy", "richardson_lucy_3d"]
+__all__ = ["richardson_lucy", "richardson_lucy_3d", "RichardsonLucyOptions"]
 
 CONVENTIONS = ("adjoint", "skimage")
 _SEEN = 1e-5      # sensitivity below this fraction of its maximum: the pixel is unseen
@@ -77,12 +78,41 @@ _TV_SMOOTH = 1e-3  # |∇x| is smoothed by this fraction of the mean initial est
 _RISE = 1e-4  # a TV-RL objective rising by more than this fraction in one step oscillates
 
 
+class RichardsonLucyOptions(Options):
+    """How :func:`richardson_lucy` and :func:`richardson_lucy_3d` iterate.
+
+    Attributes:
+        boundary: ``"same"`` (zero-padded linear convolution), ``"circular"`` or
+            ``"crop"`` (the DiffuserCam model; the estimate is on the larger object grid).
+        convention: ``"adjoint"`` (true adjoint, flux-normalised) or ``"skimage"`` (bit
+            for bit the scikit-image iteration; ``boundary="same"`` only).
+        accelerate: Biggs–Andrews extrapolation (module docstring).
+        tv_weight: λ of the Dey et al. TV-regularised update; 0 for plain RL.
+        tol: stop when the objective changes by less than ``tol`` (relative) in one
+            iteration; None runs all iterations and is the only setting that supports
+            reverse-mode ``grad``.
+        eps: added to ``A x`` before dividing, as a fraction of the image's largest
+            value, so the result does not depend on the image's units (an absolute
+            value, as scikit-image's, with ``convention="skimage"``).
+        filter_epsilon: where ``A x + eps < filter_epsilon`` the ratio is set to 0
+            (scikit-image's argument, relative like ``eps``); None or 0 disables it.
+        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
+    """
+
+    boundary: str = "same"
+    convention: str = "adjoint"
+    accelerate: bool = False
+    tv_weight: Any = 0.0
+    tol: float | None = None
+    eps: Any = 1e-12
+    filter_epsilon: float | None = None
+    progress: bool = True
+
+
 def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
-                    boundary: str = "same", convention: str = "adjoint",
-                    accelerate: bool = False, tv_weight: float = 0.0,
-                    init: ArrayLike | None = None, tol: float | None = None,
-                    eps: float = 1e-12, filter_epsilon: float | None = None,
-                    progress: bool = True) -> Reconstruction:
+                    init: ArrayLike | None = None,
+                    options: RichardsonLucyOptions | None = None,
+                    **overrides) -> Reconstruction:
     """Richardson–Lucy deconvolution of a sensor image by one PSF (paper Eq. 15).
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
@@ -96,23 +126,11 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
             ``psf`` broadcast: one call deconvolves one image by a stack of PSFs (see
             :func:`focus_sweep`) or a stack of images by one PSF.
         iterations: iterations (static: it fixes the history length).
-        boundary: ``"same"`` (zero-padded linear convolution), ``"circular"`` or
-            ``"crop"`` (the DiffuserCam model; the estimate is on the larger object grid).
-        convention: ``"adjoint"`` (true adjoint, flux-normalised) or ``"skimage"`` (bit
-            for bit the scikit-image iteration; ``boundary="same"`` only).
-        accelerate: Biggs–Andrews extrapolation (module docstring).
-        tv_weight: λ of the Dey et al. TV-regularised update; 0 for plain RL.
         init: initial estimate (object-grid shape, non-negative), default the constant
             that matches the image's flux (0.5 for ``convention="skimage"``).
-        tol: stop when the objective changes by less than ``tol`` (relative) in one
-            iteration; None runs all ``iterations`` iterations and is the only setting that
-            supports reverse-mode ``grad``.
-        eps: added to ``A x`` before dividing, as a fraction of the image's largest
-            value, so the result does not depend on the image's units (an absolute
-            value, as scikit-image's, with ``convention="skimage"``).
-        filter_epsilon: where ``A x + eps < filter_epsilon`` the ratio is set to 0
-            (scikit-image's argument, relative like ``eps``); None or 0 disables it.
-        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
+        options: :class:`RichardsonLucyOptions`; keywords named after its fields
+            (``boundary``, ``convention``, ``accelerate``, ``tv_weight``, ``tol``,
+            ``eps``, ``filter_epsilon``, ``progress``) replace them.
 
     Returns:
         :class:`Reconstruction` with ``image`` of shape ``(..., oy, ox)``: ``(ny, nx)`` for
@@ -126,17 +144,14 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
             convention/boundary combination that does not exist.
         ShapeError: a PSF larger than the image, or batch axes that do not broadcast.
     """
-    return _richardson_lucy(image, psf, iterations, boundary=boundary, convention=convention,
-                            accelerate=accelerate, tv_weight=tv_weight, init=init, tol=tol,
-                            eps=eps, filter_epsilon=filter_epsilon, volume=False,
-                            progress=progress)
+    opts = RichardsonLucyOptions.of(options, **overrides)
+    return _richardson_lucy(image, psf, iterations, init, opts, volume=False)
 
 
 def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 150, *,
-                       boundary: str = "crop", accelerate: bool = False,
-                       tv_weight: float = 0.0, init: ArrayLike | None = None,
-                       tol: float | None = None, eps: float = 1e-12,
-                       progress: bool = True) -> Reconstruction:
+                       init: ArrayLike | None = None,
+                       options: RichardsonLucyOptions | None = None,
+                       **overrides) -> Reconstruction:
     """Richardson–Lucy reconstruction of a volume from one sensor image.
 
     The model is ``b = crop(Σ_z h_z * x_z)``: every depth plane of the object is blurred
@@ -151,21 +166,30 @@ def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int =
         image: ``(..., ny, nx)`` sensor image, non-negative.
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale (their
             relative intensities matter), or a list of ``(my, mx)`` arrays.
-        iterations, boundary, accelerate, tv_weight, init, tol, eps, progress: as for
-            :func:`richardson_lucy`.
+        iterations, init: as for :func:`richardson_lucy`.
+        options: :class:`RichardsonLucyOptions` (default ``boundary="crop"``, the
+            DiffuserCam model; ``convention`` must be ``"adjoint"`` and
+            ``filter_epsilon`` is not used); keywords named after its fields replace
+            them.
 
     Returns:
         :class:`Reconstruction` whose ``image`` is the volume ``(..., nz, oy, ox)``.
     """
-    return _richardson_lucy(image, as_psf_stack(psf_stack), iterations, boundary=boundary,
-                            convention="adjoint", accelerate=accelerate,
-                            tv_weight=tv_weight, init=init, tol=tol, eps=eps,
-                            filter_epsilon=None, volume=True, progress=progress)
+    opts = RichardsonLucyOptions.of(options or RichardsonLucyOptions(boundary="crop"),
+                                    **overrides)
+    if opts.convention != "adjoint" or opts.filter_epsilon:
+        raise DiffcamError("richardson_lucy_3d uses the adjoint convention without a "
+                           "filter_epsilon; leave both at their defaults.")
+    return _richardson_lucy(image, as_psf_stack(psf_stack), iterations, init, opts,
+                            volume=True)
 
 
-def _richardson_lucy(image, psf, iterations, *, boundary, convention, accelerate, tv_weight,
-                     init, tol, eps, filter_epsilon, volume, progress) -> Reconstruction:
+def _richardson_lucy(image, psf, iterations, init, opts: RichardsonLucyOptions, *,
+                     volume: bool) -> Reconstruction:
     """Validate, broadcast the batch axes, run the jitted solver, restore the axes."""
+    boundary, convention, accelerate = opts.boundary, opts.convention, opts.accelerate
+    tv_weight, tol, eps, filter_epsilon = opts.tv_weight, opts.tol, opts.eps, opts.filter_epsilon
+    progress = opts.progress
     if boundary not in BOUNDARIES:
         raise DiffcamError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}.")
     if convention not in CONVENTIONS:

@@ -1,0 +1,330 @@
+"""A fitted PSF-stack model (:class:`StackFit`): prediction of any plane, and its file.
+
+Prediction (:meth:`StackFit.predict`) is the rendered plane plus the part of the
+measured planes the model does not reproduce, carried along by the model's own
+magnification law. For each given plane k, least squares gives raw_k = a_k·render(k) +
+b_k + R_k; plane t is predicted as (Σ_k w_k a_k)·render(t) + Σ_k w_k·T_{k→t}(R_k), T
+the magnification by s(t)/s(k) about the fitted centre (cubic B-splines, zero outside),
+w_k linear in t between the two given planes that bracket t (1 at its own plane), and
+the nearest given plane's weight 1 outside the given range
+(:func:`diffcam.evaluate.registration.bracket_weights`). At a given plane this is the
+measurement; elsewhere the model supplies the change between planes, the residual the
+sub-pixel detail the field cannot interpolate at unseen pixels. ``residual=False``
+renders the model alone.
+
+The file (:meth:`StackFit.save`, :func:`load_stack_fit`) is one ``.npz``: the model's
+arrays, the prepared given planes, and a JSON metadata entry with a format version.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import scipy.ndimage as ndi
+
+from diffcam.core.errors import DiffcamError
+from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
+                                           relative_magnification_at)
+from diffcam.io import atomic_output, check_output_path, read_npz
+from diffcam.calibrate.stack_model import StackModel, coefficient_shape, render_planes
+
+__all__ = ["StackFit", "load_stack_fit", "FORMAT", "FORMAT_VERSION", "MAX_PLANES"]
+
+FORMAT = "diffcam-stack-fit"
+FORMAT_VERSION = 3
+_ARRAYS = ("field_real", "field_imag", "log_zeta", "log_s", "centre", "log_sigma", "kappa")
+
+MAX_PLANES = 4096
+"""Most planes one :meth:`StackFit.predict` call returns (a 270×320 frame: 1.4 GB);
+raise it for the session by assigning to this constant."""
+
+
+def _check_count(n: int) -> None:
+    if n < 1:
+        raise DiffcamError(f"no planes to predict (asked for {n}).")
+    if n > MAX_PLANES:
+        raise DiffcamError(f"{n} planes asked for; one call predicts at most {MAX_PLANES} "
+                           f"(diffcam.calibrate.stack_result.MAX_PLANES): ask for fewer, or "
+                           f"raise the limit.")
+
+
+def _plane_index(t) -> int:
+    """A plane index: an int (not a bool, not a fraction or a string)."""
+    if isinstance(t, (bool, np.bool_)) or not isinstance(t, (int, np.integer)):
+        raise DiffcamError(f"plane indices must be integers, got {t!r}.")
+    return int(t)
+
+
+
+
+@dataclasses.dataclass(frozen=True)
+class StackFit:
+    """The result of :func:`fit_stack`.
+
+    Attributes:
+        model: the fitted :class:`StackModel` (at the best validation step).
+        planes: the given planes (the reference first).
+        n_planes: planes in the stack (``None`` if unknown), the default of
+            :meth:`predict`.
+        registration: M(anchor)/M(reference) and the fixed point (pixels).
+        history: mean training Pearson of the given planes, per step.
+        validation: mean validation Pearson, per step (of the model before the step).
+        stop_reason: why the fit stopped.
+        best_step: the step whose model was kept.
+        validation_score: the kept model's validation Pearson.
+        baseline_validation: the scaling baseline's Pearson on the same validation
+            pixels (each given plane predicted from the nearest other given plane).
+        worse_than_baseline: ``validation_score < baseline_validation``.
+        zeta_scan: ``{ζ candidate (fine samples²): training Pearson of its GS start}``.
+        identifiable: what the data fix: ζ_ref in pixel units; with the pixel pitch and
+            wavelength z2·M at the reference plane and over the stack (m), with z2 too
+            the magnifications and z1 over the stack (:func:`_identifiable`).
+        physical: the physical inputs given (pixel pitch, wavelength, z2; m or None).
+        options: the :class:`StackFitOptions` as a dict.
+        seconds: wall time of the fit, s.
+        measured: the given planes as fitted (:func:`prepare_planes`), in ``planes``
+            order, float32 (P, H, W): the residuals :meth:`predict` carries come from
+            them (``None`` in files of format 1: rendering only).
+    """
+
+    model: StackModel
+    planes: tuple[int, ...]
+    n_planes: int | None
+    registration: Registration
+    history: np.ndarray
+    validation: np.ndarray
+    stop_reason: str
+    best_step: int
+    validation_score: float
+    baseline_validation: float
+    worse_than_baseline: bool
+    zeta_scan: dict
+    identifiable: dict
+    physical: dict
+    options: dict
+    seconds: float
+    measured: np.ndarray | None = None
+
+    @property
+    def steps(self) -> int:
+        return int(len(self.history))
+
+    def predict(self, planes=None, *, kappa: float | None = None, residual: bool = True
+                ) -> np.ndarray:
+        """Predicted planes, each normalised to unit mean (like :func:`prepare_planes`).
+
+        Args:
+            planes: plane indices (any ints, also outside the measured range), a count
+                n (planes 0 … n−1), or ``None`` for every plane of the fitted stack.
+            kappa: render with this depth-law exponent instead of the fitted one
+                (``kappa=0``: the frozen-distance ablation of the same field).
+            residual: carry the measured planes' residuals (the module docstring);
+                ``False`` renders the model alone.
+
+        Returns:
+            float32 array (k, H, W).
+        """
+        ts = self._plane_list(planes)
+        model = self.model
+        if kappa is not None and not (isinstance(kappa, (int, float, np.number))
+                                      and not isinstance(kappa, bool)
+                                      and abs(float(kappa)) <= 10):
+            raise DiffcamError(f"kappa must be a number in [-10, 10] (1: the scaling "
+                               f"theorem's depth law, 0: frozen distance), got {kappa!r}.")
+        if kappa is not None:
+            model = eqx.tree_at(lambda m: m.kappa, model, jnp.float32(kappa))
+            if model.frozen and kappa != 0:
+                model = dataclasses.replace(model, frozen=False)
+        if residual and self.measured is not None:
+            out = self._with_residuals(model, ts)
+        else:
+            out = render_planes(model, ts)
+        out /= out.mean(axis=(-2, -1), keepdims=True)
+        return out.astype(np.float32)
+
+    def _plane_list(self, planes) -> list[int]:
+        """The planes to predict, checked: whole numbers, at most :data:`MAX_PLANES`,
+        none beyond where the fitted magnification law reaches zero."""
+        if planes is None:
+            if self.n_planes is None:
+                raise DiffcamError("this fit does not know the stack's plane count; pass "
+                                   "the planes to predict.")
+            planes = self.n_planes
+        if isinstance(planes, (bool, np.bool_, str, bytes, float, np.floating)):
+            raise DiffcamError(f"planes must be a count or a sequence of plane indices "
+                               f"(integers), got {planes!r}.")
+        if isinstance(planes, (int, np.integer)):
+            _check_count(int(planes))
+            ts = list(range(int(planes)))
+        else:
+            ts = [_plane_index(t) for t in np.asarray(planes, dtype=object).reshape(-1)]
+            _check_count(len(ts))
+        bad = [t for t in ts if not float(self.model.magnification(t)) > 0]
+        if bad:
+            raise DiffcamError(f"plane(s) {bad[:5]} lie beyond where the fitted "
+                               f"magnification law reaches zero (it is linear in the plane "
+                               f"index through planes {self.model.reference} and "
+                               f"{self.model.anchor}); predict planes nearer the fitted "
+                               f"ones.")
+        return ts
+
+    def _with_residuals(self, model: StackModel, ts: list[int]) -> np.ndarray:
+        """(Σ w_k a_k)·render(t) + Σ w_k T_{k→t}(R_k) for every t (module docstring)."""
+        rendered = render_planes(model, list(self.planes) + ts)
+        given, rendered = rendered[:len(self.planes)], rendered[len(self.planes):]
+        gain, coef = {}, {}
+        for k, y, p in zip(self.planes, self.measured.astype(np.float64), given):
+            a, b = np.polyfit(p.ravel(), y.ravel(), 1)
+            gain[k] = a
+            coef[k] = ndi.spline_filter(y - a * p - b, order=3)
+        s = {t: float(relative_magnification_at(t, np.exp(float(model.log_s)),
+                                                model.reference, model.anchor))
+             for t in set(ts) | set(self.planes)}
+        centre = tuple(float(c) for c in np.asarray(model.centre))
+        out = np.empty_like(rendered)
+        for n, t in enumerate(ts):
+            weights = bracket_weights(t, self.planes)
+            out[n] = sum(w * gain[k] for k, w in weights.items()) * rendered[n]
+            for k, w in weights.items():
+                out[n] += w * magnify_about(coef[k], s[t] / s[k], centre, prefiltered=True)
+        return out
+
+    def summary(self) -> dict:
+        """The scalar facts of the fit, JSON-able."""
+        m = self.model
+        return {"planes": list(self.planes), "n_planes": self.n_planes,
+                "stop_reason": self.stop_reason, "best_step": self.best_step,
+                "steps": self.steps, "validation_score": self.validation_score,
+                "baseline_validation": self.baseline_validation,
+                "worse_than_baseline": self.worse_than_baseline,
+                "zeta_reference_px2": m.zeta_pixels, "kappa": float(m.kappa),
+                "frozen": m.frozen, "magnification": float(np.exp(float(m.log_s))),
+                "grid_magnification": m.grid_magnification,
+                "centre": [float(c) for c in np.asarray(m.centre)],
+                "blur_sigma_fine": float(np.exp(float(m.log_sigma))),
+                "seconds": self.seconds}
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the fit to one ``.npz`` file (arrays and a JSON metadata entry with a
+        format version), atomically: a temporary file in the same folder, then
+        ``os.replace``. Read it back with :func:`load_stack_fit`."""
+        path = check_output_path(path, suffixes=(".npz",))
+        m = self.model
+        meta = {
+            "format": FORMAT, "version": FORMAT_VERSION,
+            "geometry": {"frame": list(m.frame), "pad": m.pad, "grid": list(m.grid),
+                         "stride": m.stride, "reference": m.reference, "anchor": m.anchor,
+                         "oversample": m.oversample, "frozen": m.frozen,
+                         "grid_magnification": m.grid_magnification},
+            "planes": list(self.planes), "n_planes": self.n_planes,
+            "registration": dataclasses.asdict(self.registration),
+            "stop_reason": self.stop_reason, "best_step": self.best_step,
+            "validation_score": self.validation_score,
+            "baseline_validation": self.baseline_validation,
+            "worse_than_baseline": self.worse_than_baseline,
+            "zeta_scan": {str(k): v for k, v in self.zeta_scan.items()},
+            "identifiable": self.identifiable, "physical": self.physical,
+            "options": self.options, "seconds": self.seconds,
+        }
+        arrays = {k: np.asarray(getattr(m, k)) for k in _ARRAYS}
+        if self.measured is not None:
+            arrays["measured"] = np.asarray(self.measured, np.float32)
+        with atomic_output(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, metadata=np.array(json.dumps(meta)),
+                         history=np.asarray(self.history, np.float64),
+                         validation=np.asarray(self.validation, np.float64), **arrays)
+        return path
+
+
+
+def load_stack_fit(path: str | os.PathLike) -> StackFit:
+    """Read a :class:`StackFit` written by :meth:`StackFit.save`.
+
+    Raises:
+        DiffcamError: missing, corrupt or truncated file, not a stack-fit file, another
+            format version (an older one says to fit again), or arrays that do not match
+            the recorded geometry.
+    """
+    what = "a diffcam stack-fit file"
+    data = read_npz(path, ("metadata",), what=what)
+    try:
+        meta = json.loads(str(data["metadata"][()]))
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise DiffcamError(f"{path}: not {what} (format {meta.get('format')!r}).")
+        version = meta.get("version")
+        if not isinstance(version, int) or version > FORMAT_VERSION:
+            raise DiffcamError(f"{path}: stack-fit format version {version!r}; this diffcam "
+                               f"reads versions ≤ {FORMAT_VERSION}: upgrade diffcam.")
+        if version < FORMAT_VERSION:
+            raise DiffcamError(f"{path}: stack-fit format version {version} holds a "
+                               f"per-sample phase model this diffcam no longer renders; "
+                               f"fit the stack again (diffcam fit STACK --planes …).")
+        data = read_npz(path, ("metadata", "history", "validation") + _ARRAYS, what=what)
+        model = _model_from(data, meta["geometry"], path)
+        measured = _measured_from(path, meta, model)
+        reg = meta["registration"]
+        return StackFit(
+            model=model, planes=tuple(int(t) for t in meta["planes"]),
+            n_planes=None if meta["n_planes"] is None else int(meta["n_planes"]),
+            registration=Registration(float(reg["magnification"]),
+                                      tuple(float(c) for c in reg["centre"]),
+                                      float(reg["pearson"]), float(reg.get("seconds", 0.0))),
+            history=np.asarray(data["history"]), validation=np.asarray(data["validation"]),
+            stop_reason=str(meta["stop_reason"]), best_step=int(meta["best_step"]),
+            validation_score=float(meta["validation_score"]),
+            baseline_validation=float(meta["baseline_validation"]),
+            worse_than_baseline=bool(meta["worse_than_baseline"]),
+            zeta_scan={float(k): v for k, v in meta["zeta_scan"].items()},
+            identifiable=dict(meta["identifiable"]), physical=dict(meta["physical"]),
+            options=dict(meta["options"]), seconds=float(meta["seconds"]),
+            measured=measured)
+    except DiffcamError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise DiffcamError(f"{path}: not a readable {what} ({type(err).__name__}: {err}); "
+                           f"the metadata are missing or damaged.") from None
+
+
+def _model_from(data, g: dict, path) -> StackModel:
+    """The :class:`StackModel` of a fit file, its arrays checked against its geometry."""
+    model = StackModel(
+        **{k: jnp.asarray(data[k], jnp.float32) for k in _ARRAYS},
+        frame=tuple(int(v) for v in g["frame"]), pad=int(g["pad"]),
+        grid=tuple(int(v) for v in g["grid"]), stride=int(g["stride"]),
+        reference=int(g["reference"]), anchor=int(g["anchor"]),
+        oversample=int(g["oversample"]), frozen=bool(g["frozen"]),
+        grid_magnification=float(g.get("grid_magnification", 1.0)))
+    coarse = coefficient_shape(model.grid, model.stride)
+    if model.field_real.shape != coarse or model.field_imag.shape != coarse \
+            or model.centre.shape != (2,):
+        raise DiffcamError(f"{path}: arrays do not match the recorded geometry (field "
+                           f"coefficients {model.field_real.shape}, expected {coarse}); the "
+                           f"file is damaged.")
+    if not all(np.isfinite(np.asarray(data[k])).all() for k in _ARRAYS):
+        raise DiffcamError(f"{path}: the model holds NaN/Inf values; the file is damaged.")
+    if not model.grid_magnification > 0:
+        raise DiffcamError(f"{path}: grid magnification {model.grid_magnification!r} is "
+                           f"not positive; the file is damaged.")
+    return model
+
+
+def _measured_from(path, meta: dict, model: StackModel) -> np.ndarray:
+    """The prepared given planes stored by format ≥ 2, checked against the geometry."""
+    measured = read_npz(path, ("measured",), what="a diffcam stack-fit file")["measured"]
+    measured = np.asarray(measured, np.float32)
+    if measured.shape != (len(meta["planes"]),) + model.frame or \
+            not np.isfinite(measured).all():
+        raise DiffcamError(f"{path}: the measured planes ({measured.shape}) do not match "
+                           f"the recorded planes and frame or hold NaN/Inf; the file is "
+                           f"damaged.")
+    return measured
+
+
+# ------------------------------------------------------------------------ input checks
