@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import math
 import os
 import sys
 import time
@@ -38,6 +39,45 @@ def _length(name):
 
 def _lengths(name):
     return _units(parse_length_range, name)
+
+
+MAX_RESTARTS = 100
+"""Most random starts ``diffcam calibrate --restarts`` takes (each is a full run of
+the projections)."""
+
+
+def count(low: int, high: int, limit: str = ""):
+    """An argparse type: a whole number from ``low`` to ``high``, else a usage error;
+    ``limit`` names the constant that sets ``high``. Hostile counts (0, −1, 10⁹) are
+    refused while the command line is read, before any work."""
+    def convert(text):
+        try:
+            n = int(text)
+        except ValueError:
+            n = None
+        if n is None or not low <= n <= high:
+            raise argparse.ArgumentTypeError(
+                f"give a whole number from {low} to {high}{f' ({limit})' if limit else ''}, "
+                f"not {text!r:.40}")
+        return n
+    convert.__name__ = "count"
+    return convert
+
+
+def iterations_count():
+    """:func:`count` for an iteration count: 1 to
+    :data:`diffcam.reconstruct.checks.MAX_ITERATIONS`."""
+    from diffcam.reconstruct.checks import MAX_ITERATIONS
+
+    return count(1, MAX_ITERATIONS, "diffcam.reconstruct.checks.MAX_ITERATIONS")
+
+
+def grid_count(low: int = 2):
+    """:func:`count` for samples per side of a square grid: ``low`` to the side of
+    :data:`diffcam.core.grid.MAX_GRID_SAMPLES`."""
+    from diffcam.core.grid import MAX_GRID_SAMPLES
+
+    return count(low, math.isqrt(MAX_GRID_SAMPLES), "diffcam.core.grid.MAX_GRID_SAMPLES")
 
 
 def save_image(path, image, *, bits: int = 16) -> None:
@@ -224,8 +264,10 @@ def _several_processes(args) -> bool:
     from diffcam.apps.processes import ERRORS, distributed_settings, initialize_from_environment
     from diffcam.io import check_output_path
 
-    if args.processes < 1:
-        raise DiffcamError(f"--processes must be at least 1, got {args.processes}.")
+    cpus = os.cpu_count() or 1
+    if not 1 <= args.processes <= cpus:
+        raise DiffcamError(f"--processes must be at least 1 and at most the {cpus} CPUs "
+                           f"of this machine, got {args.processes}.")
     settings = distributed_settings()
     if settings is None:
         if args.processes > 1:
@@ -394,9 +436,6 @@ def _cmd_demo(args) -> int:
     changes = {k: v for k, v in (("grid", args.grid), ("gs_iterations", args.gs_iterations),
                                  ("calibration_iterations", args.calibration_iterations))
                if v is not None}
-    if changes.get("grid", 1024) < 600:
-        raise DiffcamError("--grid must be at least 600 samples: the 512² diffuser needs "
-                           "room around it for the far field.")
     run_demo(args.out, settings=Settings(**{**base.__dict__, **changes}))
     return 0
 
@@ -417,10 +456,13 @@ def _add_demo(sub) -> None:
     demo.add_argument("--full", action="store_true",
                       help="the paper's 4000×4000 grid (about 30 min and 6 GB of memory "
                            "on 2 cores)")
-    demo.add_argument("--grid", type=int, help="simulation grid, samples per side "
-                                               "(default 1024; 4000 with --full)")
-    demo.add_argument("--gs-iterations", type=int, help="textbook GS iterations (2000)")
-    demo.add_argument("--calibration-iterations", type=int,
+    demo.add_argument("--grid", type=grid_count(600),
+                      help="simulation grid, samples per side, at least 600: the 512² "
+                           "diffuser needs room for the far field (default 1024; 4000 "
+                           "with --full)")
+    demo.add_argument("--gs-iterations", type=iterations_count(),
+                      help="textbook GS iterations (2000)")
+    demo.add_argument("--calibration-iterations", type=iterations_count(),
                       help="iterations of diffcam's calibration (300)")
     demo.set_defaults(func=_cmd_demo)
 
@@ -461,7 +503,7 @@ def _add_plan(sub) -> None:
                       help="wavelength, with a unit")
     plan.add_argument("--pixel", type=_length("pixel"), required=True,
                       help="grid pitch, with a unit (3.45um)")
-    plan.add_argument("--n", type=int, required=True, help="samples per side")
+    plan.add_argument("--n", type=grid_count(), required=True, help="samples per side")
     plan.add_argument("--z1", type=_length("z1"), required=True,
                       help="smallest source depth, with a unit (22mm)")
     plan.add_argument("--z2", type=_length("z2"), required=True,
@@ -492,13 +534,15 @@ def _add_calibrate(sub) -> None:
                      help="diffuser to near-capture plane, free-space equivalent (0.5 mm "
                           "of n = 1.5 cover glass ≈ 0.33mm)")
     cal.add_argument("--dx", type=_length("dx"), help="diffuser grid pitch (default: --pixel)")
-    cal.add_argument("--grid", type=int, help="calibration grid (default: 2× the aperture)")
+    cal.add_argument("--grid", type=grid_count(16),
+                     help="calibration grid (default: 2× the aperture)")
     cal.add_argument("--background", type=float, default=0.0, help="dark level, counts")
     cal.add_argument("--saturation", type=float, help="raw count of a saturated pixel")
     cal.add_argument("--solver", choices=["default", "gs", "hio", "raar"], default="default",
                      help="default: RAAR with restarts, then least squares")
-    cal.add_argument("--iterations", type=int, default=300, help="projection iterations")
-    cal.add_argument("--restarts", type=int,
+    cal.add_argument("--iterations", type=iterations_count(), default=300,
+                     help="projection iterations")
+    cal.add_argument("--restarts", type=count(1, MAX_RESTARTS, "diffcam.apps.cli.MAX_RESTARTS"),
                      help="random starts of the projections (default 4; 1 with --psf, "
                           "which starts flat)")
     cal.add_argument("--seed", type=int, default=0, help="seed of the random starts")
@@ -529,7 +573,7 @@ def _add_psf(sub) -> None:
                     help="diffuser to sensor; needed with a phase file")
     ps.add_argument("--planes", type=_planes_arg,
                     help="stack-fit model only: planes, e.g. 0:43 (default: all)")
-    ps.add_argument("--crop", type=int, help="square crop of each PSF (samples)")
+    ps.add_argument("--crop", type=grid_count(1), help="square crop of each PSF (samples)")
     ps.add_argument("-o", "--out", required=True,
                     help="output .npz or .tif (a stack fit: .tif or .npy)")
     ps.add_argument("--processes", type=int, default=1,

@@ -286,7 +286,7 @@ def _cmd_compare_stack(args) -> int:
 
 def _add_fit(sub) -> None:
     """Add ``fit``, ``predict`` and ``compare-stack`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.cli import _length
+    from diffcam.apps.cli import _length, iterations_count
 
     fit = sub.add_parser("fit", help="fit a wave model to a few planes of a PSF stack",
                          description="Fit the stack wave model to the given planes of a "
@@ -298,9 +298,10 @@ def _add_fit(sub) -> None:
     fit.add_argument("--planes", type=_planes_arg, required=True,
                      help="given planes, e.g. 5,25 (the first is the reference)")
     fit.add_argument("--key", help="array name inside an .npz or .mat stack")
-    fit.add_argument("--max-steps", type=int, help="Adam steps at most (400)")
+    fit.add_argument("--max-steps", type=iterations_count(), help="Adam steps at most (400)")
     fit.add_argument("--time-budget", type=float, help="seconds for the whole fit (55)")
-    fit.add_argument("--patience", type=int, help="steps without validation gain (40)")
+    fit.add_argument("--patience", type=iterations_count(),
+                     help="steps without validation gain (40)")
     fit.add_argument("--seed", type=int, help="seed of the validation split (0)")
     fit.add_argument("--frozen", action="store_true",
                      help="frozen-distance ablation: ζ the same at every plane")
