@@ -368,3 +368,55 @@ def test_help_states_the_caps(capsys):
             assert "diffcam.io.MAX_READ_BYTES" in text, command
     assert "MAX_ITERATIONS" in _subparser("reconstruct").format_help().replace("\n", "")
     assert "MAX_PLANES" in _subparser("predict").format_help()
+
+
+# ------------------------------------------------------------ the inputs' content
+
+def test_no_light_is_named(files, tmp_path):
+    """An all-zero raw or PSF: 'no light', naming the file (it was 'N NaN/Inf values')."""
+    zero = tmp_path / "zero.npy"
+    np.save(zero, np.zeros((40, 48), np.float32))
+    out = Out(tmp_path / "o.png")
+    for argv, named in ((["reconstruct", zero, "--psf", files["psf"], "-o", out], zero),
+                        (["reconstruct", files["raw"], "--psf", zero, "-o", out], zero)):
+        err = _check(argv)
+        assert "no light" in err and str(named) in err and "NaN" not in err, err
+
+
+def test_swapped_raw_and_psf_are_warned(tmp_path):
+    """The shipped hand capture and its PSF swapped: a warning on stderr (the raw lights
+    fewer effective pixels than the PSF), and none in the right order."""
+    from diffcam.data import export_captures
+
+    export_captures("hand", tmp_path)
+    raw, psf = tmp_path / "hand_raw.tif", tmp_path / "hand_psf.tif"
+    out = Out(tmp_path / "o.png")
+    right = _check(["reconstruct", raw, "--psf", psf, "--iterations", "2", "-o", out], (0,))
+    swapped = _check(["reconstruct", psf, "--psf", raw, "--iterations", "2", "-o", out], (0,))
+    assert "warning:" not in right
+    assert "warning:" in swapped and "are the two files swapped?" in swapped
+
+
+def test_a_nan_plane_is_called_nan(files, tmp_path):
+    """A stack with a NaN plane through compare-stack: the plane named, 'NaN' said."""
+    stack = np.load(files["stack"])
+    stack[1] = np.nan
+    np.savez(tmp_path / "nan.npz", stack=stack)
+    err = _check(["compare-stack", tmp_path / "nan.npz", "--model", files["phase"],
+                  "-o", Out(tmp_path / "c.png")])
+    assert "plane(s) [1]" in err and "NaN" in err
+
+
+def test_calibrate_checks_its_output_first_and_names_no_temporary_file(files, tmp_path):
+    """A read-only existing output (refused for root too) and a missing folder: refused
+    before the captures are read (they are missing here), naming the output."""
+    locked = tmp_path / "locked.npz"
+    locked.write_bytes(_OLD)
+    locked.chmod(0o444)
+    common = ["--focal-length", "5cm", "--wavelength", "532nm", "--pixel", "10um",
+              "--aperture-radius", "0.1mm"]
+    for out in (locked, tmp_path / "no" / "cal.npz"):
+        err = _check(["calibrate", tmp_path / "missing1.npy", tmp_path / "missing2.npy",
+                      *common, "-o", out])
+        assert str(out) in err and "tmp-" not in err and "missing1" not in err, err
+    assert locked.read_bytes() == _OLD

@@ -239,8 +239,8 @@ def _cmd_compare_stack(args) -> int:
         check_output_path(args.out, suffixes=(".png", ".pdf", ".svg"))
     if args.json:
         check_output_path(args.json, suffixes=(".json",))
-    fit = load_stack_fit(args.model)
     stack, _ = read_stack(args.stack, args.key)
+    fit = load_stack_fit(args.model)
     result = compare_stack(stack, fit)
     lines = ["| plane | model | scaling baseline | frozen distance (κ=0) | rendering alone |",
              "|---|---|---|---|---|"]
