@@ -100,8 +100,8 @@ def _valid(command: str, f: dict[str, Path], o: Path) -> list[str]:
                  "--aperture-radius", "0.5mm"],
         "predict": [StandIn(f["phase"]), "--planes", "0:2", "-o", Out(o / "pred.tif")],
         "psf": [phase, "--z1", "20mm", "--z2", "1mm", "-o", Out(o / "psfs.npz")],
-        "reconstruct": [raw, "--psf", psf, "--iterations", "3", "--quiet",
-                        "-o", Out(o / "rec.png")],
+        "reconstruct": [raw, "--psf", psf, "--method", "wiener", "--iterations", "3",
+                        "--quiet", "-o", Out(o / "rec.png")],
     }
     return [command, *lines[command]]
 
@@ -309,7 +309,8 @@ def test_out_of_range_counts(command, files, tmp_path):
     """Every integer option of every command at 0, negative and 10⁸–10⁹: refused
     before the work (exit 2, one line, the output kept) or a valid, bounded run."""
     argv = _valid(command, files, tmp_path)
-    counts = [a.option_strings[-1] for a in _typed_options(command) if a.type is int]
+    counts = [a.option_strings[-1] for a in _typed_options(command)
+              if a.type is int or a.type.__name__ == "count"]
     for option in counts:
         if option == "--seed":
             continue            # any integer is a seed
@@ -391,8 +392,9 @@ def test_swapped_raw_and_psf_are_warned(tmp_path):
     export_captures("hand", tmp_path)
     raw, psf = tmp_path / "hand_raw.tif", tmp_path / "hand_psf.tif"
     out = Out(tmp_path / "o.png")
-    right = _check(["reconstruct", raw, "--psf", psf, "--iterations", "2", "-o", out], (0,))
-    swapped = _check(["reconstruct", psf, "--psf", raw, "--iterations", "2", "-o", out], (0,))
+    right = _check(["reconstruct", raw, "--psf", psf, "--method", "wiener", "-o", out], (0,))
+    swapped = _check(["reconstruct", psf, "--psf", raw, "--method", "wiener", "-o", out],
+                     (0,))
     assert "warning:" not in right
     assert "warning:" in swapped and "are the two files swapped?" in swapped
 

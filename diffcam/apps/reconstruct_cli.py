@@ -558,7 +558,7 @@ def write_volume(paths: VolumePaths, volume, source: PsfSource, info: dict) -> N
 
 def _add_reconstruct(sub) -> None:
     """Add ``reconstruct`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.cli import DefaultsFormatter, _length, iterations_count
+    from diffcam.apps.cli import DefaultsFormatter, _length, count, iterations_count
     from diffcam.apps.fit_cli import _planes_arg
     from diffcam.calibrate.stack_result import MAX_PLANES
     from diffcam.reconstruct.checks import MAX_ITERATIONS
@@ -594,7 +594,8 @@ def _add_reconstruct(sub) -> None:
                      help="reconstruct a volume over all the (selected) planes; -o OUT.tif")
     rec.add_argument("--depth", type=_length("depth"), metavar="Z1",
                      help="2-D: source depth z1 to use, with a unit (25mm)")
-    rec.add_argument("--plane", type=int, metavar="INDEX", help="2-D: index of the PSF plane to use")
+    rec.add_argument("--plane", type=count(0, MAX_PLANES - 1), metavar="INDEX",
+                     help="2-D: index of the PSF plane to use")
     rec.add_argument("--method", choices=["admm", "rl", "wiener"], default="admm",
                      help="ADMM-TV, Richardson–Lucy, or Wiener (2-D only)")
     rec.add_argument("--iterations", type=iterations_count(), metavar="N",
