@@ -25,44 +25,6 @@ from diffcam.core.errors import DiffcamError
 
 
 
-def parse_planes(text: str) -> list[int]:
-    """``"5,25"`` → [5, 25]; ``"0:43"`` → 0 … 43 (both ends included); ``"0:10:2,30"``
-    (a step) and mixes of both."""
-    from diffcam.calibrate.stack_result import MAX_PLANES
-
-    items = [_plane_items(item, text) for item in str(text).split(",") if item.strip()]
-    count = sum(len(r) for r in items)
-    if count > MAX_PLANES:
-        raise DiffcamError(f"planes {text!r}: {count} planes, more than the {MAX_PLANES} "
-                           f"one run takes (diffcam.calibrate.stack_result.MAX_PLANES).")
-    out = [t for r in items for t in r]
-    if not out:
-        raise DiffcamError(f"planes {text!r}: no plane index given.")
-    return out
-
-
-def _plane_items(item: str, text: str) -> range:
-    """One comma-separated item of a plane list as a range (not yet expanded)."""
-    try:
-        if ":" not in item:
-            return range(int(item), int(item) + 1)
-        parts = [int(p) for p in item.split(":")]
-        if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] <= 0) \
-                or parts[1] < parts[0]:
-            raise ValueError
-        return range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1)
-    except ValueError:
-        raise DiffcamError(f"planes {text!r}: give indices as 5,25 or a range 0:43 "
-                           f"(both ends included, a ≤ b).") from None
-
-
-def _planes_arg(text):
-    try:
-        return parse_planes(text)
-    except DiffcamError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
 def _saturation_arg(text):
     """A finite pixel level, or 'none' (no saturation check)."""
     if text.strip().lower() == "none":
@@ -159,8 +121,8 @@ def _z2m(fit) -> str:
     return "" if z2m is None else f" = z2·M {1e3 * z2m:.2f} mm at plane {fit.planes[0]}"
 
 
-def _cmd_predict(args) -> int:
-    from diffcam.apps.cli import save_image
+def cmd_predict(args) -> int:
+    from diffcam.apps.common import save_image
     from diffcam.calibrate import load_stack_fit
     from diffcam.io import check_output_path
 
@@ -230,8 +192,8 @@ def compare_stack(stack, fit) -> dict:
     return {"planes": list(fit.planes), "per_plane": rows, "mean_held_out": summary}
 
 
-def _cmd_compare_stack(args) -> int:
-    from diffcam.apps.cli import save_figure
+def cmd_compare_stack(args) -> int:
+    from diffcam.apps.common import save_figure
     from diffcam.calibrate import load_stack_fit
     from diffcam.io import atomic_output, check_output_path
 
@@ -284,9 +246,9 @@ def _cmd_compare_stack(args) -> int:
     return 0
 
 
-def _add_fit(sub) -> None:
+def add_fit(sub) -> None:
     """Add ``fit``, ``predict`` and ``compare-stack`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.cli import _length, iterations_count
+    from diffcam.apps.common import iterations_count, length_arg, planes_arg
 
     fit = sub.add_parser("fit", help="fit a wave model to a few planes of a PSF stack",
                          description="Fit the stack wave model to the given planes of a "
@@ -295,7 +257,7 @@ def _add_fit(sub) -> None:
                                      "scores of the model and the scaling baseline.")
     fit.add_argument("stack", help="multi-page TIFF, .npy, .npz (one 3-D array or --key), "
                                    ".mat, a folder or a quoted glob of single-plane images")
-    fit.add_argument("--planes", type=_planes_arg, required=True,
+    fit.add_argument("--planes", type=planes_arg, required=True,
                      help="given planes, e.g. 5,25 (the first is the reference)")
     fit.add_argument("--key", help="array name inside an .npz or .mat stack")
     fit.add_argument("--max-steps", type=iterations_count(), help="Adam steps at most (400)")
@@ -308,10 +270,10 @@ def _add_fit(sub) -> None:
     fit.add_argument("--saturation", type=_saturation_arg,
                      help="pixel value counted as saturated, or 'none' "
                                           "(default: 0.999 × full scale of integer data)")
-    fit.add_argument("--pixel", type=_length("pixel"),
+    fit.add_argument("--pixel", type=length_arg("pixel"),
                      help="pixel pitch (reported: with --wavelength, the distance z2·M)")
-    fit.add_argument("--wavelength", type=_length("wavelength"), help="(reported, as above)")
-    fit.add_argument("--z2", type=_length("z2"),
+    fit.add_argument("--wavelength", type=length_arg("wavelength"), help="(reported, as above)")
+    fit.add_argument("--z2", type=length_arg("z2"),
                      help="diffuser to sensor (reported: with the two above, z1 per plane)")
     fit.add_argument("--no-progress", action="store_true", help="no progress bar")
     fit.add_argument("-o", "--out", required=True, help="model file (.npz)")
@@ -321,7 +283,7 @@ def _add_fit(sub) -> None:
                           description="Render planes of a stack model from `diffcam fit` "
                                       "(each normalised to unit mean).")
     pred.add_argument("model", help="model file from `diffcam fit`")
-    pred.add_argument("--planes", type=_planes_arg,
+    pred.add_argument("--planes", type=planes_arg,
                       help="planes, e.g. 0:43 (ends included) or 0,5,9 (default: all)")
     pred.add_argument("--kappa", type=float, help="render with this depth-law exponent "
                                                   "(0: frozen distance)")
@@ -329,7 +291,7 @@ def _add_fit(sub) -> None:
                       help="the model's rendering alone, without the measured planes' "
                            "carried residuals")
     pred.add_argument("-o", "--out", required=True, help="output .tif (multi-page) or .npy")
-    pred.set_defaults(func=_cmd_predict)
+    pred.set_defaults(func=cmd_predict)
 
     cmp_ = sub.add_parser("compare-stack", help="model vs scaling baseline per plane",
                           description="Pearson of the fitted model, the scaling baseline "
@@ -341,4 +303,4 @@ def _add_fit(sub) -> None:
     cmp_.add_argument("--key", help="array name inside an .npz or .mat stack")
     cmp_.add_argument("-o", "--out", help="figure (.png)")
     cmp_.add_argument("--json", help="per-plane scores (.json)")
-    cmp_.set_defaults(func=_cmd_compare_stack)
+    cmp_.set_defaults(func=cmd_compare_stack)

@@ -105,7 +105,7 @@ def _read_model(path, planes) -> PsfSource:
 def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:
     """PSFs from a file, folder, glob or stack-fit model (module docstring); ``planes``
     selects planes of the stack (default all; for a model, the planes to render)."""
-    from diffcam.apps.cli import _read_psfs
+    from diffcam.apps.common import read_psfs
     from diffcam.io import read_psf_stack
 
     files = image_files(source)
@@ -117,7 +117,7 @@ def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:
         except DiffcamError as err:
             raise DiffcamError(f"{source}: {err}") from None
     else:
-        psfs, depths = _read_psfs(source)
+        psfs, depths = read_psfs(source)
     psfs = np.asarray(psfs, np.float32)
     if psfs.ndim == 2:
         if planes is not None:
@@ -300,12 +300,12 @@ def colour_psf(source: str, raw: np.ndarray, channel_order: str | None) -> PsfSo
     """One PSF per colour channel if ``source`` is one colour image file (e.g. from
     ``diffcam calibrate-psf``), else ``None`` (a grayscale PSF is shared by the channels).
     """
-    from diffcam.apps.cli import _has_stack_meta
+    from diffcam.apps.common import has_stack_meta
     from diffcam.io import IMAGE_SUFFIXES, as_rgb, read_image
 
     path = Path(source)
     if (path.suffix.lower() not in IMAGE_SUFFIXES or not path.is_file()
-            or Path(f"{path}.json").exists() or _has_stack_meta(path)):
+            or Path(f"{path}.json").exists() or has_stack_meta(path)):
         return None
     capture = read_image(path, channel_order=channel_order)
     if capture.channels is None:
@@ -374,7 +374,7 @@ def _iterations(args) -> int:
 
 
 def _run_2d(args, say) -> int:
-    from diffcam.apps.cli import save_image, save_rgb
+    from diffcam.apps.common import save_image, save_rgb
     from diffcam.core.grid import crop_to
     from diffcam.io import check_output_path
     from diffcam.reconstruct import admm_tv, richardson_lucy, wiener
@@ -533,7 +533,7 @@ def write_volume(paths: VolumePaths, volume, source: PsfSource, info: dict) -> N
     import matplotlib.pyplot as plt
     import tifffile
 
-    from diffcam.apps.cli import save_figure, save_image
+    from diffcam.apps.common import save_figure, save_image
     from diffcam.apps.volume_views import (depth_map_figure, montage_figure,
                                            projections_figure)
     from diffcam.io import atomic_output
@@ -556,10 +556,10 @@ def write_volume(paths: VolumePaths, volume, source: PsfSource, info: dict) -> N
             plt.close(fig)
 
 
-def _add_reconstruct(sub) -> None:
+def add_reconstruct(sub) -> None:
     """Add ``reconstruct`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.cli import DefaultsFormatter, _length, count, iterations_count
-    from diffcam.apps.fit_cli import _planes_arg
+    from diffcam.apps.common import (DefaultsFormatter, count, iterations_count, length_arg,
+                                     planes_arg)
     from diffcam.calibrate.stack_result import MAX_PLANES
     from diffcam.reconstruct.checks import MAX_ITERATIONS
 
@@ -587,12 +587,12 @@ def _add_reconstruct(sub) -> None:
                           "from `diffcam psf`, .mat), a folder or a quoted glob "
                           "('psfs/*.png') of single-plane images (natural name order), or "
                           "a model .npz from `diffcam fit`")
-    rec.add_argument("--planes", type=_planes_arg, metavar="PLANES",
+    rec.add_argument("--planes", type=planes_arg, metavar="PLANES",
                      help="planes of the stack or model to use, e.g. 0:43 (ends included), "
                           f"0:43:2 or 3,7,12 (default: all; at most {MAX_PLANES})")
     rec.add_argument("--3d", dest="three_d", action="store_true",
                      help="reconstruct a volume over all the (selected) planes; -o OUT.tif")
-    rec.add_argument("--depth", type=_length("depth"), metavar="Z1",
+    rec.add_argument("--depth", type=length_arg("depth"), metavar="Z1",
                      help="2-D: source depth z1 to use, with a unit (25mm)")
     rec.add_argument("--plane", type=count(0, MAX_PLANES - 1), metavar="INDEX",
                      help="2-D: index of the PSF plane to use")

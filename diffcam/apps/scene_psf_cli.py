@@ -105,9 +105,9 @@ def _cmd_calibrate_psf(args) -> int:
     return 0
 
 
-def _add_calibrate_psf(sub) -> None:
+def add_calibrate_psf(sub) -> None:
     """Add ``calibrate-psf`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.cli import iterations_count
+    from diffcam.apps.common import iterations_count
 
     cal = sub.add_parser(
         "calibrate-psf", help="PSF from raw captures of scenes with known ground truth",

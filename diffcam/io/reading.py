@@ -1,28 +1,7 @@
-"""Reading real captures, and the preprocessing steps that make them fit to reconstruct.
-
-The I/O edge: files come in as 8/16-bit PNG or TIFF, float ``.npy`` or MATLAB ``.mat``
-PSF stacks; they leave as float32 NumPy arrays in sensor counts with colour channels on
-a leading axis. Each preprocessing step is a separate, tested function, applied in this
-order (LenslessPiCam-style, as the DiffuserCam tutorial does it)::
-
-    capture = read_image("raw.tif")                       # counts, (ny, nx) or (c, ny, nx)
-    mask = saturation_mask(capture)                       # pixels at full scale
-    level = dark_level(psf_capture.image, (slice(5, 15), slice(5, 15)))
-    image = subtract_background(capture.image, level)     # small negatives clipped
-    image = downsample(image, 4)                          # box average
-    image = normalise_l2(image)
-
-Everything here is NumPy (files are read once, outside ``jit``); the results go to the
-JAX solvers in :mod:`diffcam.reconstruct`.
-
-Both directions are guarded at this edge. Readers turn every damaged, truncated or
-oversized file into one :class:`~diffcam.core.errors.DiffcamError` line naming the file
-and the problem, and they check the size a header declares against
-:data:`MAX_READ_BYTES` before allocating anything. Writers check the output path with
-:func:`check_output_path` before any work starts and write through
-:func:`atomic_output`: a temporary file beside the target, fsynced and moved into place
-with ``os.replace``, so an existing file is either untouched or wholly replaced.
-"""
+"""Reading captures and PSF stacks: PNG, TIFF, ``.npy``, MATLAB ``.mat`` and ``.npz``,
+every damaged, truncated or oversized file one :class:`~diffcam.core.errors.DiffcamError`
+line naming the file, with the size a header declares checked against
+:data:`diffcam.io.MAX_READ_BYTES` before anything is allocated."""
 
 from __future__ import annotations
 
@@ -30,58 +9,19 @@ import contextlib
 import glob
 import os
 import re
-import secrets
-import signal
 import struct
 import sys
-import threading
-import warnings
 import zipfile
-from functools import partial
 from pathlib import Path
 from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from diffcam.core.errors import DiffcamError, ShapeError, check_field
+from diffcam.core.errors import DiffcamError, ShapeError
 
-__all__ = [
-    "Capture",
-    "read_image",
-    "read_psf_stack",
-    "image_files",
-    "natural_key",
-    "IMAGE_SUFFIXES",
-    "border_dark_level",
-    "read_mat_stack",
-    "dark_level",
-    "subtract_background",
-    "saturation_mask",
-    "downsample",
-    "normalise_l2",
-    "BackgroundWarning",
-    "read_npz",
-    "npz_keys",
-    "file_kind",
-    "check_output_path",
-    "atomic_output",
-    "Terminated",
-    "temporary_files",
-    "MAX_READ_BYTES",
-]
-
-MAX_READ_BYTES = 4 * 2**30
-"""The largest array (bytes, as float32 or the file's own type if wider) a reader will
-allocate: 4 GiB. A header declaring more is refused before anything is read, since a
-damaged or crafted header can declare terabytes. Raise it for a genuinely larger file,
-per call (``max_bytes=``) or for the session (``diffcam.io.MAX_READ_BYTES = 2**36``)."""
-
-_IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
-_SATURATION = 0.999  # of full scale: at or above it a pixel counts as saturated
-
-
-class BackgroundWarning(UserWarning):
-    """Small negative values after background subtraction were clipped to zero."""
+__all__ = ["Capture", "read_image", "as_rgb", "read_rgb", "IMAGE_SUFFIXES", "natural_key",
+           "image_files", "read_psf_stack", "read_mat_stack", "read_npz", "npz_keys",
+           "file_kind", "check_read_size"]
 
 
 class Capture(NamedTuple):
@@ -129,15 +69,14 @@ def read_image(path: str | os.PathLike, *, channel_order: str | None = None,
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in _IMAGE_SUFFIXES:
+    if suffix not in IMAGE_SUFFIXES:
         raise DiffcamError(f"{path}: unsupported file type {suffix!r}; diffcam reads "
-                           f"{', '.join(_IMAGE_SUFFIXES)} images and .mat PSF stacks "
+                           f"{', '.join(IMAGE_SUFFIXES)} images and .mat PSF stacks "
                            f"(read_mat_stack).")
     _check_file(path)
     limit = _limit(max_bytes)
-    read = {".png": _read_png, ".tif": _read_tiff, ".tiff": _read_tiff, ".npy": _read_npy}
     with _file_errors(path, f"as {suffix[1:].upper()}"):
-        data = read[suffix](path, limit)
+        data = _READERS[suffix](path, limit)
     return _to_capture(data, path, suffix, channel_order)
 
 
@@ -165,7 +104,8 @@ def read_rgb(path: str | os.PathLike, *, channel_order: str | None = None) -> np
 
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
-"""Suffixes of the single-plane images a folder or glob of PSFs may hold."""
+"""Suffixes of the single-plane images diffcam reads (:func:`read_image`), and that a
+folder or glob of PSFs may hold."""
 
 
 def natural_key(path) -> list:
@@ -361,389 +301,6 @@ def file_kind(path: str | os.PathLike) -> str | None:
     return next((kind for magic, kind in _SIGNATURES if head.startswith(magic)), None)
 
 
-def border_dark_level(images, ring: int = 6) -> np.ndarray:
-    """Median of a ``ring``-pixel band at the frame border, per frame (input units, shape
-    ``images.shape[:-2]``): the dark level of a PSF or capture whose light rarely reaches
-    the border (the median ignores a few bright pixels there).
-
-    Raises:
-        ShapeError: a frame too small for the band (2·ring ≥ its shorter side).
-    """
-    a = np.asarray(images, np.float64)
-    h, w = a.shape[-2:]
-    if ring < 1 or 2 * ring >= min(h, w):
-        raise ShapeError(f"frame {h}×{w} is too small for a {ring}-pixel border ring (or "
-                         f"ring < 1); give the dark level in counts instead.")
-    band = np.zeros((h, w), bool)
-    band[:ring] = band[-ring:] = band[:, :ring] = band[:, -ring:] = True
-    return np.median(a[..., band], axis=-1)
-
-
-def dark_level(image: np.ndarray, region: tuple[slice, slice]) -> np.ndarray:
-    """Mean of ``image[..., region]`` over space: a background level per channel.
-
-    The DiffuserCam tutorial takes ``region = (slice(5, 15), slice(5, 15))`` of the PSF
-    capture (a dark corner) and subtracts it from both PSF and image.
-    """
-    patch = np.asarray(image)[(Ellipsis,) + tuple(region)]
-    if patch.size == 0:
-        raise ShapeError(f"the dark region {region} selects no pixels of an image of shape "
-                         f"{np.shape(image)}.")
-    return patch.mean(axis=(-2, -1))
-
-
-def subtract_background(image: np.ndarray, background, *,
-                        tolerance: float = 0.05) -> np.ndarray:
-    """``image - background``, with the negative values that noise leaves clipped to 0.
-
-    Args:
-        image: ``(..., ny, nx)`` counts.
-        background: a scalar (a sensor bias, e.g. DiffuserCam's ``image_bias = 100``), a
-            per-channel level from :func:`dark_level` of shape ``(...)``, or a dark frame
-            of the image's shape.
-        tolerance: negatives down to ``-tolerance · max(result)`` are noise: they are
-            clipped with a :class:`BackgroundWarning`. Deeper ones mean the background
-            is wrong and raise.
-
-    Returns:
-        float32 array, non-negative.
-    """
-    image = np.asarray(image, dtype=np.float32)
-    background = np.asarray(background, dtype=np.float32)
-    _check_values(image, "image")
-    _check_values(background, "background")
-    if background.ndim and background.shape == image.shape[:-2]:
-        background = background[..., None, None]
-    elif background.ndim and background.shape != image.shape:
-        raise ShapeError(f"background of shape {background.shape} does not match the "
-                         f"image {image.shape}; give a scalar, one level per channel "
-                         f"{image.shape[:-2]}, or a dark frame of the image's shape.")
-    out = image - background
-    _check_values(out, "image - background")
-    lo, hi = float(out.min()), float(out.max())
-    if lo < 0:
-        if hi <= 0 or -lo > tolerance * hi:
-            raise DiffcamError(
-                f"background subtraction leaves values down to {lo:.4g} against a maximum "
-                f"of {hi:.4g}: the background is too large for this image (wrong dark "
-                f"frame, bias or region?). Check it, or raise tolerance (now {tolerance}).")
-        n = int((out < 0).sum())
-        warnings.warn(f"clipped {n} negative value(s) (down to {lo:.3g}, "
-                      f"{-lo / hi:.2%} of the maximum) left by background subtraction",
-                      BackgroundWarning, stacklevel=2)
-        out = np.maximum(out, 0)
-    return out
-
-
-def saturation_mask(capture: Capture, level: float | None = None) -> np.ndarray:
-    """Boolean mask of saturated pixels (True where a pixel reached the sensor's ceiling).
-
-    Args:
-        capture: a :class:`Capture` (its ``full_scale`` sets the default level).
-        level: counts at or above which a pixel is saturated; default
-            ``0.999 · full_scale`` (65470 for 16-bit files, so a 12-bit sensor's
-            ``4095·16 = 65520`` counts as saturated). Required for float data.
-    """
-    if level is None:
-        if capture.full_scale is None:
-            raise DiffcamError(f"{capture.path}: float data has no full scale; pass the "
-                               f"saturation level in counts (level=...).")
-        level = _SATURATION * capture.full_scale
-    return np.asarray(capture.image) >= level
-
-
-def downsample(image: np.ndarray, factor: int) -> np.ndarray:
-    """Box-average the last two axes by an integer ``factor`` (``factor²`` pixels → 1).
-
-    Rows/columns that do not fill a whole box are dropped, split evenly between the two
-    ends so the centre stays the centre. Returns float32.
-    """
-    if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
-        raise DiffcamError(f"factor must be a positive integer, got {factor!r}.")
-    image = np.asarray(image, dtype=np.float32)
-    check_field(image, "image")
-    ny, nx = image.shape[-2:]
-    my, mx = ny // factor, nx // factor
-    if my == 0 or mx == 0:
-        raise ShapeError(f"image {image.shape[-2:]} is smaller than one {factor}x{factor} box.")
-    y0, x0 = (ny - my * factor) // 2, (nx - mx * factor) // 2
-    core = image[..., y0:y0 + my * factor, x0:x0 + mx * factor]
-    boxes = core.reshape(image.shape[:-2] + (my, factor, mx, factor))
-    return boxes.mean(axis=(-3, -1), dtype=np.float64).astype(np.float32)
-
-
-def normalise_l2(image: np.ndarray) -> np.ndarray:
-    """``image / ||image||₂`` over the last two axes (per channel / per plane)."""
-    image = np.asarray(image, dtype=np.float32)
-    check_field(image, "image")
-    norm = np.sqrt(np.sum(image.astype(np.float64) ** 2, axis=(-2, -1), keepdims=True))
-    if np.any(norm == 0):
-        raise DiffcamError("cannot L2-normalise an all-zero image (or channel).")
-    return (image / norm).astype(np.float32)
-
-
-# ---------------------------------------------------------------------------- writing
-
-def check_output_path(path: str | os.PathLike, *,
-                      suffixes: Sequence[str] | None = None) -> Path:
-    """Check that a file can be written at ``path``; call it before any work starts.
-
-    An output problem should cost nothing: a stack that took an hour to compute must
-    not fail at its first write. The checks are: ``path`` is not a folder, its folder
-    exists and is a folder, a new file can be created in it (a probe file is created and
-    removed, which also catches read-only file systems and root on them), and an
-    existing file there is a regular, writable file.
-
-    Args:
-        path: the output file.
-        suffixes: if given, the accepted file name endings, e.g. ``(".npz",)``.
-
-    Returns:
-        ``path`` as a :class:`~pathlib.Path`.
-
-    Raises:
-        DiffcamError: naming the path and what is wrong with it.
-    """
-    try:
-        path = Path(os.fspath(path))
-    except TypeError:
-        raise DiffcamError(f"an output path must be a str or os.PathLike, got "
-                           f"{path!r}.") from None
-    if suffixes is not None and path.suffix.lower() not in suffixes:
-        raise DiffcamError(f"{path}: the output must end in {' or '.join(suffixes)}.")
-    if path.is_dir():
-        raise DiffcamError(f"{path}: is a folder; give a file name inside it.")
-    target = Path(os.path.realpath(path))  # a symlink is written through, not replaced
-    folder = target.parent
-    if not folder.exists():
-        raise DiffcamError(f"{path}: the output folder {folder} does not exist; create it "
-                           f"first.")
-    if not folder.is_dir():
-        raise DiffcamError(f"{path}: {folder} is not a folder.")
-    if target.exists():
-        if not target.is_file():
-            raise DiffcamError(f"{path}: exists and is not a regular file; remove it or "
-                               f"choose another name.")
-        # the mode bits too: os.access says yes to root for a read-only file
-        if not os.access(target, os.W_OK) or not target.stat().st_mode & 0o222:
-            raise DiffcamError(f"{path}: the existing file is read-only; diffcam will not "
-                               f"replace it. Make it writable or choose another name.")
-    try:
-        os.close(_create_temp(target, probe=True)[0])
-    except OSError as err:
-        raise DiffcamError(f"{path}: cannot create files in {folder} "
-                           f"({err.strerror or err}); choose another folder or fix its "
-                           f"permissions.") from None
-    return path
-
-
-@contextlib.contextmanager
-def atomic_output(*paths: str | os.PathLike) -> Iterator:
-    """Write files so that each target is either untouched or wholly replaced.
-
-    Yields a temporary path beside each target (in the same folder, with the target's
-    suffix, so writers that dispatch on it work): one path for one target, a tuple for
-    several. When the block ends normally every temporary file is fsynced and moved
-    over its target with ``os.replace`` (atomic on POSIX and Windows), then the folder
-    is fsynced. If the block raises anything, ``KeyboardInterrupt`` included, the
-    temporary files are removed and the targets keep their old bytes.
-
-    SIGTERM: while the block runs in the main thread and SIGTERM has its default
-    action, a SIGTERM raises :class:`Terminated` inside the block instead of killing the
-    process at once; the temporary files are removed, the default action is restored
-    and the signal is raised again, so the process still ends as killed by SIGTERM. A
-    SIGTERM that arrives while the files are being moved into place waits until they
-    are (several targets are replaced one after another in that window, so only a hard
-    kill can fall between them). Nothing is installed outside the block; a handler of the caller's is left
-    alone. A hard kill (SIGKILL, power loss) can leave a temporary ``.name.tmp-*``
-    file, never a half-written target.
-
-    New files get the permissions ``0o666 & ~umask``, like any file ``open`` creates.
-
-    Raises:
-        DiffcamError: a target cannot be written (:func:`check_output_path`), before
-            the block runs.
-    """
-    if not paths:
-        raise DiffcamError("atomic_output needs at least one output path.")
-    targets = [Path(os.path.realpath(check_output_path(p))) for p in paths]
-    guard = _TermGuard.install()
-    temps: list[Path] = []
-    try:
-        try:
-            for target in targets:
-                fd, temp = _create_temp(target)
-                os.close(fd)
-                temps.append(temp)
-            yield temps[0] if len(temps) == 1 else tuple(temps)
-            if guard is not None:
-                guard.deferring = True  # a SIGTERM now waits until the files are in place
-                if guard.received:  # the block swallowed Terminated: its output is partial
-                    raise Terminated()
-            for temp in temps:
-                _fsync(temp)
-            for temp, target in zip(temps, targets):
-                os.replace(temp, target)
-            for folder in dict.fromkeys(t.parent for t in targets):
-                _fsync(folder)
-        except BaseException:
-            if guard is not None:
-                guard.deferring = True
-            for temp in temps:
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(temp)
-            raise
-    finally:
-        if guard is not None:
-            guard.restore()
-
-
-class Terminated(SystemExit):
-    """SIGTERM arrived while :func:`atomic_output` was writing.
-
-    A ``SystemExit`` (exit status 143, as a shell reports SIGTERM), so ``except
-    Exception`` does not swallow it. :func:`atomic_output` re-raises the signal itself
-    once its temporary files are gone, so this is seen only if that signal is blocked.
-    """
-
-    def __init__(self) -> None:
-        super().__init__(128 + signal.SIGTERM)
-
-
-class _TermGuard:
-    """SIGTERM as :class:`Terminated` for the duration of one :func:`atomic_output`."""
-
-    def __init__(self) -> None:
-        self.deferring = False  # cleaning up or committing: record, do not raise
-        self.received = False
-
-    @classmethod
-    def install(cls) -> "_TermGuard | None":
-        if threading.current_thread() is not threading.main_thread():
-            return None  # signal handlers can only be set from the main thread
-        if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
-            return None  # the caller (or an outer atomic_output) handles SIGTERM
-        guard = cls()
-        signal.signal(signal.SIGTERM, guard._handle)
-        guard._dropped = _redeliver_dropped(Terminated, guard._again)
-        guard._dropped.__enter__()
-        return guard
-
-    def _handle(self, signum, frame) -> None:
-        first = not self.received
-        self.received = True
-        if first and not self.deferring:
-            self.deferring = True
-            raise Terminated()
-
-    def _again(self) -> None:
-        """Python dropped the :class:`Terminated` raised by :meth:`_handle`: as if the
-        signal had not come yet, and it comes again."""
-        self.received = self.deferring = False
-        _send_again(signal.SIGTERM)
-
-    def restore(self) -> None:
-        self._dropped.__exit__(None, None, None)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        if self.received:
-            signal.raise_signal(signal.SIGTERM)  # now with its default action: exit
-
-
-@contextlib.contextmanager
-def interrupts_as_keyboard_interrupt() -> Iterator[None]:
-    """SIGINT raises ``KeyboardInterrupt`` as Python's default handler does, and a
-    ``KeyboardInterrupt`` that Python drops is delivered again (:func:`_redeliver_dropped`).
-    Installed only from the main thread and only over Python's default handler."""
-    main = threading.current_thread() is threading.main_thread()
-    if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield
-        return
-    with _redeliver_dropped(KeyboardInterrupt, lambda: _send_again(signal.SIGINT)):
-        yield
-
-
-@contextlib.contextmanager
-def _redeliver_dropped(kind: type[BaseException], again) -> Iterator[None]:
-    """While the block runs, an exception of ``kind`` that Python prints as "Exception
-    ignored" and drops calls ``again()`` instead of being printed.
-
-    A signal handler's exception is dropped so when the signal lands in a garbage-
-    collector callback (JAX registers one), a ``__del__`` or a weakref callback; the run
-    would then go on as if no signal had come (seen in CI). ``again`` sends it anew.
-    """
-    previous = sys.unraisablehook
-
-    def hook(unraisable) -> None:
-        if isinstance(unraisable.exc_value, kind):
-            again()
-        else:
-            previous(unraisable)
-
-    sys.unraisablehook = hook
-    try:
-        yield
-    finally:
-        sys.unraisablehook = previous
-
-
-def _send_again(signum: int) -> None:
-    """Send ``signum`` to the main thread in 50 ms (after the code that dropped it).
-
-    To the thread, not the process: the kernel may hand a process's signal to any of
-    its threads (XLA's among them), and a blocking call in the main thread then runs to
-    its end before Python's handler runs (a test's 2 s sleep, once in a full run)."""
-    if hasattr(signal, "pthread_kill"):
-        send = partial(signal.pthread_kill, threading.main_thread().ident, signum)
-    else:  # Windows
-        send = partial(os.kill, os.getpid(), signum)
-    timer = threading.Timer(0.05, send)
-    timer.daemon = True
-    timer.start()
-
-
-def _create_temp(target: Path, *, probe: bool = False) -> tuple[int, Path]:
-    """Create an empty file beside ``target`` with mode ``0o666 & ~umask`` (unlike
-    ``tempfile.mkstemp``'s 0o600). A probe is removed at once."""
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
-    for _ in range(100):
-        kind = "probe" if probe else "tmp"
-        temp = target.with_name(f".{target.stem}.{kind}-{secrets.token_hex(4)}{target.suffix}")
-        try:
-            fd = os.open(temp, flags, 0o666)
-        except FileExistsError:
-            continue
-        if probe:
-            os.unlink(temp)
-        return fd, temp
-    raise FileExistsError(f"no free temporary name beside {target}")
-
-
-def temporary_files(target: str | os.PathLike) -> set[Path]:
-    """The temporary files :func:`atomic_output` has beside ``target`` now: a hard-killed
-    writer leaves its own behind, and whoever ran it (a launcher of several processes)
-    removes the ones that were not there before."""
-    target = Path(os.path.realpath(target))
-    hex8 = "[0-9a-f]" * 8  # secrets.token_hex(4), as _create_temp names them
-    pattern = f".{glob.escape(target.stem)}.tmp-{hex8}{glob.escape(target.suffix)}"
-    return set(target.parent.glob(pattern))
-
-
-def _fsync(path: Path) -> None:
-    """Flush a file's (or a folder's entries') data to the disk, where the OS allows."""
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_BINARY", 0))
-    except OSError:  # folders cannot be opened on Windows
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass  # some file systems refuse fsync on a folder
-    finally:
-        os.close(fd)
-
-
-# ---------------------------------------------------------------------------- reading
-
 _MATLAB_ITEMSIZE = {"double": np.float64, "single": np.float32, "int8": np.int8,
                     "uint8": np.uint8, "int16": np.int16, "uint16": np.uint16,
                     "int32": np.int32, "uint32": np.uint32, "int64": np.int64,
@@ -761,7 +318,9 @@ def _check_file(path: Path) -> None:
 
 
 def _limit(max_bytes) -> int:
-    limit = MAX_READ_BYTES if max_bytes is None else max_bytes
+    # the package's constant, read at each call: assigning diffcam.io.MAX_READ_BYTES
+    # takes effect
+    limit = sys.modules["diffcam.io"].MAX_READ_BYTES if max_bytes is None else max_bytes
     if isinstance(limit, bool) or not isinstance(limit, (int, np.integer)) or limit <= 0:
         raise DiffcamError(f"max_bytes must be a positive integer (bytes), got {limit!r}.")
     return int(limit)
@@ -909,3 +468,7 @@ def _check_values(arr: np.ndarray, where) -> None:
     if not finite.all():
         raise DiffcamError(f"{where}: {int(arr.size - finite.sum())} NaN/Inf value(s); "
                            f"clean the data (np.nan_to_num) or mask those pixels first.")
+
+
+
+_READERS = {".png": _read_png, ".tif": _read_tiff, ".tiff": _read_tiff, ".npy": _read_npy}
