@@ -255,3 +255,23 @@ def test_calibrate_psf_compare_failures(calibration_files, tmp_path, capsys):
     ]
     for args, message in cases:
         _fails_cleanly(capsys, args, message, out)
+
+
+def test_apps_import_no_cycle_and_no_private_names():
+    """The command modules import their shared helpers from diffcam.apps.common, never
+    from diffcam.apps.cli (which imports them: a cycle) nor a private name of another
+    module (read from the source with ast)."""
+    import ast
+    from pathlib import Path
+
+    import diffcam.apps
+
+    offenders = []
+    for path in sorted(Path(diffcam.apps.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("diffcam"):
+                if node.module == "diffcam.apps.cli" and path.name != "cli.py":
+                    offenders.append(f"{path.name} imports diffcam.apps.cli")
+                offenders += [f"{path.name} imports {node.module}.{a.name}"
+                              for a in node.names if a.name.startswith("_")]
+    assert offenders == []

@@ -90,3 +90,17 @@ def test_metric_bad_input():
         ssim(A[:5, :5], B[:5, :5], data_range=1.0)
     with pytest.raises(DiffcamError, match="align"):
         mse(A, B, align="rotate")
+
+
+def test_ssim_options_object_equals_keywords():
+    """SsimOptions given as an object or as keywords: the same score; its fields are
+    validated (an even window, a zero sigma, an unknown field)."""
+    from diffcam.evaluate.metrics import SsimOptions
+
+    options = SsimOptions(win_size=11, K2=0.05)
+    assert float(ssim(B, A, options, data_range=1.0)) == \
+        float(ssim(B, A, data_range=1.0, win_size=11, K2=0.05))
+    for bad in ({"win_size": 4}, {"win_size": 7.0}, {"sigma": 0.0}, {"K1": float("nan")},
+                {"window": 7}):
+        with pytest.raises(DiffcamError):
+            ssim(B, A, data_range=1.0, **bad)

@@ -307,3 +307,33 @@ def test_stack_with_depths_labels_planes_by_depth(scene):
     np.testing.assert_allclose(volume, _volume(d / "tif.tif")[0], rtol=1e-5,
                                atol=1e-6 * volume.max())
     assert (d / "npz_depth.png").stat().st_size > 5000
+
+
+def _declaring(model, folder, n_planes):
+    """A copy of ``model`` whose metadata declare ``n_planes`` planes."""
+    with np.load(model) as arrays:
+        contents = dict(arrays)
+    meta = json.loads(str(contents["metadata"][()]))
+    meta["n_planes"] = n_planes
+    contents["metadata"] = np.array(json.dumps(meta))
+    path = folder / f"declares_{n_planes}.npz"
+    np.savez(path, **contents)
+    return path
+
+
+@pytest.mark.parametrize("n_planes", [0, -3, 10**9])
+def test_a_model_declaring_a_hostile_plane_count(models, tmp_path, capsys, n_planes):
+    """A model file declaring 0, −3 or 10⁹ planes, through predict, psf, reconstruct
+    --3d: one error line naming the file and the count, exit 2, before anything is
+    rendered (10⁹ planes once grew past 4 GiB); --planes still works."""
+    model = _declaring(models / "model.npz", tmp_path, n_planes)
+    raw = models / "raw.npy"
+    for argv in (["predict", model, "-o", tmp_path / "p.tif"],
+                 ["psf", model, "-o", tmp_path / "q.tif"],
+                 ["reconstruct", raw, "--psf", model, "--3d", "--quiet",
+                  "-o", tmp_path / "v.tif"]):
+        capsys.readouterr()
+        assert main([str(a) for a in argv]) == 2
+        errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+        assert len(errors) == 1 and f"declares {n_planes} planes" in errors[0], errors
+    assert main(["predict", str(model), "--planes", "5,6", "-o", str(tmp_path / "p.tif")]) == 0

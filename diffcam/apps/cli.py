@@ -12,157 +12,32 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcam.apps.fit_cli import _add_fit
+from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
+                                 length_arg, lengths_arg, planes_arg, read_psfs,
+                                 save_figure, save_image, save_open_figures, save_rgb)
+from diffcam.apps.fit_cli import add_fit
 from diffcam.apps.processes import in_distributed_run, report_error, run_processes
-from diffcam.apps.reconstruct_cli import _add_reconstruct
-from diffcam.apps.scene_psf_cli import _add_calibrate_psf
+from diffcam.apps.reconstruct_cli import add_reconstruct
+from diffcam.apps.scene_psf_cli import add_calibrate_psf
 from diffcam.core.errors import DiffcamError
-from diffcam.io import atomic_output, interrupts_as_keyboard_interrupt
-from diffcam.core.units import parse_length, parse_length_range
+from diffcam.io import interrupts_as_keyboard_interrupt
+
+__all__ = ["main", "run", "build_parser", "save_image", "save_rgb", "save_figure",
+           "save_open_figures"]
 
 
-def _units(parse, name):
-    """An argparse type that reads lengths with units; errors become usage errors."""
-    def convert(text):
-        try:
-            return parse(text, name=name)
-        except DiffcamError as e:
-            raise argparse.ArgumentTypeError(str(e)) from None
-    convert.__name__ = name
-    return convert
+MAX_RESTARTS = 100
+"""Most random starts ``diffcam calibrate --restarts`` takes (each is a full run of
+the projections)."""
 
 
-def _length(name):
-    return _units(parse_length, name)
+class Parser(argparse.ArgumentParser):
+    """A subcommand's parser: a usage error is one line, ``diffcam CMD: error: …
+    (see diffcam CMD --help)``, exit status 2, instead of the whole usage block."""
 
-
-def _lengths(name):
-    return _units(parse_length_range, name)
-
-
-def save_image(path, image, *, bits: int = 16) -> None:
-    """Write an image atomically: ``.png`` (``bits`` 16 or 8, min–max scaled),
-    ``.tif``/``.tiff`` (float32, multi-page for a stack), or ``.npy`` (as is)."""
-    image = np.asarray(image, dtype=np.float32)
-    suffix = Path(path).suffix.lower()
-    if suffix not in (".png", ".tif", ".tiff", ".npy"):
-        raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
-    if bits not in (8, 16):
-        raise DiffcamError(f"{path}: a PNG holds 8 or 16 bits per pixel, not {bits}.")
-    with atomic_output(path) as tmp:
-        if suffix == ".png":
-            from skimage.io import imsave
-
-            if image.ndim != 2:
-                raise DiffcamError(f"{path}: PNG holds one 2-D image, got shape "
-                                   f"{image.shape}; write .tif for a stack.")
-            lo, hi = float(image.min()), float(image.max())
-            scaled = (image - lo) / (hi - lo) if hi > lo else np.zeros_like(image)
-            top, dtype = (255, np.uint8) if bits == 8 else (65535, np.uint16)
-            imsave(tmp, np.round(scaled * top).astype(dtype), check_contrast=False)
-        elif suffix == ".npy":
-            np.save(tmp, image)
-        else:
-            import tifffile
-
-            tifffile.imwrite(tmp, image, imagej=image.ndim == 3)
-
-
-def save_rgb(path, image) -> None:
-    """Write a colour image ``(3, ny, nx)`` (R, G, B) atomically: ``.npy`` float32
-    ``(ny, nx, 3)`` as is; ``.png`` 8 bits and ``.tif``/``.tiff`` 16 bits per channel,
-    scaled so that the 99.9th percentile of all channels is full scale (the few brighter
-    pixels saturate; negatives clip to 0; one scale keeps the colour balance)."""
-    image = np.moveaxis(np.asarray(image, dtype=np.float32), 0, -1)
-    suffix = Path(path).suffix.lower()
-    if suffix not in (".png", ".tif", ".tiff", ".npy"):
-        raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
-    if image.ndim != 3 or image.shape[-1] != 3:
-        raise DiffcamError(f"{path}: a colour image has 3 channels, got shape "
-                           f"{np.moveaxis(image, -1, 0).shape}.")
-    with atomic_output(path) as tmp:
-        if suffix == ".npy":
-            np.save(tmp, image)
-            return
-        top = float(np.percentile(image, 99.9))
-        scaled = np.clip(image / top, 0, 1) if top > 0 else np.zeros_like(image)
-        if suffix == ".png":
-            from skimage.io import imsave
-
-            imsave(tmp, np.round(scaled * 255).astype(np.uint8), check_contrast=False)
-        else:
-            import tifffile
-
-            tifffile.imwrite(tmp, np.round(scaled * 65535).astype(np.uint16),
-                             photometric="rgb")
-
-
-class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """``--help`` shows ``(default: X)`` where there is a default to show (not None/off)."""
-
-    def _get_help_string(self, action):
-        if action.default is None or action.default is False or action.required \
-                or action.default == argparse.SUPPRESS or "default" in (action.help or ""):
-            return action.help
-        return super()._get_help_string(action)
-
-
-def save_figure(fig, path) -> None:
-    """Lay out ``fig`` (unless it has a layout engine, e.g. ``layout="constrained"``),
-    write it atomically to ``path`` (format from the suffix), close it."""
-    import matplotlib.pyplot as plt
-
-    if fig.get_layout_engine() is None:
-        fig.tight_layout()
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-
-
-def save_open_figures(stem: str, folder=None) -> list[Path]:
-    """Write every open matplotlib figure as ``FOLDER/STEM_k.png`` (k = 1, 2, … in the
-    order they were made) with :func:`save_figure`, and close them: how a notebook run
-    as a script leaves its figures. ``FOLDER``: ``$DIFFCAM_FIGURES``, else ``figures``
-    in the working folder (made if missing)."""
-    import os
-
-    import matplotlib.pyplot as plt
-
-    folder = Path(folder or os.environ.get("DIFFCAM_FIGURES", "figures"))
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for k, number in enumerate(plt.get_fignums(), start=1):
-        paths.append(folder / f"{stem}_{k}.png")
-        save_figure(plt.figure(number), paths[-1])
-    return paths
-
-
-def _read_psfs(path):
-    """A PSF or PSF stack from an image file, a MATLAB ``.mat`` stack or a stack written
-    by diffcam (``.npz``, ``.npy`` with its ``.json``, ``.tif`` with stack metadata);
-    returns ``(psfs, depths in metres or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
-    from diffcam.io import read_image, read_mat_stack
-    from diffcam.model.stack import load_stack
-
-    suffix = Path(path).suffix.lower()
-    if suffix == ".mat":
-        return read_mat_stack(path), None
-    if suffix == ".npz" or (suffix == ".npy" and Path(str(path) + ".json").exists()) or (
-            suffix in (".tif", ".tiff") and _has_stack_meta(path)):
-        stack, meta = load_stack(path)
-        return np.asarray(stack), np.asarray(meta.depths)
-    return read_image(path).image, None
-
-
-def _has_stack_meta(path) -> bool:
-    """Whether a TIFF carries diffcam's stack metadata (else it is read as an image)."""
-    import tifffile
-
-    try:
-        with tifffile.TiffFile(path) as tif:
-            return "Info" in (tif.imagej_metadata or {})
-    except Exception:  # not a readable TIFF: read_image will say what is wrong
-        return False
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message.rstrip('.')} (see {self.prog} "
+                     f"--help)\n")
 
 
 def _camera_for(phase_file, z2, crop):
@@ -215,8 +90,10 @@ def _several_processes(args) -> bool:
     from diffcam.apps.processes import ERRORS, distributed_settings, initialize_from_environment
     from diffcam.io import check_output_path
 
-    if args.processes < 1:
-        raise DiffcamError(f"--processes must be at least 1, got {args.processes}.")
+    cpus = os.cpu_count() or 1
+    if not 1 <= args.processes <= cpus:
+        raise DiffcamError(f"--processes must be at least 1 and at most the {cpus} CPUs "
+                           f"of this machine, got {args.processes}.")
     settings = distributed_settings()
     if settings is None:
         if args.processes > 1:
@@ -232,14 +109,14 @@ def _several_processes(args) -> bool:
 def _psf_from_stack_fit(args) -> int:
     """``diffcam psf MODEL.npz --planes …``: the planes of a stack fit (as `diffcam
     predict`); a stack fit knows plane indices, not depths."""
-    from diffcam.apps.fit_cli import _cmd_predict
+    from diffcam.apps.fit_cli import cmd_predict
 
     given = [f for f, v in (("--z1", args.z1), ("--z2", args.z2), ("--crop", args.crop))
              if v is not None]
     if given:
         raise DiffcamError(f"{args.phase} is a stack-fit model: it predicts plane indices "
                            f"(--planes 0:43), it does not take {', '.join(given)}.")
-    return _cmd_predict(argparse.Namespace(model=args.phase, planes=args.planes, kappa=None,
+    return cmd_predict(argparse.Namespace(model=args.phase, planes=args.planes, kappa=None,
                                            rendered_only=False, out=args.out))
 
 
@@ -253,13 +130,14 @@ def _grid_for(aperture_radius, dx):
 def _cmd_calibrate(args) -> int:
     import jax
 
-    from diffcam.io import read_image
+    from diffcam.io import check_output_path, read_image
     from diffcam.optics.elements import circular_aperture
     from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane, resolve_twin,
                             retrieve_projections)
     from diffcam.calibrate.pipeline import retrieve_phase
     from diffcam.calibrate.phase_io import PhaseFile, save_phase
 
+    check_output_path(args.out, suffixes=(".npz",))
     dx = args.dx or args.pixel
     n = args.grid or _grid_for(args.aperture_radius, dx)
     geometry = CalibrationGeometry(dx=dx, wavelength=args.wavelength,
@@ -294,8 +172,7 @@ def _cmd_calibrate(args) -> int:
         psf_ref, camera = reference
         phase, info["twin_chosen"] = resolve_twin(phase, psf_ref, camera, args.psf_z1)
         info.update(twin_resolved=True, psf=str(args.psf))
-    with atomic_output(args.out) as tmp:
-        save_phase(tmp, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
+    save_phase(args.out, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
     twin = "twin resolved by the PSF" if info["twin_resolved"] else \
         "phase known up to piston and the conjugate twin: pass --psf to resolve it"
     print(f"diffcam calibrate: final error {info['final_error']:.3g} → {args.out} ({twin})")
@@ -338,7 +215,7 @@ def _cmd_compare(args) -> int:
     if args.json is not None:
         raise DiffcamError("--json is written with --model; with --phase the table is "
                            "printed and the figure written.")
-    captured, depths = _read_psfs(args.captured)
+    captured, depths = read_psfs(args.captured)
     if captured.ndim != 3:
         raise DiffcamError(f"{args.captured}: expected a stack of PSFs (nz, ny, nx), got "
                            f"shape {captured.shape}.")
@@ -385,9 +262,6 @@ def _cmd_demo(args) -> int:
     changes = {k: v for k, v in (("grid", args.grid), ("gs_iterations", args.gs_iterations),
                                  ("calibration_iterations", args.calibration_iterations))
                if v is not None}
-    if changes.get("grid", 1024) < 600:
-        raise DiffcamError("--grid must be at least 600 samples: the 512² diffuser needs "
-                           "room around it for the far field.")
     run_demo(args.out, settings=Settings(**{**base.__dict__, **changes}))
     return 0
 
@@ -408,10 +282,13 @@ def _add_demo(sub) -> None:
     demo.add_argument("--full", action="store_true",
                       help="the paper's 4000×4000 grid (about 30 min and 6 GB of memory "
                            "on 2 cores)")
-    demo.add_argument("--grid", type=int, help="simulation grid, samples per side "
-                                               "(default 1024; 4000 with --full)")
-    demo.add_argument("--gs-iterations", type=int, help="textbook GS iterations (2000)")
-    demo.add_argument("--calibration-iterations", type=int,
+    demo.add_argument("--grid", type=grid_count(600),
+                      help="simulation grid, samples per side, at least 600: the 512² "
+                           "diffuser needs room for the far field (default 1024; 4000 "
+                           "with --full)")
+    demo.add_argument("--gs-iterations", type=iterations_count(),
+                      help="textbook GS iterations (2000)")
+    demo.add_argument("--calibration-iterations", type=iterations_count(),
                       help="iterations of diffcam's calibration (300)")
     demo.set_defaults(func=_cmd_demo)
 
@@ -419,6 +296,9 @@ def _add_demo(sub) -> None:
 def _cmd_data(args) -> int:
     from diffcam.data import export_captures
 
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise DiffcamError(f"{args.out}: is a file; -o names the folder the capture files "
+                           f"go to.")
     paths = export_captures(args.name, args.out, overwrite=args.force)
     print(f"diffcam data: {len(paths)} files → {args.out}")
     return 0
@@ -445,18 +325,18 @@ def _add_plan(sub) -> None:
     plan = sub.add_parser("plan", help="check the sampling of a diffuser-camera geometry",
                           description="Report Fresnel numbers, point-source chirp sampling, "
                                       "propagator validity and padding before simulating.")
-    plan.add_argument("--wavelength", type=_length("wavelength"), default="532nm",
+    plan.add_argument("--wavelength", type=length_arg("wavelength"), default="532nm",
                       help="wavelength, with a unit")
-    plan.add_argument("--pixel", type=_length("pixel"), required=True,
+    plan.add_argument("--pixel", type=length_arg("pixel"), required=True,
                       help="grid pitch, with a unit (3.45um)")
-    plan.add_argument("--n", type=int, required=True, help="samples per side")
-    plan.add_argument("--z1", type=_length("z1"), required=True,
+    plan.add_argument("--n", type=grid_count(), required=True, help="samples per side")
+    plan.add_argument("--z1", type=length_arg("z1"), required=True,
                       help="smallest source depth, with a unit (22mm)")
-    plan.add_argument("--z2", type=_length("z2"), required=True,
+    plan.add_argument("--z2", type=length_arg("z2"), required=True,
                       help="diffuser to sensor, with a unit (1mm)")
-    plan.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True,
+    plan.add_argument("--aperture-radius", type=length_arg("aperture-radius"), required=True,
                       help="aperture radius, with a unit (2.3mm)")
-    plan.add_argument("--max-offset", type=_length("max-offset"), default="0mm",
+    plan.add_argument("--max-offset", type=length_arg("max-offset"), default="0mm",
                       help="largest lateral source offset, with a unit")
     plan.set_defaults(func=_cmd_plan)
 
@@ -468,40 +348,40 @@ def _add_calibrate(sub) -> None:
                                      "focal plane of a Fourier lens); writes a phase .npz.")
     cal.add_argument("near", help="near-field capture (.png, .tif, .npy)")
     cal.add_argument("far", help="far-field capture at the lens's back focal plane")
-    cal.add_argument("--focal-length", type=_length("focal-length"), required=True,
+    cal.add_argument("--focal-length", type=length_arg("focal-length"), required=True,
                      help="Fourier lens focal length, with a unit (5cm)")
-    cal.add_argument("--wavelength", type=_length("wavelength"), required=True,
+    cal.add_argument("--wavelength", type=length_arg("wavelength"), required=True,
                      help="wavelength, with a unit (532nm)")
-    cal.add_argument("--pixel", type=_length("pixel"), required=True,
+    cal.add_argument("--pixel", type=length_arg("pixel"), required=True,
                      help="sensor pixel pitch of both captures, with a unit (3.45um)")
-    cal.add_argument("--aperture-radius", type=_length("aperture-radius"), required=True,
+    cal.add_argument("--aperture-radius", type=length_arg("aperture-radius"), required=True,
                      help="radius of the aperture before the diffuser, with a unit")
-    cal.add_argument("--near-distance", type=_length("near-distance"), default="0mm",
+    cal.add_argument("--near-distance", type=length_arg("near-distance"), default="0mm",
                      help="diffuser to near-capture plane, free-space equivalent (0.5 mm "
                           "of n = 1.5 cover glass ≈ 0.33mm)")
-    cal.add_argument("--dx", type=_length("dx"), help="diffuser grid pitch (default: --pixel)")
-    cal.add_argument("--grid", type=int, help="calibration grid (default: 2× the aperture)")
+    cal.add_argument("--dx", type=length_arg("dx"), help="diffuser grid pitch (default: --pixel)")
+    cal.add_argument("--grid", type=grid_count(16),
+                     help="calibration grid (default: 2× the aperture)")
     cal.add_argument("--background", type=float, default=0.0, help="dark level, counts")
     cal.add_argument("--saturation", type=float, help="raw count of a saturated pixel")
     cal.add_argument("--solver", choices=["default", "gs", "hio", "raar"], default="default",
                      help="default: RAAR with restarts, then least squares")
-    cal.add_argument("--iterations", type=int, default=300, help="projection iterations")
-    cal.add_argument("--restarts", type=int,
+    cal.add_argument("--iterations", type=iterations_count(), default=300,
+                     help="projection iterations")
+    cal.add_argument("--restarts", type=count(1, MAX_RESTARTS, "diffcam.apps.cli.MAX_RESTARTS"),
                      help="random starts of the projections (default 4; 1 with --psf, "
                           "which starts flat)")
     cal.add_argument("--seed", type=int, default=0, help="seed of the random starts")
     cal.add_argument("--psf", help="a captured on-axis PSF at the grid pitch, background "
                      "subtracted: a third intensity plane for the projections (it resolves "
                      "the twin and un-stalls strongly scattering diffusers)")
-    cal.add_argument("--psf-z1", type=_length("psf-z1"), help="source depth of --psf")
-    cal.add_argument("--psf-z2", type=_length("psf-z2"), help="diffuser to sensor for --psf")
+    cal.add_argument("--psf-z1", type=length_arg("psf-z1"), help="source depth of --psf")
+    cal.add_argument("--psf-z2", type=length_arg("psf-z2"), help="diffuser to sensor for --psf")
     cal.add_argument("-o", "--out", required=True, help="phase file (.npz)")
     cal.set_defaults(func=_cmd_calibrate)
 
 
 def _add_psf(sub) -> None:
-    from diffcam.apps.fit_cli import _planes_arg
-
     ps = sub.add_parser("psf", help="PSFs at depths from a phase file or a stack fit",
                         description="Compute the camera's PSF (paper Eq. 7) for point "
                                     "sources on axis at each depth; writes .npz or a "
@@ -510,14 +390,14 @@ def _add_psf(sub) -> None:
                                     "`diffcam predict` does.")
     ps.add_argument("phase", help="phase file from `diffcam calibrate`, or a stack-fit "
                                   "model from `diffcam fit`")
-    ps.add_argument("--z1", type=_lengths("z1"),
+    ps.add_argument("--z1", type=lengths_arg("z1"),
                     help="depth(s): 25mm, 22mm,25mm or 22mm:30mm:1mm (end included); "
                          "needed with a phase file")
-    ps.add_argument("--z2", type=_length("z2"),
+    ps.add_argument("--z2", type=length_arg("z2"),
                     help="diffuser to sensor; needed with a phase file")
-    ps.add_argument("--planes", type=_planes_arg,
+    ps.add_argument("--planes", type=planes_arg,
                     help="stack-fit model only: planes, e.g. 0:43 (default: all)")
-    ps.add_argument("--crop", type=int, help="square crop of each PSF (samples)")
+    ps.add_argument("--crop", type=grid_count(1), help="square crop of each PSF (samples)")
     ps.add_argument("-o", "--out", required=True,
                     help="output .npz or .tif (a stack fit: .tif or .npy)")
     ps.add_argument("--processes", type=int, default=1,
@@ -529,14 +409,14 @@ def _add_psf(sub) -> None:
 
 def _compare_stack_fit(args) -> int:
     """``diffcam compare STACK --model MODEL.npz``: as ``diffcam compare-stack``."""
-    from diffcam.apps.fit_cli import _cmd_compare_stack
+    from diffcam.apps.fit_cli import cmd_compare_stack
 
     given = [f for f, v in (("--z1", args.z1), ("--z2", args.z2), ("--pixel", args.pixel),
                             ("--anchor", args.anchor)) if v is not None]
     if given:
         raise DiffcamError(f"--model compares by plane index; it does not take "
                            f"{', '.join(given)}.")
-    return _cmd_compare_stack(argparse.Namespace(stack=args.captured, model=args.model,
+    return cmd_compare_stack(argparse.Namespace(stack=args.captured, model=args.model,
                                                  key=None, out=args.out, json=args.json))
 
 
@@ -551,16 +431,16 @@ def _add_compare(sub) -> None:
     cmp_.add_argument("--phase", help="phase file from `diffcam calibrate`")
     cmp_.add_argument("--model", help="or a stack-fit model from `diffcam fit`")
     cmp_.add_argument("--json", help="with --model: per-plane scores (.json)")
-    cmp_.add_argument("--z1", type=_lengths("z1"), help="depth of each captured PSF")
-    cmp_.add_argument("--z2", type=_length("z2"), help="diffuser to sensor (with --phase)")
-    cmp_.add_argument("--pixel", type=_length("pixel"), help="captured PSFs' pixel pitch")
-    cmp_.add_argument("--anchor", type=_length("anchor"),
+    cmp_.add_argument("--z1", type=lengths_arg("z1"), help="depth of each captured PSF")
+    cmp_.add_argument("--z2", type=length_arg("z2"), help="diffuser to sensor (with --phase)")
+    cmp_.add_argument("--pixel", type=length_arg("pixel"), help="captured PSFs' pixel pitch")
+    cmp_.add_argument("--anchor", type=length_arg("anchor"),
                       help="depth of the PSF the scaling baseline magnifies (default: first)")
     cmp_.add_argument("-o", "--out", required=True, help="figure (.png)")
     cmp_.set_defaults(func=_cmd_compare)
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.")
     talk = parser.add_mutually_exclusive_group()
@@ -570,12 +450,49 @@ def build_parser() -> argparse.ArgumentParser:
                       help="also print the FFT backend, JAX's device and the wall time")
     sub = parser.add_subparsers(dest="command", required=True)
     # every subcommand's --help shows its defaults (a parser may still pass its own)
-    sub._parser_class = functools.partial(argparse.ArgumentParser,
-                                          formatter_class=DefaultsFormatter)
-    for add in (_add_demo, _add_data, _add_plan, _add_reconstruct, _add_calibrate,
-                _add_calibrate_psf, _add_psf, _add_compare, _add_fit):
+    sub._parser_class = functools.partial(Parser, formatter_class=DefaultsFormatter)
+    for add in (_add_demo, _add_data, _add_plan, add_reconstruct, _add_calibrate,
+                add_calibrate_psf, _add_psf, _add_compare, add_fit):
         add(sub)
+    for name, command in sub.choices.items():
+        command.epilog = limits(name)
     return parser
+
+
+def limits(command: str) -> str:
+    """The resource caps a subcommand enforces before any work, for its ``--help``."""
+    from diffcam.calibrate.stack_result import MAX_PLANES
+    from diffcam.core.grid import MAX_GRID_SAMPLES
+    from diffcam.io import MAX_READ_BYTES
+    from diffcam.reconstruct.checks import MAX_ITERATIONS
+
+    caps = [] if command in ("data", "demo", "plan") else [
+        f"each array read at most {MAX_READ_BYTES / 2**30:g} GiB (diffcam.io.MAX_READ_BYTES)"]
+    if command in ("reconstruct", "predict", "psf", "fit", "compare", "compare-stack"):
+        caps.append(f"at most {MAX_PLANES} planes (diffcam.calibrate.stack_result.MAX_PLANES)")
+    if command == "reconstruct":
+        caps.append(f"at most {MAX_ITERATIONS} iterations "
+                    f"(diffcam.reconstruct.checks.MAX_ITERATIONS)")
+    if command in ("demo", "plan", "calibrate", "psf", "compare"):
+        caps.append(f"a propagation grid of at most {MAX_GRID_SAMPLES} samples, padding "
+                    f"included (diffcam.core.grid.MAX_GRID_SAMPLES)")
+    said = ("Limits, checked before any work (raise them from Python by assigning to "
+            "the constants named): " + "; ".join(caps) + ". ") if caps else ""
+    return said + ("Errors are one line on stderr with exit status 2; an existing output "
+                   "is replaced whole or not at all.")
+
+
+def check_environment() -> None:
+    """The environment's settings, checked before any work: ``DIFFCAM_FFT`` (a backend,
+    :func:`diffcam.core.backend.fft_backend`) and ``DIFFCAM_FFT_THREADS`` (a positive
+    integer when set, whichever backend runs)."""
+    from diffcam.core.backend import fft_backend
+
+    fft_backend()
+    threads = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
+    if threads and not (threads.isdigit() and int(threads) > 0):
+        raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
+                           f"{threads!r:.40}; unset it to use every CPU.")
 
 
 @contextlib.contextmanager
@@ -617,6 +534,7 @@ def main(argv=None) -> int:
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
         with interrupts_as_keyboard_interrupt(), _talk(args):
+            check_environment()
             return args.func(args)
     except DiffcamError as e:
         report_error(args.command, str(e))

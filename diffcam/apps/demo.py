@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from diffcam.apps import paper
-from diffcam.apps.cli import save_figure
+from diffcam.apps.common import save_figure
 from diffcam.calibrate import cameraman_phase, resolve_twin
 from diffcam.core.backend import fft_status
 

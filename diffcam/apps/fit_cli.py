@@ -17,48 +17,12 @@ import argparse
 import math
 import json
 import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from diffcam.core.errors import DiffcamError
 
-
-
-def parse_planes(text: str) -> list[int]:
-    """``"5,25"`` → [5, 25]; ``"0:43"`` → 0 … 43 (both ends included); ``"0:10:2,30"``
-    (a step) and mixes of both."""
-    out: list[int] = []
-    for item in str(text).split(","):
-        item = item.strip()
-        if not item:
-            continue
-        try:
-            if ":" in item:
-                parts = [int(p) for p in item.split(":")]
-                if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] <= 0):
-                    raise ValueError
-                a, b = parts[0], parts[1]
-                step = parts[2] if len(parts) == 3 else 1
-                if b < a:
-                    raise ValueError
-                out.extend(range(a, b + 1, step))
-            else:
-                out.append(int(item))
-        except ValueError:
-            raise DiffcamError(f"planes {text!r}: give indices as 5,25 or a range 0:43 "
-                               f"(both ends included, a ≤ b).") from None
-    if not out:
-        raise DiffcamError(f"planes {text!r}: no plane index given.")
-    return out
-
-
-def _planes_arg(text):
-    try:
-        return parse_planes(text)
-    except DiffcamError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _saturation_arg(text):
@@ -78,7 +42,8 @@ def _saturation_arg(text):
 def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float | None]:
     """A PSF stack from a file, folder or glob → (float32 (n, ny, nx), saturation level
     in the stack's units or ``None`` for float data)."""
-    from diffcam.io import image_files, read_image, read_mat_stack, read_npz, read_psf_stack
+    from diffcam.io import (image_files, npz_keys, read_image, read_mat_stack, read_npz,
+                            read_psf_stack)
 
     path = Path(source)
     full_scale = None
@@ -87,13 +52,7 @@ def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float |
         stack = read_psf_stack(files)
         full_scale = read_image(files[0]).full_scale
     elif path.suffix.lower() == ".npz":
-        if not path.is_file():
-            raise DiffcamError(f"{path}: no such file.")
-        try:
-            with zipfile.ZipFile(path) as z:
-                names = [n[:-4] for n in z.namelist() if n.endswith(".npy")]
-        except (zipfile.BadZipFile, OSError) as err:
-            raise DiffcamError(f"{path}: not an .npz archive ({err}).") from None
+        names = npz_keys(path, what="a PSF stack (.npz)")
         if key is None:
             arrays = read_npz(path, names, what="a PSF stack (.npz)") if len(names) <= 16 \
                 else {}
@@ -117,6 +76,10 @@ def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float |
     if np.ndim(stack) != 3:
         raise DiffcamError(f"{source}: expected a stack of planes (n, ny, nx), got shape "
                            f"{np.shape(stack)}.")
+    bad = np.flatnonzero(~np.isfinite(stack).all(axis=(1, 2)))
+    if bad.size:
+        raise DiffcamError(f"{source}: plane(s) {bad[:5].tolist()} hold NaN or Inf values; "
+                           f"clean the stack (np.nan_to_num) first.")
     return np.asarray(stack), None if full_scale is None else 0.999 * full_scale
 
 
@@ -158,25 +121,38 @@ def _z2m(fit) -> str:
     return "" if z2m is None else f" = z2·M {1e3 * z2m:.2f} mm at plane {fit.planes[0]}"
 
 
-def _cmd_predict(args) -> int:
-    from diffcam.apps.cli import save_image
+def cmd_predict(args) -> int:
+    from diffcam.apps.common import save_image
     from diffcam.calibrate import load_stack_fit
     from diffcam.io import check_output_path
 
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
     fit = load_stack_fit(args.model)
     t0 = time.perf_counter()
-    planes = args.planes
-    if planes is None:
-        if fit.n_planes is None:
-            raise DiffcamError(f"{args.model} does not record the stack's plane count; "
-                               f"give --planes.")
-        planes = list(range(fit.n_planes))
+    planes = model_planes(fit, args.planes, args.model)
     pred = fit.predict(planes, kappa=args.kappa, residual=not args.rendered_only)
     save_image(args.out, pred)
     print(f"diffcam predict: {len(planes)} planes of {pred.shape[1]}×{pred.shape[2]} "
           f"({time.perf_counter() - t0:.1f} s) → {args.out}")
     return 0
+
+
+def model_planes(fit, planes: list[int] | None, path) -> list[int]:
+    """``planes`` (``--planes``), or by default every plane of the model's stack: its
+    recorded plane count, checked (a damaged file may declare 0 or 10⁹)."""
+    from diffcam.calibrate.stack_result import MAX_PLANES
+
+    if planes is not None:
+        return planes
+    n = fit.n_planes
+    if n is None:
+        raise DiffcamError(f"{path}: the model does not record its stack's plane count; "
+                           f"choose planes with --planes (e.g. 0:43).")
+    if not 1 <= n <= MAX_PLANES:
+        raise DiffcamError(f"{path}: the model declares {n} planes, outside 1 … "
+                           f"{MAX_PLANES} (diffcam.calibrate.stack_result.MAX_PLANES): the file "
+                           f"is damaged; choose planes with --planes.")
+    return list(range(n))
 
 
 def compare_stack(stack, fit) -> dict:
@@ -216,8 +192,8 @@ def compare_stack(stack, fit) -> dict:
     return {"planes": list(fit.planes), "per_plane": rows, "mean_held_out": summary}
 
 
-def _cmd_compare_stack(args) -> int:
-    from diffcam.apps.cli import save_figure
+def cmd_compare_stack(args) -> int:
+    from diffcam.apps.common import save_figure
     from diffcam.calibrate import load_stack_fit
     from diffcam.io import atomic_output, check_output_path
 
@@ -225,8 +201,8 @@ def _cmd_compare_stack(args) -> int:
         check_output_path(args.out, suffixes=(".png", ".pdf", ".svg"))
     if args.json:
         check_output_path(args.json, suffixes=(".json",))
-    fit = load_stack_fit(args.model)
     stack, _ = read_stack(args.stack, args.key)
+    fit = load_stack_fit(args.model)
     result = compare_stack(stack, fit)
     lines = ["| plane | model | scaling baseline | frozen distance (κ=0) | rendering alone |",
              "|---|---|---|---|---|"]
@@ -270,9 +246,9 @@ def _cmd_compare_stack(args) -> int:
     return 0
 
 
-def _add_fit(sub) -> None:
+def add_fit(sub) -> None:
     """Add ``fit``, ``predict`` and ``compare-stack`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.cli import _length
+    from diffcam.apps.common import iterations_count, length_arg, planes_arg
 
     fit = sub.add_parser("fit", help="fit a wave model to a few planes of a PSF stack",
                          description="Fit the stack wave model to the given planes of a "
@@ -281,22 +257,23 @@ def _add_fit(sub) -> None:
                                      "scores of the model and the scaling baseline.")
     fit.add_argument("stack", help="multi-page TIFF, .npy, .npz (one 3-D array or --key), "
                                    ".mat, a folder or a quoted glob of single-plane images")
-    fit.add_argument("--planes", type=_planes_arg, required=True,
+    fit.add_argument("--planes", type=planes_arg, required=True,
                      help="given planes, e.g. 5,25 (the first is the reference)")
     fit.add_argument("--key", help="array name inside an .npz or .mat stack")
-    fit.add_argument("--max-steps", type=int, help="Adam steps at most (400)")
+    fit.add_argument("--max-steps", type=iterations_count(), help="Adam steps at most (400)")
     fit.add_argument("--time-budget", type=float, help="seconds for the whole fit (55)")
-    fit.add_argument("--patience", type=int, help="steps without validation gain (40)")
+    fit.add_argument("--patience", type=iterations_count(),
+                     help="steps without validation gain (40)")
     fit.add_argument("--seed", type=int, help="seed of the validation split (0)")
     fit.add_argument("--frozen", action="store_true",
                      help="frozen-distance ablation: ζ the same at every plane")
     fit.add_argument("--saturation", type=_saturation_arg,
                      help="pixel value counted as saturated, or 'none' "
                                           "(default: 0.999 × full scale of integer data)")
-    fit.add_argument("--pixel", type=_length("pixel"),
+    fit.add_argument("--pixel", type=length_arg("pixel"),
                      help="pixel pitch (reported: with --wavelength, the distance z2·M)")
-    fit.add_argument("--wavelength", type=_length("wavelength"), help="(reported, as above)")
-    fit.add_argument("--z2", type=_length("z2"),
+    fit.add_argument("--wavelength", type=length_arg("wavelength"), help="(reported, as above)")
+    fit.add_argument("--z2", type=length_arg("z2"),
                      help="diffuser to sensor (reported: with the two above, z1 per plane)")
     fit.add_argument("--no-progress", action="store_true", help="no progress bar")
     fit.add_argument("-o", "--out", required=True, help="model file (.npz)")
@@ -306,7 +283,7 @@ def _add_fit(sub) -> None:
                           description="Render planes of a stack model from `diffcam fit` "
                                       "(each normalised to unit mean).")
     pred.add_argument("model", help="model file from `diffcam fit`")
-    pred.add_argument("--planes", type=_planes_arg,
+    pred.add_argument("--planes", type=planes_arg,
                       help="planes, e.g. 0:43 (ends included) or 0,5,9 (default: all)")
     pred.add_argument("--kappa", type=float, help="render with this depth-law exponent "
                                                   "(0: frozen distance)")
@@ -314,7 +291,7 @@ def _add_fit(sub) -> None:
                       help="the model's rendering alone, without the measured planes' "
                            "carried residuals")
     pred.add_argument("-o", "--out", required=True, help="output .tif (multi-page) or .npy")
-    pred.set_defaults(func=_cmd_predict)
+    pred.set_defaults(func=cmd_predict)
 
     cmp_ = sub.add_parser("compare-stack", help="model vs scaling baseline per plane",
                           description="Pearson of the fitted model, the scaling baseline "
@@ -326,4 +303,4 @@ def _add_fit(sub) -> None:
     cmp_.add_argument("--key", help="array name inside an .npz or .mat stack")
     cmp_.add_argument("-o", "--out", help="figure (.png)")
     cmp_.add_argument("--json", help="per-plane scores (.json)")
-    cmp_.set_defaults(func=_cmd_compare_stack)
+    cmp_.set_defaults(func=cmd_compare_stack)

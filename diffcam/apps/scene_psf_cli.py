@@ -105,8 +105,10 @@ def _cmd_calibrate_psf(args) -> int:
     return 0
 
 
-def _add_calibrate_psf(sub) -> None:
+def add_calibrate_psf(sub) -> None:
     """Add ``calibrate-psf`` to the ``diffcam`` subcommands."""
+    from diffcam.apps.common import iterations_count
+
     cal = sub.add_parser(
         "calibrate-psf", help="PSF from raw captures of scenes with known ground truth",
         description="Fit the camera's PSF (one per colour channel) to raw captures and "
@@ -122,7 +124,7 @@ def _add_calibrate_psf(sub) -> None:
                           "arrays); needed for colour .npy, PNG/TIFF are RGB by default")
     cal.add_argument("--flip", choices=["auto", "none", "y", "x", "yx"], default="auto",
                      help="flip of the truths into the sensor frame; auto tries each")
-    cal.add_argument("--iterations", type=int, default=300, metavar="N",
+    cal.add_argument("--iterations", type=iterations_count(), default=300, metavar="N",
                      help="FISTA iterations (early stopping is the regularisation)")
     cal.add_argument("--no-check", action="store_true",
                      help="skip the held-out check (a second fit without the last pair)")

@@ -24,8 +24,9 @@ from jaxtyping import Float
 from diffcam.core.backend import fft2, ifft2
 
 from diffcam.core.errors import DiffcamError, ShapeError, check_finite, is_concrete
+from diffcam.core.options import Options
 
-__all__ = ["pearson", "ssim", "mse", "psnr", "align_to", "wrap_phase", "twin_phase",
+__all__ = ["pearson", "ssim", "SsimOptions", "mse", "psnr", "align_to", "wrap_phase", "twin_phase",
            "phase_offset", "phase_pearson", "phase_mse", "phase_scores"]
 
 _SPACE = (-2, -1)
@@ -195,39 +196,71 @@ def _separable_filter(x, weights):
     return sum(w * xp[..., :, i:i + nx] for i, w in enumerate(weights))
 
 
-def _ssim_window(win_size, gaussian_weights, sigma):
-    if gaussian_weights:
-        r = int(3.5 * sigma + 0.5)  # the truncation scikit-image uses
+class SsimOptions(Options):
+    """Settings of :func:`ssim`, scikit-image's ``structural_similarity`` defaults.
+
+    Attributes:
+        win_size: side of the uniform window, samples (odd, ≥ 3).
+        gaussian_weights: a Gaussian window of width ``sigma`` instead (truncated at
+            3.5 σ, as scikit-image does; ``win_size`` is then unused).
+        sigma: the Gaussian window's standard deviation, samples.
+        K1, K2: the constants of the luminance and contrast terms
+            (``c = (K·data_range)²``).
+        use_sample_covariance: normalise the window's covariances by ``n − 1``
+            (scikit-image's default) instead of ``n`` (Wang et al.'s definition).
+    """
+
+    win_size: int = 7
+    gaussian_weights: bool = False
+    sigma: float = 1.5
+    K1: float = 0.01
+    K2: float = 0.03
+    use_sample_covariance: bool = True
+
+    def __check_init__(self):
+        win = self.win_size
+        if isinstance(win, bool) or not isinstance(win, (int, np.integer)) or win % 2 != 1 \
+                or win < 3:
+            raise DiffcamError(f"win_size must be an odd integer ≥ 3, got {win!r}.")
+        for name in ("sigma", "K1", "K2"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float, np.number)) or isinstance(value, bool) \
+                    or not 0 < float(value) < np.inf:
+                raise DiffcamError(f"{name} must be a finite number > 0, got {value!r}.")
+
+    def window(self) -> np.ndarray:
+        """The 1-D weights of the separable window, summing to 1."""
+        if not self.gaussian_weights:
+            return np.full(int(self.win_size), 1.0 / int(self.win_size))
+        r = int(3.5 * float(self.sigma) + 0.5)  # the truncation scikit-image uses
         t = np.arange(-r, r + 1, dtype=np.float64)
-        w = np.exp(-0.5 * (t / sigma) ** 2)
-        return w / w.sum(), 2 * r + 1
-    if win_size % 2 != 1 or win_size < 3:
-        raise DiffcamError(f"win_size must be odd and ≥ 3, got {win_size}.")
-    return np.full(win_size, 1.0 / win_size), win_size
+        w = np.exp(-0.5 * (t / float(self.sigma)) ** 2)
+        return w / w.sum()
 
 
-def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx"], *,
-         data_range=None, win_size: int = 7, gaussian_weights: bool = False,
-         sigma: float = 1.5, K1: float = 0.01, K2: float = 0.03,
-         use_sample_covariance: bool = True, align: str | None = None
-         ) -> Float[Array, "..."]:
+def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx"],
+         options: SsimOptions | None = None, *, data_range=None, align: str | None = None,
+         **overrides) -> Float[Array, "..."]:
     """Mean structural similarity (Wang et al. 2004) over the last two axes.
 
     Matches ``skimage.metrics.structural_similarity`` for the same ``data_range`` and
     options (uniform 7×7 window, sample covariance, reflected edges, the border of
     half a window excluded from the mean). ``data_range`` defaults to the reference's
-    max − min. ``gaussian_weights=True, use_sample_covariance=False`` gives Wang et
-    al.'s original definition.
+    max − min. ``options``: :class:`SsimOptions`, whose fields may also be given as
+    keywords (``win_size=11``); ``gaussian_weights=True, use_sample_covariance=False``
+    gives Wang et al.'s original definition.
     """
+    options = SsimOptions.of(options, **overrides)
     _check_pair(estimate, reference)
-    weights, win = _ssim_window(win_size, gaussian_weights, sigma)
+    weights = options.window()
     ny, nx = np.shape(reference)[-2:]
+    win = len(weights)
     if ny < win or nx < win:
         raise ShapeError(f"images of {ny}×{nx} are smaller than the {win}×{win} SSIM window.")
     dr = _data_range(reference, data_range)
     return _ssim(jnp.asarray(estimate), jnp.asarray(reference), dr,
-                 tuple(float(w) for w in weights), float(K1), float(K2),
-                 bool(use_sample_covariance), align)
+                 tuple(float(w) for w in weights), float(options.K1), float(options.K2),
+                 bool(options.use_sample_covariance), align)
 
 
 @partial(jax.jit, static_argnames=("weights", "K1", "K2", "use_sample_covariance", "align"))

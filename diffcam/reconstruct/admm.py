@@ -30,9 +30,12 @@ depend on the PSF's units nor on the image's (every term of the augmented Lagran
 scales with ``||b||²``); the weights ``tau``, ``tau_axial``, ``sparsity`` scale with the
 image: the tutorial's ``tau = 1e-4`` and :data:`VOLUME`'s weights are for an
 L2-normalised image (:func:`diffcam.io.normalise_l2`), the DiffuserCam 3-D solver's
-``tau = 6e-4`` for raw counts minus the bias. The estimate is returned in the units of
-``image / psf`` (so ``A x ≈ b`` with the PSF as given); the objective history is in
-units of the image squared, for the normalised PSF.
+``tau = 6e-4`` for raw counts minus the bias. Inside, the image is divided by its L2
+norm too and the weights with it (every iterate is then the same up to that factor), so
+a faint (1e-25) or bright (1e30) image computes in float32 without a square under- or
+overflowing. The estimate is returned in the units of ``image / psf`` (so ``A x ≈ b``
+with the PSF as given); the objective history is in units of the image squared, for
+the normalised PSF.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import ArrayLike
 
 from diffcam.core.backend import irfft2, rfft2
@@ -189,10 +193,10 @@ def _admm(image, psf, iterations, options, *, volume, progress):
     check_image(image, nonnegative=False)
     core = 3 if volume else 2
     psf = check_psf(psf, jnp.shape(image), min_ndim=core)
-    if is_concrete(image) and float(jnp.sum(jnp.asarray(image) ** 2)) == 0:
-        raise DiffcamError("image is all zeros: there is nothing to reconstruct.")
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
     dtype = float_dtype(image, psf)
+    if is_concrete(image) and is_concrete(psf):
+        _check_scale(image, psf, dtype)
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
     psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
     if not volume:
@@ -218,6 +222,30 @@ def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, bal
         return _admm_solve(b, h, settings, tol, iterations=iterations, boundary=boundary,
                            axial=axial, balance=balance)
     return jax.vmap(one)(image, psf)
+
+
+def _check_scale(image, psf, dtype) -> None:
+    """The image holds light, and the estimate's scale ``||image|| / ||psf||`` (norms
+    in float64) is a normal number of the solver's ``dtype``."""
+    image_norm = float(np.linalg.norm(np.asarray(image, np.float64)))
+    if image_norm == 0:
+        raise DiffcamError("image is all zeros: there is nothing to reconstruct.")
+    ratio = image_norm / float(np.linalg.norm(np.asarray(psf, np.float64)))
+    info = np.finfo(dtype)
+    if not float(info.tiny) < ratio < float(info.max):
+        raise DiffcamError(
+            f"the estimate's scale ||image|| / ||psf|| = {ratio:.3g} is outside the range "
+            f"of {np.dtype(dtype).name} ({info.tiny:.2g} to {info.max:.2g}); divide the "
+            f"image or multiply the PSF by a constant first (the estimate scales with "
+            f"image / psf).")
+
+
+def _safe_norm(a):
+    """``||a||₂`` without overflow or underflow of the squares: ``m·||a/m||`` with
+    ``m = max|a|`` (1 where ``a`` is zero)."""
+    m = jnp.max(jnp.abs(a))
+    m = jnp.where(m > 0, m, 1)
+    return m * jnp.linalg.norm(a / m)
 
 
 def _tv(v, a):
@@ -316,8 +344,11 @@ def _norm(a):
 
 def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
     """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid."""
-    tau, tau_axial, sparsity = settings[3], settings[4], settings[5]
-    h_norm = jnp.linalg.norm(psf)
+    # solved for the image and the PSF at unit L2 norm (the weights scaled alike), so
+    # that no square under- or overflows; the estimate is scaled back at the end
+    b_norm, h_norm = _safe_norm(b), _safe_norm(psf)
+    b = b / b_norm
+    tau, tau_axial, sparsity = settings[3] / b_norm, settings[4] / b_norm, settings[5] / b_norm
     model = convolution_model(psf / h_norm, b.shape, boundary, volume=True)
     grid = model.fft_shape
     a = (tau_axial / jnp.where(tau > 0, tau, 1)) if axial else None
@@ -357,9 +388,10 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
     v, _, _, _, _, rho, mu = state
     w = jnp.maximum(v + (rho - sparsity) / mu[2], 0)
     final_residual, final_objective = fit(w, basis.image(basis.forward(w)), _tv(w, a))
-    return Reconstruction(image=w / h_norm, residual=res, objective=obj, iterations=its,
+    return Reconstruction(image=w * (b_norm / h_norm), residual=res,
+                          objective=obj * b_norm ** 2, iterations=its,
                           converged=done, final_residual=final_residual,
-                          final_objective=final_objective,
+                          final_objective=final_objective * b_norm ** 2,
                           split_gap=_norm(v - w) / jnp.maximum(_norm(w), 1e-30))
 
 

@@ -6,7 +6,7 @@ finite result, and damages nothing that existed. ``PROBES`` is the list, by clas
 property-based tests (hypothesis) cover shapes, dtypes, NaN/Inf, integer types, units
 and corrupt bytes; the last test interrupts the command line mid-write (SIGINT and
 SIGTERM) over an existing output. Deeper single-purpose checks of the same guarantees
-are in ``tests/test_hardening.py``; ``docs/hardening.md`` states them.
+are in ``tests/test_io_limits.py``; ``docs/hardening.md`` states them.
 """
 
 from __future__ import annotations

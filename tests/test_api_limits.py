@@ -354,3 +354,40 @@ def test_rl_in_float32_at_any_scale(image_exp, psf_exp, variant):
     got = np.asarray(out.image, np.float64) * 10.0 ** (psf_exp - image_exp)
     assert np.isfinite(np.asarray(out.objective)).all()
     np.testing.assert_allclose(got, base, rtol=0, atol=3e-3 * base.max())
+
+
+def _admm_problem():
+    """A sparse PSF and the image of a random scene through it, at unit L2 norm."""
+    rng = np.random.default_rng(1)
+    psf = np.zeros((16, 16), np.float32)
+    psf[rng.integers(0, 16, 10), rng.integers(0, 16, 10)] = 1
+    from scipy.signal import fftconvolve
+
+    image = fftconvolve(rng.random((24, 24)), psf, mode="same").astype(np.float32)
+    return image / np.linalg.norm(image), psf
+
+
+@pytest.mark.parametrize("image_scale, psf_scale", [(1e-25, 1.0), (1e30, 1.0), (1.0, 1e-30),
+                                                    (1.0, 1e30), (1e-20, 1e-15)])
+def test_admm_tv_at_any_scale(image_scale, psf_scale):
+    """float32 ADMM-TV of an image ×a by a PSF ×b, with tau ×a: the estimate ×a/b of
+    the unscaled problem to 1e-4 of its peak (a faint image was refused as 'all zeros',
+    ×1e30 or a PSF ×1e-30 gave NaN)."""
+    image, psf = _admm_problem()
+    base = np.asarray(admm_tv(image, psf, 20, progress=False).image, np.float64)
+    out = admm_tv((image * np.float64(image_scale)).astype(np.float32),
+                  (psf * np.float64(psf_scale)).astype(np.float32), 20, progress=False,
+                  tau=1e-4 * image_scale)
+    got = np.asarray(out.image, np.float64) * psf_scale / image_scale
+    assert np.isfinite(np.asarray(out.residual)).all()
+    np.testing.assert_allclose(got, base, rtol=0, atol=1e-4 * base.max())
+
+
+@pytest.mark.parametrize("image_scale, psf_scale", [(1e30, 1e-30), (1e-30, 1e30)])
+def test_admm_tv_refuses_an_estimate_beyond_float32(image_scale, psf_scale):
+    """An estimate scale ||image|| / ||psf|| of 1e60 or 1e-60 cannot be a float32: a
+    DiffcamError saying so, before the solve."""
+    image, psf = _admm_problem()
+    with pytest.raises(DiffcamError, match="outside the range of float32"):
+        admm_tv((image * image_scale).astype(np.float32),
+                (psf * np.float64(psf_scale)).astype(np.float32), 5, progress=False)

@@ -1,0 +1,234 @@
+"""What the ``diffcam`` subcommands share: argparse types (lengths with units, checked
+counts, plane lists), the ``--help`` formatter, image and figure writers, and the PSF
+readers. The command modules (:mod:`~diffcam.apps.cli`, :mod:`~diffcam.apps.fit_cli`,
+:mod:`~diffcam.apps.reconstruct_cli`, :mod:`~diffcam.apps.scene_psf_cli`,
+:mod:`~diffcam.apps.demo`) import from here, never from each other's private names."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from diffcam.core.errors import DiffcamError
+from diffcam.core.units import parse_length, parse_length_range
+from diffcam.io import atomic_output
+
+def _units(parse, name):
+    """An argparse type that reads lengths with units; errors become usage errors."""
+    def convert(text):
+        try:
+            return parse(text, name=name)
+        except DiffcamError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+    convert.__name__ = name
+    return convert
+
+
+def length_arg(name):
+    """An argparse type: one length with a unit (``25mm``), in metres."""
+    return _units(parse_length, name)
+
+
+def lengths_arg(name):
+    """An argparse type: lengths with a unit (``25mm``, ``22mm,25mm``, ``22mm:30mm:1mm``),
+    in metres."""
+    return _units(parse_length_range, name)
+
+
+def count(low: int, high: int, limit: str = ""):
+    """An argparse type: a whole number from ``low`` to ``high``, else a usage error;
+    ``limit`` names the constant that sets ``high``. Hostile counts (0, −1, 10⁹) are
+    refused while the command line is read, before any work."""
+    def convert(text):
+        try:
+            n = int(text)
+        except ValueError:
+            n = None
+        if n is None or not low <= n <= high:
+            raise argparse.ArgumentTypeError(
+                f"give a whole number from {low} to {high}{f' ({limit})' if limit else ''}, "
+                f"not {text!r:.40}")
+        return n
+    convert.__name__ = "count"
+    return convert
+
+
+def iterations_count():
+    """:func:`count` for an iteration count: 1 to
+    :data:`diffcam.reconstruct.checks.MAX_ITERATIONS`."""
+    from diffcam.reconstruct.checks import MAX_ITERATIONS
+
+    return count(1, MAX_ITERATIONS, "diffcam.reconstruct.checks.MAX_ITERATIONS")
+
+
+def grid_count(low: int = 2):
+    """:func:`count` for samples per side of a square grid: ``low`` to the side of
+    :data:`diffcam.core.grid.MAX_GRID_SAMPLES`."""
+    from diffcam.core.grid import MAX_GRID_SAMPLES
+
+    return count(low, math.isqrt(MAX_GRID_SAMPLES), "diffcam.core.grid.MAX_GRID_SAMPLES")
+
+
+def save_image(path, image, *, bits: int = 16) -> None:
+    """Write an image atomically: ``.png`` (``bits`` 16 or 8, min–max scaled),
+    ``.tif``/``.tiff`` (float32, multi-page for a stack), or ``.npy`` (as is)."""
+    image = np.asarray(image, dtype=np.float32)
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".png", ".tif", ".tiff", ".npy"):
+        raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
+    if bits not in (8, 16):
+        raise DiffcamError(f"{path}: a PNG holds 8 or 16 bits per pixel, not {bits}.")
+    with atomic_output(path) as tmp:
+        if suffix == ".png":
+            from skimage.io import imsave
+
+            if image.ndim != 2:
+                raise DiffcamError(f"{path}: PNG holds one 2-D image, got shape "
+                                   f"{image.shape}; write .tif for a stack.")
+            lo, hi = float(image.min()), float(image.max())
+            scaled = (image - lo) / (hi - lo) if hi > lo else np.zeros_like(image)
+            top, dtype = (255, np.uint8) if bits == 8 else (65535, np.uint16)
+            imsave(tmp, np.round(scaled * top).astype(dtype), check_contrast=False)
+        elif suffix == ".npy":
+            np.save(tmp, image)
+        else:
+            import tifffile
+
+            tifffile.imwrite(tmp, image, imagej=image.ndim == 3)
+
+
+def save_rgb(path, image) -> None:
+    """Write a colour image ``(3, ny, nx)`` (R, G, B) atomically: ``.npy`` float32
+    ``(ny, nx, 3)`` as is; ``.png`` 8 bits and ``.tif``/``.tiff`` 16 bits per channel,
+    scaled so that the 99.9th percentile of all channels is full scale (the few brighter
+    pixels saturate; negatives clip to 0; one scale keeps the colour balance)."""
+    image = np.moveaxis(np.asarray(image, dtype=np.float32), 0, -1)
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".png", ".tif", ".tiff", ".npy"):
+        raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
+    if image.ndim != 3 or image.shape[-1] != 3:
+        raise DiffcamError(f"{path}: a colour image has 3 channels, got shape "
+                           f"{np.moveaxis(image, -1, 0).shape}.")
+    with atomic_output(path) as tmp:
+        if suffix == ".npy":
+            np.save(tmp, image)
+            return
+        top = float(np.percentile(image, 99.9))
+        scaled = np.clip(image / top, 0, 1) if top > 0 else np.zeros_like(image)
+        if suffix == ".png":
+            from skimage.io import imsave
+
+            imsave(tmp, np.round(scaled * 255).astype(np.uint8), check_contrast=False)
+        else:
+            import tifffile
+
+            tifffile.imwrite(tmp, np.round(scaled * 65535).astype(np.uint16),
+                             photometric="rgb")
+
+
+class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` shows ``(default: X)`` where there is a default to show (not None/off)."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False or action.required \
+                or action.default == argparse.SUPPRESS or "default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
+def save_figure(fig, path) -> None:
+    """Lay out ``fig`` (unless it has a layout engine, e.g. ``layout="constrained"``),
+    write it atomically to ``path`` (format from the suffix), close it."""
+    import matplotlib.pyplot as plt
+
+    if fig.get_layout_engine() is None:
+        fig.tight_layout()
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def save_open_figures(stem: str, folder=None) -> list[Path]:
+    """Write every open matplotlib figure as ``FOLDER/STEM_k.png`` (k = 1, 2, … in the
+    order they were made) with :func:`save_figure`, and close them: how a notebook run
+    as a script leaves its figures. ``FOLDER``: ``$DIFFCAM_FIGURES``, else ``figures``
+    in the working folder (made if missing)."""
+    import matplotlib.pyplot as plt
+
+    folder = Path(folder or os.environ.get("DIFFCAM_FIGURES", "figures"))
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k, number in enumerate(plt.get_fignums(), start=1):
+        paths.append(folder / f"{stem}_{k}.png")
+        save_figure(plt.figure(number), paths[-1])
+    return paths
+
+
+def read_psfs(path):
+    """A PSF or PSF stack from an image file, a MATLAB ``.mat`` stack or a stack written
+    by diffcam (``.npz``, ``.npy`` with its ``.json``, ``.tif`` with stack metadata);
+    returns ``(psfs, depths in metres or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
+    from diffcam.io import read_image, read_mat_stack
+    from diffcam.model.stack import load_stack
+
+    suffix = Path(path).suffix.lower()
+    if suffix == ".mat":
+        return read_mat_stack(path), None
+    if suffix == ".npz" or (suffix == ".npy" and Path(str(path) + ".json").exists()) or (
+            suffix in (".tif", ".tiff") and has_stack_meta(path)):
+        stack, meta = load_stack(path)
+        return np.asarray(stack), np.asarray(meta.depths)
+    return read_image(path).image, None
+
+
+def has_stack_meta(path) -> bool:
+    """Whether a TIFF carries diffcam's stack metadata (else it is read as an image)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            return "Info" in (tif.imagej_metadata or {})
+    except Exception:  # not a readable TIFF: read_image will say what is wrong
+        return False
+
+
+def parse_planes(text: str) -> list[int]:
+    """``"5,25"`` → [5, 25]; ``"0:43"`` → 0 … 43 (both ends included); ``"0:10:2,30"``
+    (a step) and mixes of both."""
+    from diffcam.calibrate.stack_result import MAX_PLANES
+
+    items = [_plane_items(item, text) for item in str(text).split(",") if item.strip()]
+    n = sum(len(r) for r in items)
+    if n > MAX_PLANES:
+        raise DiffcamError(f"planes {text!r}: {n} planes, more than the {MAX_PLANES} "
+                           f"one run takes (diffcam.calibrate.stack_result.MAX_PLANES).")
+    out = [t for r in items for t in r]
+    if not out:
+        raise DiffcamError(f"planes {text!r}: no plane index given.")
+    return out
+
+
+def _plane_items(item: str, text: str) -> range:
+    """One comma-separated item of a plane list as a range (not yet expanded)."""
+    try:
+        if ":" not in item:
+            return range(int(item), int(item) + 1)
+        parts = [int(p) for p in item.split(":")]
+        if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] <= 0) \
+                or parts[1] < parts[0]:
+            raise ValueError
+        return range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1)
+    except ValueError:
+        raise DiffcamError(f"planes {text!r}: give indices as 5,25 or a range 0:43 "
+                           f"(both ends included, a ≤ b).") from None
+
+
+def planes_arg(text):
+    try:
+        return parse_planes(text)
+    except DiffcamError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
