@@ -15,12 +15,34 @@ import numpy as np
 from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
                                  length_arg, lengths_arg, planes_arg, read_psfs,
                                  save_figure, save_image, save_open_figures, save_rgb)
-from diffcam.apps.fit_cli import add_fit
-from diffcam.apps.processes import in_distributed_run, report_error, run_processes
-from diffcam.apps.reconstruct_cli import add_reconstruct
 from diffcam.apps.scene_psf_cli import add_calibrate_psf
 from diffcam.core.errors import DiffcamError
-from diffcam.io import interrupts_as_keyboard_interrupt
+from diffcam.apps.demo import run_demo
+from diffcam.apps.fit_cli import add_fit, cmd_compare_stack, cmd_predict
+from diffcam.apps.paper import Settings
+from diffcam.apps.processes import (distributed_settings, ERRORS, in_distributed_run,
+                                    initialize_from_environment, report_error,
+                                    run_processes)
+from diffcam.apps.reconstruct_cli import add_reconstruct, is_stack_fit
+from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane,
+                               resolve_twin, retrieve_projections)
+from diffcam.calibrate.phase_io import load_phase, PhaseFile, save_phase
+from diffcam.calibrate.pipeline import retrieve_phase
+from diffcam.calibrate.stack_result import MAX_PLANES
+from diffcam.core import memory
+from diffcam.core.backend import fft_backend, fft_size, fft_status
+from diffcam.core.grid import crop_to, MAX_GRID_SAMPLES
+from diffcam.data import CAPTURES, export_captures
+from diffcam.evaluate.baseline import magnify_psf
+from diffcam.evaluate.metrics import psf_fidelity
+from diffcam.io import (check_output_path, interrupts_as_keyboard_interrupt,
+                        MAX_READ_BYTES, read_image)
+from diffcam.model.camera import Camera
+from diffcam.model.sensor import bin_pixels
+from diffcam.model.stack import psf_stack
+from diffcam.optics.elements import circular_aperture
+from diffcam.optics.sampling import plan_sampling
+from diffcam.reconstruct.checks import MAX_ITERATIONS
 
 __all__ = ["main", "run", "build_parser", "save_image", "save_rgb", "save_figure",
            "save_open_figures"]
@@ -41,7 +63,6 @@ class Parser(argparse.ArgumentParser):
 
 
 def _camera_for(phase_file, z2, crop):
-    from diffcam.model.camera import Camera
 
     shape = tuple(np.shape(phase_file.phase))
     if crop is not None and (crop > shape[0] or crop > shape[1]):
@@ -52,9 +73,6 @@ def _camera_for(phase_file, z2, crop):
 
 
 def _cmd_psf(args) -> int:
-    from diffcam.apps.reconstruct_cli import is_stack_fit
-    from diffcam.calibrate.phase_io import load_phase
-    from diffcam.model.stack import psf_stack
 
     if is_stack_fit(args.phase):
         if args.processes != 1:
@@ -87,8 +105,6 @@ def _several_processes(args) -> bool:
     """Whether ``diffcam psf`` starts ``--processes`` copies of itself
     (:func:`~diffcam.apps.processes.run_processes`). A copy it started, or one task of
     a cluster's launcher, joins the run (``jax.distributed.initialize()``) instead."""
-    from diffcam.apps.processes import ERRORS, distributed_settings, initialize_from_environment
-    from diffcam.io import check_output_path
 
     cpus = os.cpu_count() or 1
     if not 1 <= args.processes <= cpus:
@@ -109,7 +125,6 @@ def _several_processes(args) -> bool:
 def _psf_from_stack_fit(args) -> int:
     """``diffcam psf MODEL.npz --planes …``: the planes of a stack fit (as `diffcam
     predict`); a stack fit knows plane indices, not depths."""
-    from diffcam.apps.fit_cli import cmd_predict
 
     given = [f for f, v in (("--z1", args.z1), ("--z2", args.z2), ("--crop", args.crop))
              if v is not None]
@@ -122,7 +137,6 @@ def _psf_from_stack_fit(args) -> int:
 
 def _grid_for(aperture_radius, dx):
     """Calibration grid: twice the aperture diameter (a Nyquist-sampled far field)."""
-    from diffcam.core.backend import fft_size
 
     return fft_size(int(np.ceil(4 * aperture_radius / dx)))
 
@@ -130,12 +144,6 @@ def _grid_for(aperture_radius, dx):
 def _cmd_calibrate(args) -> int:
     import jax
 
-    from diffcam.io import check_output_path, read_image
-    from diffcam.optics.elements import circular_aperture
-    from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane, resolve_twin,
-                            retrieve_projections)
-    from diffcam.calibrate.pipeline import retrieve_phase
-    from diffcam.calibrate.phase_io import PhaseFile, save_phase
 
     check_output_path(args.out, suffixes=(".npz",))
     dx = args.dx or args.pixel
@@ -182,9 +190,6 @@ def _cmd_calibrate(args) -> int:
 def _reference_psf(dx, shape, args):
     """The captured PSF of ``--psf`` (same pitch as the grid) and its camera:
     ``(psf on the camera's crop, Camera)``."""
-    from diffcam.model.camera import Camera
-    from diffcam.core.grid import crop_to
-    from diffcam.io import read_image
 
     if args.psf_z1 is None or args.psf_z2 is None:
         raise DiffcamError("--psf needs --psf-z1 and --psf-z2 (the PSF's source depth and "
@@ -199,11 +204,6 @@ def _reference_psf(dx, shape, args):
 
 
 def _cmd_compare(args) -> int:
-    from diffcam.evaluate.metrics import psf_fidelity
-    from diffcam.calibrate.phase_io import load_phase
-    from diffcam.evaluate.baseline import magnify_psf
-    from diffcam.model.sensor import bin_pixels
-    from diffcam.model.stack import psf_stack
 
     if (args.model is None) == (args.phase is None):
         raise DiffcamError("give either --phase (a phase file, with --z2) or --model (a "
@@ -255,8 +255,6 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from diffcam.apps.demo import run_demo
-    from diffcam.apps.paper import Settings
 
     base = Settings(grid=4000) if args.full else Settings()
     changes = {k: v for k, v in (("grid", args.grid), ("gs_iterations", args.gs_iterations),
@@ -267,7 +265,6 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_plan(args) -> int:
-    from diffcam.optics.sampling import plan_sampling
 
     print(plan_sampling(args.wavelength, args.pixel, args.n, args.z1, args.z2,
                         args.aperture_radius, max_offset=args.max_offset))
@@ -294,7 +291,6 @@ def _add_demo(sub) -> None:
 
 
 def _cmd_data(args) -> int:
-    from diffcam.data import export_captures
 
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise DiffcamError(f"{args.out}: is a file; -o names the folder the capture files "
@@ -305,7 +301,6 @@ def _cmd_data(args) -> int:
 
 
 def _add_data(sub) -> None:
-    from diffcam.data import CAPTURES
 
     data = sub.add_parser("data", help="write a built-in capture set as image files",
                           description="Write a built-in measured capture set (Waller Lab "
@@ -409,7 +404,6 @@ def _add_psf(sub) -> None:
 
 def _compare_stack_fit(args) -> int:
     """``diffcam compare STACK --model MODEL.npz``: as ``diffcam compare-stack``."""
-    from diffcam.apps.fit_cli import cmd_compare_stack
 
     given = [f for f, v in (("--z1", args.z1), ("--z2", args.z2), ("--pixel", args.pixel),
                             ("--anchor", args.anchor)) if v is not None]
@@ -461,10 +455,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def limits(command: str) -> str:
     """The resource caps a subcommand enforces before any work, for its ``--help``."""
-    from diffcam.calibrate.stack_result import MAX_PLANES
-    from diffcam.core.grid import MAX_GRID_SAMPLES
-    from diffcam.io import MAX_READ_BYTES
-    from diffcam.reconstruct.checks import MAX_ITERATIONS
 
     caps = [] if command in ("data", "demo", "plan") else [
         f"each array read at most {MAX_READ_BYTES / 2**30:g} GiB (diffcam.io.MAX_READ_BYTES)"]
@@ -486,7 +476,6 @@ def check_environment() -> None:
     """The environment's settings, checked before any work: ``DIFFCAM_FFT`` (a backend,
     :func:`diffcam.core.backend.fft_backend`) and ``DIFFCAM_FFT_THREADS`` (a positive
     integer when set, whichever backend runs)."""
-    from diffcam.core.backend import fft_backend
 
     fft_backend()
     threads = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
@@ -516,8 +505,6 @@ def _talk(args):
         return
     import jax
 
-    from diffcam.core import memory
-    from diffcam.core.backend import fft_status
 
     print(f"diffcam {args.command}: JAX {jax.__version__} on {jax.devices()[0]}; "
           f"{fft_status()}; {memory.status()}", file=sys.stderr)

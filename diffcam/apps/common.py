@@ -15,7 +15,11 @@ import numpy as np
 
 from diffcam.core.errors import DiffcamError
 from diffcam.core.units import parse_length, parse_length_range
-from diffcam.io import atomic_output
+from diffcam.calibrate.stack_result import MAX_PLANES
+from diffcam.core.grid import MAX_GRID_SAMPLES
+from diffcam.io import atomic_output, read_image, read_mat_stack
+from diffcam.model.stack import load_stack
+from diffcam.reconstruct.checks import MAX_ITERATIONS
 
 def _units(parse, name):
     """An argparse type that reads lengths with units; errors become usage errors."""
@@ -60,7 +64,6 @@ def count(low: int, high: int, limit: str = ""):
 def iterations_count():
     """:func:`count` for an iteration count: 1 to
     :data:`diffcam.reconstruct.checks.MAX_ITERATIONS`."""
-    from diffcam.reconstruct.checks import MAX_ITERATIONS
 
     return count(1, MAX_ITERATIONS, "diffcam.reconstruct.checks.MAX_ITERATIONS")
 
@@ -68,7 +71,6 @@ def iterations_count():
 def grid_count(low: int = 2):
     """:func:`count` for samples per side of a square grid: ``low`` to the side of
     :data:`diffcam.core.grid.MAX_GRID_SAMPLES`."""
-    from diffcam.core.grid import MAX_GRID_SAMPLES
 
     return count(low, math.isqrt(MAX_GRID_SAMPLES), "diffcam.core.grid.MAX_GRID_SAMPLES")
 
@@ -172,8 +174,6 @@ def read_psfs(path):
     """A PSF or PSF stack from an image file, a MATLAB ``.mat`` stack or a stack written
     by diffcam (``.npz``, ``.npy`` with its ``.json``, ``.tif`` with stack metadata);
     returns ``(psfs, depths in metres or None)`` with psfs ``(my, mx)`` or ``(nz, my, mx)``."""
-    from diffcam.io import read_image, read_mat_stack
-    from diffcam.model.stack import load_stack
 
     suffix = Path(path).suffix.lower()
     if suffix == ".mat":
@@ -199,7 +199,6 @@ def has_stack_meta(path) -> bool:
 def parse_planes(text: str) -> list[int]:
     """``"5,25"`` → [5, 25]; ``"0:43"`` → 0 … 43 (both ends included); ``"0:10:2,30"``
     (a step) and mixes of both."""
-    from diffcam.calibrate.stack_result import MAX_PLANES
 
     items = [_plane_items(item, text) for item in str(text).split(",") if item.strip()]
     n = sum(len(r) for r in items)

@@ -32,6 +32,7 @@ from diffcam.apps import paper
 from diffcam.apps.common import save_figure
 from diffcam.calibrate import cameraman_phase, resolve_twin
 from diffcam.core.backend import fft_status
+from diffcam.evaluate.metrics import phase_offset, wrap_phase
 
 _STEPS = 5
 
@@ -48,7 +49,6 @@ def _plot_phases(path, fig3):
               (f"diffcam calibration (P = {fig3['resolved_scores']['pearson']:.3f})",
                fig3["resolved"])]
     fig, axes = plt.subplots(1, 4, figsize=(18, 4.6), layout="constrained")
-    from diffcam.evaluate.metrics import phase_offset, wrap_phase
 
     for ax, (title, ph) in zip(axes, panels):
         d = phase_offset(ph[win], fig3["truth"][win], mask=mask)  # show piston-aligned

@@ -22,6 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from diffcam.core.errors import DiffcamError
+from diffcam.apps.common import (iterations_count, length_arg, planes_arg, save_figure,
+                                 save_image)
+from diffcam.calibrate import fit_stack, load_stack_fit, prepare_planes
+from diffcam.calibrate.stack_result import MAX_PLANES
+from diffcam.evaluate.metrics import pearson
+from diffcam.evaluate.registration import scaling_baseline
+from diffcam.io import (atomic_output, check_output_path, image_files, npz_keys,
+                        read_image, read_mat_stack, read_npz, read_psf_stack)
 
 
 
@@ -42,8 +50,6 @@ def _saturation_arg(text):
 def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float | None]:
     """A PSF stack from a file, folder or glob → (float32 (n, ny, nx), saturation level
     in the stack's units or ``None`` for float data)."""
-    from diffcam.io import (image_files, npz_keys, read_image, read_mat_stack, read_npz,
-                            read_psf_stack)
 
     path = Path(source)
     full_scale = None
@@ -84,8 +90,6 @@ def read_stack(source: str, key: str | None = None) -> tuple[np.ndarray, float |
 
 
 def _cmd_fit(args) -> int:
-    from diffcam.calibrate import fit_stack
-    from diffcam.io import check_output_path
 
     check_output_path(args.out, suffixes=(".npz",))
     stack, level = read_stack(args.stack, args.key)
@@ -122,9 +126,6 @@ def _z2m(fit) -> str:
 
 
 def cmd_predict(args) -> int:
-    from diffcam.apps.common import save_image
-    from diffcam.calibrate import load_stack_fit
-    from diffcam.io import check_output_path
 
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
     fit = load_stack_fit(args.model)
@@ -140,7 +141,6 @@ def cmd_predict(args) -> int:
 def model_planes(fit, planes: list[int] | None, path) -> list[int]:
     """``planes`` (``--planes``), or by default every plane of the model's stack: its
     recorded plane count, checked (a damaged file may declare 0 or 10⁹)."""
-    from diffcam.calibrate.stack_result import MAX_PLANES
 
     if planes is not None:
         return planes
@@ -159,9 +159,6 @@ def compare_stack(stack, fit) -> dict:
     """Per-plane Pearson of the model's prediction, its rendering alone (no carried
     residual), the scaling baseline and the frozen-distance prediction (κ = 0) against a
     measured stack (prepared like the fit's planes)."""
-    from diffcam.calibrate import prepare_planes
-    from diffcam.evaluate.metrics import pearson
-    from diffcam.evaluate.registration import scaling_baseline
 
     if tuple(stack.shape[1:]) != tuple(fit.model.frame):
         raise DiffcamError(f"the stack's frames {tuple(stack.shape[1:])} differ from the "
@@ -193,9 +190,6 @@ def compare_stack(stack, fit) -> dict:
 
 
 def cmd_compare_stack(args) -> int:
-    from diffcam.apps.common import save_figure
-    from diffcam.calibrate import load_stack_fit
-    from diffcam.io import atomic_output, check_output_path
 
     if args.out:
         check_output_path(args.out, suffixes=(".png", ".pdf", ".svg"))
@@ -248,7 +242,6 @@ def cmd_compare_stack(args) -> int:
 
 def add_fit(sub) -> None:
     """Add ``fit``, ``predict`` and ``compare-stack`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.common import iterations_count, length_arg, planes_arg
 
     fit = sub.add_parser("fit", help="fit a wave model to a few planes of a PSF stack",
                          description="Fit the stack wave model to the given planes of a "

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 from diffcam.core.errors import DiffcamError
+from diffcam.io import temporary_files, Terminated
 
 __all__ = ["distributed_settings", "initialize_from_environment", "run_processes",
            "report_error", "in_distributed_run", "worker_env", "free_port", "GRACE"]
@@ -195,7 +196,6 @@ def run_processes(command: str, argv: Sequence[str], count: int,
         SIGTERM reach the caller as ``KeyboardInterrupt`` and
         :class:`~diffcam.io.Terminated`, after the processes are ended).
     """
-    from diffcam.io import temporary_files
 
     before = {p for o in outputs for p in temporary_files(o)}
     status = 2
@@ -227,7 +227,6 @@ def _on_sigterm():
     its temporary files removed); returns the handler to restore, or ``None``."""
     import threading
 
-    from diffcam.io import Terminated
 
     if threading.current_thread() is not threading.main_thread():
         return None

@@ -24,7 +24,21 @@ from typing import NamedTuple
 import numpy as np
 
 from diffcam.core.errors import DiffcamError
-from diffcam.io import image_files
+from diffcam.apps.common import (count, DefaultsFormatter, has_stack_meta,
+                                 iterations_count, length_arg, planes_arg, read_psfs,
+                                 save_figure, save_image, save_rgb)
+from diffcam.apps.fit_cli import model_planes
+from diffcam.apps.volume_views import depth_map_figure, montage_figure, projections_figure
+from diffcam.calibrate import load_stack_fit
+from diffcam.calibrate.stack_result import FORMAT, MAX_PLANES
+from diffcam.core.grid import crop_to
+from diffcam.io import (as_rgb, atomic_output, BackgroundWarning, border_dark_level,
+                        check_output_path, downsample, image_files, IMAGE_SUFFIXES,
+                        npz_keys, read_image, read_npz, read_psf_stack, subtract_background)
+from diffcam.reconstruct import (admm_tv, admm_tv_3d, focus_sweep, richardson_lucy,
+                                 richardson_lucy_3d, wiener)
+from diffcam.reconstruct.admm import VOLUME
+from diffcam.reconstruct.checks import MAX_ITERATIONS
 
 DARK_RING = 6        # pixels: width of the frame-border band whose median is the dark level
 SWEEP_ITERATIONS = 60  # ADMM iterations per plane of the 2-D focus sweep
@@ -74,8 +88,6 @@ def is_stack_fit(path) -> bool:
     """Whether ``path`` is an ``.npz`` whose ``metadata`` says ``diffcam-stack-fit``."""
     import json
 
-    from diffcam.calibrate.stack_result import FORMAT
-    from diffcam.io import npz_keys, read_npz
 
     path = Path(path)
     if path.suffix.lower() != ".npz" or not path.exists():
@@ -91,8 +103,6 @@ def is_stack_fit(path) -> bool:
 
 def _read_model(path, planes) -> PsfSource:
     """The planes (default all) a stack-fit model renders, clipped at 0."""
-    from diffcam.apps.fit_cli import model_planes
-    from diffcam.calibrate import load_stack_fit
 
     fit = load_stack_fit(path)
     planes = model_planes(fit, planes, path)
@@ -105,8 +115,6 @@ def _read_model(path, planes) -> PsfSource:
 def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:
     """PSFs from a file, folder, glob or stack-fit model (module docstring); ``planes``
     selects planes of the stack (default all; for a model, the planes to render)."""
-    from diffcam.apps.common import read_psfs
-    from diffcam.io import read_psf_stack
 
     files = image_files(source)
     if files is None and is_stack_fit(source):
@@ -155,7 +163,6 @@ def _subtract_dark(images, level, what: str, say=print):
     ``say`` as one line."""
     import warnings
 
-    from diffcam.io import BackgroundWarning, border_dark_level, subtract_background
 
     if level is None:
         return images
@@ -208,7 +215,6 @@ def dark_levels(args) -> tuple:
 def read_inputs(args, say) -> tuple[np.ndarray, PsfSource]:
     """The raw capture and the PSFs, dark-subtracted and downsampled alike; checks that
     the PSF fits in the raw image. ``say`` reports progress notes."""
-    from diffcam.io import downsample
 
     raw_level, psf_level = dark_levels(args)
     if args.downsample is not None and args.downsample < 1:
@@ -285,7 +291,6 @@ def working_factor(shape, requested: int | None, say) -> int:
 def read_raw(path, channel_order: str | None) -> np.ndarray:
     """The raw capture: ``(ny, nx)``, or ``(3, ny, nx)`` in R, G, B order for a colour
     file (``channel_order`` is the file's, e.g. ``"BGR"``)."""
-    from diffcam.io import as_rgb, read_image
 
     capture = read_image(path, channel_order=channel_order)
     if capture.channels is not None:
@@ -300,8 +305,6 @@ def colour_psf(source: str, raw: np.ndarray, channel_order: str | None) -> PsfSo
     """One PSF per colour channel if ``source`` is one colour image file (e.g. from
     ``diffcam calibrate-psf``), else ``None`` (a grayscale PSF is shared by the channels).
     """
-    from diffcam.apps.common import has_stack_meta
-    from diffcam.io import IMAGE_SUFFIXES, as_rgb, read_image
 
     path = Path(source)
     if (path.suffix.lower() not in IMAGE_SUFFIXES or not path.is_file()
@@ -342,7 +345,6 @@ def _reporter(quiet: bool):
 def _pick_plane(raw, source: PsfSource, args, say) -> np.ndarray:
     """The one PSF of a 2-D reconstruction: by --depth, --plane or a focus sweep (the
     plane whose PSF leaves the least data misfit, :func:`diffcam.reconstruct.focus_sweep`)."""
-    from diffcam.reconstruct import focus_sweep
 
     psfs = source.psfs
     if psfs.ndim == 2 or source.colour:
@@ -374,10 +376,6 @@ def _iterations(args) -> int:
 
 
 def _run_2d(args, say) -> int:
-    from diffcam.apps.common import save_image, save_rgb
-    from diffcam.core.grid import crop_to
-    from diffcam.io import check_output_path
-    from diffcam.reconstruct import admm_tv, richardson_lucy, wiener
 
     check_output_path(args.out, suffixes=(".png", ".tif", ".tiff", ".npy"))
     say(f"reading {args.raw} and {args.psf}")
@@ -420,7 +418,6 @@ class VolumePaths(NamedTuple):
 def volume_paths(out) -> VolumePaths:
     """``OUT.tif`` and its companions (:class:`VolumePaths`), each checked writable
     (:func:`diffcam.io.check_output_path`) before any work."""
-    from diffcam.io import check_output_path
 
     out = check_output_path(out, suffixes=(".tif", ".tiff"))
     paths = VolumePaths(out, *(out.with_name(f"{out.stem}_{name}.png") for name in
@@ -434,8 +431,6 @@ def _solve_3d(raw, psfs, args):
     """The volume and its :class:`~diffcam.reconstruct.Reconstruction`; ADMM-TV solves
     for the raw scaled to unit L2 norm (the scale the weights of
     :data:`diffcam.reconstruct.admm.VOLUME` are for) and the volume is scaled back to counts."""
-    from diffcam.reconstruct import admm_tv_3d, richardson_lucy_3d
-    from diffcam.reconstruct.admm import VOLUME
 
     if args.method == "rl":
         rec = richardson_lucy_3d(raw, psfs, _iterations(args), progress=not args.quiet)
@@ -456,7 +451,6 @@ def final_residual(rec) -> float:
 
 
 def _run_3d(args, say) -> int:
-    from diffcam.core.grid import crop_to
 
     if args.plane is not None or args.depth is not None:
         raise DiffcamError("--3d reconstructs every plane of the stack; --plane and --depth "
@@ -498,7 +492,6 @@ def _volume_info(args, rec, seconds: float) -> dict:
     converged."""
     import dataclasses
 
-    from diffcam.reconstruct.admm import VOLUME
 
     info = {"method": args.method, "iterations": int(np.max(rec.iterations)),
             "seconds": round(seconds, 2), "residual": final_residual(rec),
@@ -533,10 +526,6 @@ def write_volume(paths: VolumePaths, volume, source: PsfSource, info: dict) -> N
     import matplotlib.pyplot as plt
     import tifffile
 
-    from diffcam.apps.common import save_figure, save_image
-    from diffcam.apps.volume_views import (depth_map_figure, montage_figure,
-                                           projections_figure)
-    from diffcam.io import atomic_output
 
     volume = np.asarray(volume, np.float32)
     labels, axis = volume_labels(source)
@@ -558,10 +547,6 @@ def write_volume(paths: VolumePaths, volume, source: PsfSource, info: dict) -> N
 
 def add_reconstruct(sub) -> None:
     """Add ``reconstruct`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.common import (DefaultsFormatter, count, iterations_count, length_arg,
-                                     planes_arg)
-    from diffcam.calibrate.stack_result import MAX_PLANES
-    from diffcam.reconstruct.checks import MAX_ITERATIONS
 
     rec = sub.add_parser(
         "reconstruct", help="deconvolve a sensor image with a PSF (or a volume with --3d)",

@@ -20,6 +20,11 @@ import sys
 import numpy as np
 
 from diffcam.core.errors import DiffcamError
+from diffcam.apps.common import iterations_count
+from diffcam.calibrate.scene_psf import (check_scene_pairs, fit_psf_from_scenes,
+                                         predict_raw, ScenePsfOptions)
+from diffcam.evaluate.metrics import pearson
+from diffcam.io import as_rgb, atomic_output, check_output_path, read_image
 
 CHANNEL_ORDERS = ("RGB", "BGR")
 
@@ -27,8 +32,6 @@ CHANNEL_ORDERS = ("RGB", "BGR")
 def read_pairs(raws, truths, channel_order: str) -> tuple[np.ndarray, np.ndarray]:
     """The raw and truth files as ``(k, c, ny, nx)`` arrays (RGB for colour), checked
     (:func:`diffcam.calibrate.scene_psf.check_scene_pairs`)."""
-    from diffcam.calibrate.scene_psf import check_scene_pairs
-    from diffcam.io import as_rgb, read_image
 
     if len(raws) != len(truths):
         raise DiffcamError(f"{len(raws)} raw file(s) but {len(truths)} --truth file(s); "
@@ -52,8 +55,6 @@ def read_pairs(raws, truths, channel_order: str) -> tuple[np.ndarray, np.ndarray
 def holdout_scores(raws, truths, options) -> np.ndarray:
     """Pearson correlation per channel of the last pair's raw with its prediction by a
     PSF fitted to the other pairs."""
-    from diffcam.calibrate.scene_psf import fit_psf_from_scenes, predict_raw
-    from diffcam.evaluate.metrics import pearson
 
     cal = fit_psf_from_scenes(raws[:-1], truths[:-1], options)
     predicted = predict_raw(cal, truths[-1])
@@ -65,7 +66,6 @@ def write_psf(path, psf: np.ndarray) -> None:
     grayscale for one."""
     import tifffile
 
-    from diffcam.io import atomic_output
 
     with atomic_output(path) as tmp:
         if len(psf) == 3:
@@ -75,8 +75,6 @@ def write_psf(path, psf: np.ndarray) -> None:
 
 
 def _cmd_calibrate_psf(args) -> int:
-    from diffcam.calibrate.scene_psf import ScenePsfOptions, fit_psf_from_scenes
-    from diffcam.io import atomic_output, check_output_path
 
     out = check_output_path(args.out, suffixes=(".tif", ".tiff"))
     if args.json:
@@ -107,7 +105,6 @@ def _cmd_calibrate_psf(args) -> int:
 
 def add_calibrate_psf(sub) -> None:
     """Add ``calibrate-psf`` to the ``diffcam`` subcommands."""
-    from diffcam.apps.common import iterations_count
 
     cal = sub.add_parser(
         "calibrate-psf", help="PSF from raw captures of scenes with known ground truth",
