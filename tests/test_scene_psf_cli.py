@@ -86,7 +86,7 @@ def test_bad_colour_input_fails_cleanly(scenes, capsys, tmp_path):
 def test_white_balance():
     """Grey world brings every channel's mean to the mean of the three; explicit gains
     multiply; a grayscale image is left alone."""
-    from diffcam.apps.reconstruct_cli import white_balance
+    from diffcam.apps.reconstruct_inputs import white_balance
 
     image = np.random.default_rng(0).uniform(0, 1, (3, 8, 9)) * np.array([1, 2, 4])[:, None, None]
     balanced = white_balance(image, "auto")
@@ -101,7 +101,7 @@ def test_working_resolution():
     """Captures up to 480 pixels per side are solved as they are; the tutorial's full
     1200 × 1600 is box-averaged by 4 (to the shipped 300 × 400), and the command says so;
     --downsample overrides."""
-    from diffcam.apps.reconstruct_cli import working_factor
+    from diffcam.apps.reconstruct_inputs import working_factor
 
     said = []
     assert working_factor((300, 400), None, said.append) == 1

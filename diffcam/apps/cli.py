@@ -23,7 +23,8 @@ from diffcam.apps.paper import Settings
 from diffcam.apps.processes import (distributed_settings, ERRORS, in_distributed_run,
                                     initialize_from_environment, report_error,
                                     run_processes)
-from diffcam.apps.reconstruct_cli import add_reconstruct, is_stack_fit
+from diffcam.apps.reconstruct_cli import add_reconstruct
+from diffcam.apps.reconstruct_inputs import is_stack_fit
 from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane,
                                resolve_twin, retrieve_projections)
 from diffcam.calibrate.phase_io import load_phase, PhaseFile, save_phase

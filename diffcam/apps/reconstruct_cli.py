@@ -15,7 +15,6 @@ See ``docs/cli_reconstruct.md``.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -23,315 +22,30 @@ from typing import NamedTuple
 
 import numpy as np
 
-from diffcam.core.errors import DiffcamError
-from diffcam.apps.common import (count, DefaultsFormatter, has_stack_meta,
-                                 iterations_count, length_arg, planes_arg, read_psfs,
-                                 save_figure, save_image, save_rgb)
-from diffcam.apps.fit_cli import model_planes
+from diffcam.apps.common import (DefaultsFormatter, count, iterations_count, length_arg,
+                                 planes_arg, save_figure, save_image, save_rgb)
+from diffcam.apps.reconstruct_inputs import (DARK_RING, WORKING_SIZE, PsfSource, dark_arg,
+                                             gains_arg, read_inputs, white_balance)
 from diffcam.apps.volume_views import depth_map_figure, montage_figure, projections_figure
-from diffcam.calibrate import load_stack_fit
-from diffcam.calibrate.stack_result import FORMAT, MAX_PLANES
+from diffcam.calibrate.stack_result import MAX_PLANES
+from diffcam.core.errors import DiffcamError
 from diffcam.core.grid import crop_to
-from diffcam.io import (as_rgb, atomic_output, BackgroundWarning, border_dark_level,
-                        check_output_path, downsample, image_files, IMAGE_SUFFIXES,
-                        npz_keys, read_image, read_npz, read_psf_stack, subtract_background)
+from diffcam.io import atomic_output, check_output_path
 from diffcam.reconstruct import (admm_tv, admm_tv_3d, focus_sweep, richardson_lucy,
                                  richardson_lucy_3d, wiener)
 from diffcam.reconstruct.admm import VOLUME
 from diffcam.reconstruct.checks import MAX_ITERATIONS
 
-DARK_RING = 6        # pixels: width of the frame-border band whose median is the dark level
 SWEEP_ITERATIONS = 60  # ADMM iterations per plane of the 2-D focus sweep
 ITERATIONS = {"admm": 100, "rl": 1000}
 """Default iterations per method in 2-D, measured on the shipped hand (docs/real_data.md):
 ADMM-TV has converged by 100 (correlation 0.998 with a 200-step FISTA reference, the
 same at 300); Richardson–Lucy needs about 1000 (0.996; at 150 the fingers are not
 resolved, 0.959)."""
-WORKING_SIZE = 480
-"""Pixels on the longer side up to which ``reconstruct`` works at the capture's own
-resolution by default; larger captures are box-averaged by the least integer factor
-that brings them there (:func:`working_factor`). The defaults (iterations, ADMM-TV's
-``tau``) were measured on captures of 400 and 480 pixels per side; on the tutorial hand
-at its full 1200 × 1600 they leave the fine detail unresolved (docs/scene_psf.md)."""
 ITERATIONS_3D = {"admm": 60, "rl": 300}
 """The same for ``--3d``: ADMM-TV with :data:`diffcam.reconstruct.admm.VOLUME` 60 (the
 shipped USAF capture, 44 planes of 270 × 320: the measurements behind the choice are in
 docs/volume.md); Richardson–Lucy 300."""
-
-
-class PsfSource(NamedTuple):
-    """PSFs read from a source.
-
-    Attributes:
-        psfs: float32 ``(my, mx)`` (one PSF) or ``(nz, my, mx)``, in the source's units.
-        depths: source depth z1 of each plane, metres, or ``None`` if unknown.
-        planes: plane number of each plane (index in the stack or the model).
-        names: file of each plane (folder/glob sources), else ``None``.
-        colour: ``psfs`` is ``(3, my, mx)``, one PSF per colour channel (R, G, B).
-    """
-
-    psfs: np.ndarray
-    depths: np.ndarray | None
-    planes: list[int]
-    names: list[str] | None
-    colour: bool = False
-
-    def labels(self) -> list[str]:
-        """One label per plane: the depth when known, else the plane number (and file)."""
-        if self.depths is not None:
-            return [f"z1 {d * 1e3:.4g} mm" for d in self.depths]
-        files = self.names or [None] * len(self.planes)
-        return [f"plane {t}" + (f" ({f})" if f else "") for t, f in zip(self.planes, files)]
-
-
-def is_stack_fit(path) -> bool:
-    """Whether ``path`` is an ``.npz`` whose ``metadata`` says ``diffcam-stack-fit``."""
-    import json
-
-
-    path = Path(path)
-    if path.suffix.lower() != ".npz" or not path.exists():
-        return False
-    if "metadata" not in npz_keys(path, what="a diffcam .npz file"):
-        return False
-    meta = read_npz(path, ["metadata"], what="a diffcam stack-fit file")["metadata"]
-    try:
-        return json.loads(str(meta[()])).get("format") == FORMAT
-    except (ValueError, AttributeError, IndexError):
-        return False
-
-
-def _read_model(path, planes) -> PsfSource:
-    """The planes (default all) a stack-fit model renders, clipped at 0."""
-
-    fit = load_stack_fit(path)
-    planes = model_planes(fit, planes, path)
-    if min(planes) < 0:
-        raise DiffcamError(f"--planes {planes}: plane numbers start at 0.")
-    # unit mean per plane, dark-free; the carried residuals can dip below 0: clip them
-    return PsfSource(np.clip(fit.predict(planes), 0, None), None, list(planes), None)
-
-
-def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:
-    """PSFs from a file, folder, glob or stack-fit model (module docstring); ``planes``
-    selects planes of the stack (default all; for a model, the planes to render)."""
-
-    files = image_files(source)
-    if files is None and is_stack_fit(source):
-        return _read_model(source, planes)
-    if files is not None:
-        try:
-            psfs, depths = read_psf_stack(files), None
-        except DiffcamError as err:
-            raise DiffcamError(f"{source}: {err}") from None
-    else:
-        psfs, depths = read_psfs(source)
-    psfs = np.asarray(psfs, np.float32)
-    if psfs.ndim == 2:
-        if planes is not None:
-            raise DiffcamError(f"{source}: holds one PSF; --planes selects planes of a stack.")
-        return PsfSource(psfs, None, [0], None)
-    names = None if files is None else [f.name for f in files]
-    selected = list(range(len(psfs))) if planes is None else list(planes)
-    bad = [t for t in selected if not 0 <= t < len(psfs)]
-    if bad:
-        raise DiffcamError(f"--planes: plane(s) {bad} outside the stack of {len(psfs)} "
-                           f"planes (0 … {len(psfs) - 1}) in {source}.")
-    return PsfSource(psfs[selected], None if depths is None else np.asarray(depths)[selected],
-                     selected, None if names is None else [names[t] for t in selected])
-
-
-def _dark_arg(text: str):
-    """``auto``, a level in counts, or one level per colour channel ``R,G,B``
-    (argparse type)."""
-    if text.strip().lower() == "auto":
-        return "auto"
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"give a dark level in counts, one per channel "
-                                         f"(R,G,B) or 'auto', not {text!r}") from None
-    if not np.all(np.isfinite(values)) or len(values) not in (1, 3):
-        raise argparse.ArgumentTypeError(f"the dark level must be one finite number or "
-                                         f"three (R,G,B), not {text!r}")
-    return values[0] if len(values) == 1 else np.asarray(values)
-
-
-def _subtract_dark(images, level, what: str, say=print):
-    """``images`` minus ``level`` (counts, or ``"auto"``: the border median,
-    :func:`diffcam.io.border_dark_level`); clipping noise below 0 is reported through
-    ``say`` as one line."""
-    import warnings
-
-
-    if level is None:
-        return images
-    background = border_dark_level(images, DARK_RING) if _is_auto(level) else level
-    if np.ndim(background) == 1 and np.ndim(images) != 3:
-        raise DiffcamError(f"{what}: one dark level per channel needs a colour image; "
-                           f"give one level.")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", BackgroundWarning)
-        try:
-            out = subtract_background(images, background)
-        except DiffcamError as err:
-            raise DiffcamError(f"{what}: {err}") from None
-    for w in caught:
-        say(f"{what}: {w.message}")
-    return out
-
-
-def _gains_arg(text: str):
-    """``auto`` or three gains ``R,G,B`` (argparse type)."""
-    if text.strip().lower() == "auto":
-        return "auto"
-    try:
-        gains = [float(v) for v in text.split(",")]
-    except ValueError:
-        gains = []
-    if len(gains) != 3 or not all(np.isfinite(g) and g > 0 for g in gains):
-        raise argparse.ArgumentTypeError(f"give three positive gains R,G,B or 'auto', not "
-                                         f"{text!r}")
-    return gains
-
-
-def _is_auto(level) -> bool:
-    return isinstance(level, str) and level == "auto"
-
-
-def dark_levels(args) -> tuple:
-    """(raw level, PSF level) from ``--bias`` or ``--dark-raw``/``--dark-psf``; none by
-    default. On the shipped captures the crop-model solvers absorb a constant offset:
-    ADMM-TV's hand changes by < 0.001 in correlation with a FISTA reference for a raw
-    dark level of 0 to 200 counts, or a PSF dark level of 0 to 80 (the true one is 34)."""
-    if args.bias is not None:
-        if args.dark_raw is not None or args.dark_psf is not None:
-            raise DiffcamError("--bias subtracts one level from both the raw and the PSFs; "
-                               "use either it or --dark-raw/--dark-psf, not both.")
-        return args.bias, args.bias
-    return args.dark_raw, args.dark_psf
-
-
-def read_inputs(args, say) -> tuple[np.ndarray, PsfSource]:
-    """The raw capture and the PSFs, dark-subtracted and downsampled alike; checks that
-    the PSF fits in the raw image. ``say`` reports progress notes."""
-
-    raw_level, psf_level = dark_levels(args)
-    if args.downsample is not None and args.downsample < 1:
-        raise DiffcamError(f"--downsample {args.downsample}: give a factor of 1 or more.")
-    raw = read_raw(args.raw, args.channel_order)
-    source = colour_psf(args.psf, raw, args.channel_order) or read_psf_source(args.psf,
-                                                                               args.planes)
-    raw = _subtract_dark(raw, raw_level, f"{args.raw} (raw dark level)", say)
-    psfs = _subtract_dark(source.psfs, psf_level, f"{args.psf} (PSF dark level)", say)
-    factor = working_factor(raw.shape, args.downsample, say)
-    if factor > 1:
-        raw, psfs = downsample(raw, factor), downsample(psfs, factor)
-    if psfs.shape[-2] > raw.shape[-2] or psfs.shape[-1] > raw.shape[-1]:
-        raise DiffcamError(f"PSF {psfs.shape[-2:]} is larger than the image {raw.shape[-2:]}"
-                           f"{' after downsampling' if factor > 1 else ''}; crop "
-                           f"the PSF or use the same downsampling for both.")
-    check_light(raw, psfs, args)
-    check_not_swapped(raw, psfs, args)
-    return raw, source._replace(psfs=np.asarray(psfs, np.float32))
-
-
-def check_light(raw: np.ndarray, psfs: np.ndarray, args) -> None:
-    """Refuse a raw capture or a PSF plane without light (every pixel ≤ 0 once the dark
-    level is off): there is nothing to deconvolve, or nothing to deconvolve with."""
-    if not np.max(raw) > 0:
-        raise DiffcamError(f"{args.raw}: no light: every pixel is 0 or below"
-                           f"{' after the dark level' if args.dark_raw or args.bias else ''};"
-                           f" check the capture and the dark level.")
-    planes = np.asarray(psfs).reshape((-1,) + psfs.shape[-2:])
-    dark = np.flatnonzero(~(planes.max(axis=(-2, -1)) > 0))
-    if dark.size:
-        where = "" if len(planes) == 1 else f" (plane(s) {dark[:5].tolist()})"
-        raise DiffcamError(f"{args.psf}: the PSF holds no light{where}: every pixel is 0 or "
-                           f"below; check the PSF file and its dark level.")
-
-
-def lit_pixels(images: np.ndarray) -> np.ndarray:
-    """The effective number of lit pixels of each frame, (Σx)² / Σx² over its positive
-    part: N for a flat frame, 1 for a single bright pixel."""
-    x = np.maximum(np.asarray(images, np.float64), 0)
-    return x.sum(axis=(-2, -1)) ** 2 / (x ** 2).sum(axis=(-2, -1))
-
-
-def check_not_swapped(raw: np.ndarray, psfs: np.ndarray, args) -> None:
-    """Warn (stderr) when the raw lights fewer effective pixels (:func:`lit_pixels`)
-    than its least spread PSF: by Young's inequality a capture ``Σ_z h_z * x_z`` of
-    non-negative scenes lights at least as many as the least spread of its PSFs, so the
-    two files are likely swapped. On the shipped pairs (hand, USAF volume, seven
-    scenes, at 1 to 8 times downsampling) the raw lights 1.8 to 3.0 times more."""
-    image = raw.sum(axis=0) if raw.ndim == 3 else raw
-    planes = psfs.sum(axis=0) if psfs.ndim == 3 and raw.ndim == 3 else psfs
-    raw_lit, psf_lit = float(lit_pixels(image)), float(np.min(lit_pixels(planes)))
-    if raw_lit < psf_lit:
-        print(f"diffcam reconstruct: warning: the raw {args.raw} lights fewer pixels "
-              f"({raw_lit:.0f} effective) than its PSF {args.psf} ({psf_lit:.0f}); a "
-              f"capture spreads light more than its PSF: are the two files swapped?",
-              file=sys.stderr)
-
-
-def working_factor(shape, requested: int | None, say) -> int:
-    """``requested`` (``--downsample``), or by default the least factor that brings the
-    capture's longer side to :data:`WORKING_SIZE` pixels or fewer, said through ``say``."""
-    if requested is not None:
-        return requested
-    ny, nx = shape[-2:]
-    factor = -(-max(ny, nx) // WORKING_SIZE)
-    if factor > 1:
-        say(f"working at {ny // factor}×{nx // factor}: the {ny}×{nx} capture box-averaged "
-            f"by {factor} (the defaults suit ≤ {WORKING_SIZE} pixels per side; "
-            f"--downsample 1 keeps the full resolution)")
-    return factor
-
-
-def read_raw(path, channel_order: str | None) -> np.ndarray:
-    """The raw capture: ``(ny, nx)``, or ``(3, ny, nx)`` in R, G, B order for a colour
-    file (``channel_order`` is the file's, e.g. ``"BGR"``)."""
-
-    capture = read_image(path, channel_order=channel_order)
-    if capture.channels is not None:
-        return as_rgb(capture)
-    if capture.image.ndim != 2:
-        raise DiffcamError(f"{path}: expected a grayscale or colour (ny, nx, 3) image, got "
-                           f"a stack of shape {capture.image.shape}.")
-    return capture.image
-
-
-def colour_psf(source: str, raw: np.ndarray, channel_order: str | None) -> PsfSource | None:
-    """One PSF per colour channel if ``source`` is one colour image file (e.g. from
-    ``diffcam calibrate-psf``), else ``None`` (a grayscale PSF is shared by the channels).
-    """
-
-    path = Path(source)
-    if (path.suffix.lower() not in IMAGE_SUFFIXES or not path.is_file()
-            or Path(f"{path}.json").exists() or has_stack_meta(path)):
-        return None
-    capture = read_image(path, channel_order=channel_order)
-    if capture.channels is None:
-        return None
-    if raw.ndim == 2:
-        raise DiffcamError(f"{source}: a colour PSF for a grayscale raw; give a colour raw "
-                           f"or a grayscale PSF.")
-    return PsfSource(as_rgb(capture), None, [0], None, colour=True)
-
-
-def white_balance(image: np.ndarray, gains) -> np.ndarray:
-    """``image`` ``(3, ny, nx)`` times a gain per channel: ``gains`` ``"auto"`` (grey
-    world: every channel's mean brought to the mean of the three), three numbers, or
-    ``None`` (unchanged)."""
-    if gains is None or np.ndim(image) != 3:
-        return image
-    if _is_auto(gains):
-        means = image.mean(axis=(-2, -1))
-        if np.any(means <= 0):
-            raise DiffcamError("--white-balance auto: a channel of the reconstruction is "
-                               "dark; give the gains (R,G,B).")
-        gains = means.mean() / means
-    return image * np.asarray(gains, image.dtype)[:, None, None]
 
 
 def _reporter(quiet: bool):
@@ -564,7 +278,7 @@ def add_reconstruct(sub) -> None:
     rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
                      help="channel order of colour files, RGB or BGR (OpenCV .npy arrays); "
                           "needed for colour .npy, PNG/TIFF are RGB by default")
-    rec.add_argument("--white-balance", type=_gains_arg, metavar="auto|R,G,B",
+    rec.add_argument("--white-balance", type=gains_arg, metavar="auto|R,G,B",
                      help="colour: gains per channel, or 'auto' (grey world); default none "
                           "(a PSF per channel from calibrate-psf already balances them)")
     rec.add_argument("--psf", required=True, metavar="SOURCE",
@@ -588,14 +302,20 @@ def add_reconstruct(sub) -> None:
                          f"{n} for {m}" for m, n in ITERATIONS.items()) + "; with --3d "
                           + ", ".join(f"{n} for {m}" for m, n in ITERATIONS_3D.items())
                           + f"; at most {MAX_ITERATIONS})")
+    _add_input_arguments(rec)
+    rec.set_defaults(func=_cmd_reconstruct)
+
+
+def _add_input_arguments(rec) -> None:
+    """The options of ``reconstruct`` that prepare its inputs and shape its output."""
     rec.add_argument("--bias", type=float, metavar="COUNTS",
                      help="sensor bias, counts: the same level subtracted from both the raw "
                           "and the PSFs (not with --dark-raw/--dark-psf)")
-    rec.add_argument("--dark-raw", type=_dark_arg, metavar="COUNTS|auto",
+    rec.add_argument("--dark-raw", type=dark_arg, metavar="COUNTS|auto",
                      help="dark level of the raw, counts (R,G,B: one per colour channel), "
                           f"or 'auto': the median of a {DARK_RING}-pixel ring at the frame "
                           "border, per channel")
-    rec.add_argument("--dark-psf", type=_dark_arg, metavar="COUNTS|auto",
+    rec.add_argument("--dark-psf", type=dark_arg, metavar="COUNTS|auto",
                      help="dark level of the PSFs, counts, or 'auto': per plane, the "
                           f"median of a {DARK_RING}-pixel ring at the frame border")
     rec.add_argument("--downsample", type=int, metavar="FACTOR",
@@ -611,4 +331,3 @@ def add_reconstruct(sub) -> None:
     rec.add_argument("-o", "--out", required=True,
                      help="output .png, .tif or .npy (2-D; colour: 8-bit PNG, 16-bit TIFF "
                           "or float32 (ny, nx, 3) .npy); .tif volume (--3d)")
-    rec.set_defaults(func=_cmd_reconstruct)
