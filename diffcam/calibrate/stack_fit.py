@@ -84,6 +84,7 @@ from jaxtyping import Float
 from diffcam.core.options import Options
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.core.backend import fft2, ifft2, irfft2, rfft2, transfer_step
+from diffcam.core.progress import new_bar
 from diffcam.core.phasor import expj
 from diffcam.model.spline import spline_sample
 from diffcam.calibrate.projections import fit_amplitude
@@ -1101,16 +1102,13 @@ def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float,
              progress: bool) -> _Run:
     """Adam from ``model`` until validation stalls, ``max_steps`` or the time budget
     (counted from ``t0``, perf_counter seconds)."""
-    from tqdm.auto import tqdm
-
     lr = _step_sizes(model, opts)
     zeros = jax.tree.map(jnp.zeros_like, eqx.filter(model, eqx.is_array))
     state = (zeros, zeros, jnp.int32(0))
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
     reason = f"max_steps ({opts.max_steps})"
-    with tqdm(total=opts.max_steps, disable=not progress, desc="stack fit", unit="step",
-              leave=False) as bar:
+    with new_bar(opts.max_steps, "stack fit", unit="step", progress=progress) as bar:
         for k in range(opts.max_steps):
             new_model, state, r_tr, r_va = _adam_step(model, state, data, lr)
             r_va = float(r_va)
