@@ -7,9 +7,9 @@ not depend on any bar. On the host, the tick advances the innermost bar opened b
 called under a caller's ``jit`` runs after its ``progress_bar`` block has closed, so it
 shows nothing. Host loops open a bar with :func:`new_bar` and advance it themselves.
 
-Reports start only for runs longer than :data:`DELAY` seconds, so quick calls stay
-silent. On a terminal they are a tqdm bar; elsewhere (a log file, a pipe, CI) a plain
-line at most every :data:`LINE_EVERY` seconds and one at the end. ``progress=False`` on
+On a terminal a tqdm bar appears for runs longer than :data:`DELAY` seconds; elsewhere
+(a log file, a pipe, CI) a plain line every :data:`LINE_EVERY` seconds and one at the
+end, so runs shorter than that stay silent. ``progress=False`` on
 the public functions, or ``DIFFCAM_PROGRESS=0`` in the environment, turns them off.
 A tick costs a few microseconds per iteration (``docs/real_data.md``).
 """
@@ -27,7 +27,7 @@ import numpy as np
 
 __all__ = ["tick", "progress_bar", "new_bar", "enabled", "DELAY", "LINE_EVERY"]
 
-DELAY = 2.0  # seconds before a bar (or the first plain line) appears
+DELAY = 2.0  # seconds before a bar appears on a terminal
 LINE_EVERY = 30.0  # seconds between plain progress lines when stderr is not a terminal
 _BARS: list = []  # the bars open now, innermost last
 
@@ -87,15 +87,13 @@ def new_bar(total: int, desc: str, unit: str = "it", progress: bool = True):
 
 
 class PlainProgress:
-    """Progress for a log: ``desc: n/total unit, t s`` on stderr, the first line after
-    :data:`DELAY` seconds, then at most every :data:`LINE_EVERY` seconds, and a last
-    line on :meth:`close` if any was printed before."""
+    """Progress for a log: ``desc: n/total unit, t s`` on stderr at most every
+    :data:`LINE_EVERY` seconds, and a last line on :meth:`close` if any was printed."""
 
     def __init__(self, total: int, desc: str, unit: str = "it", show: bool = True):
         self.total, self.desc, self.unit, self.show = int(total), desc, unit, show
         self.n, self.postfix, self.printed = 0, "", False
-        self.start = time.perf_counter()
-        self.last = self.start - LINE_EVERY + DELAY  # so the first line comes after DELAY
+        self.start = self.last = time.perf_counter()
 
     def update(self, steps: int = 1) -> None:
         self.n += int(steps)
