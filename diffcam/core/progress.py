@@ -27,8 +27,10 @@ import numpy as np
 
 __all__ = ["tick", "progress_bar", "new_bar", "enabled", "DELAY", "LINE_EVERY"]
 
-DELAY = 2.0  # seconds before a bar appears on a terminal
-LINE_EVERY = 30.0  # seconds between plain progress lines when stderr is not a terminal
+DELAY = 2.0
+"""Seconds before a bar appears on a terminal."""
+LINE_EVERY = 30.0
+"""Seconds between plain progress lines when stderr is not a terminal."""
 _BARS: list = []  # the bars open now, innermost last
 
 
