@@ -21,7 +21,7 @@ from pathlib import Path
 from benchmarks.harness import markdown_table, run_probed, write_json
 
 COLUMNS = ["cpus", "run", "wall_s", "peak_gb", "fig3_gs", "fig3_calibrated", "fig5_psf",
-           "fig6_psf", "fig9_model"]
+           "fig6_nearfar_psf", "fig6_psf", "fig9_model"]
 
 
 def _numbers(metrics: dict) -> dict:
