@@ -40,12 +40,13 @@ import numpy as np
 import tifffile
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm.auto import tqdm
 
 from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (_irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
 from diffcam.core.errors import DiffcamError, ShapeError
-from diffcam.core.progress import enabled, new_bar
+from diffcam.core.progress import enabled
 from diffcam.io import atomic_output, check_output_path, check_read_size, read_npz
 
 __all__ = ["psf_stack", "iter_psf_stack", "StackMeta", "save_stack", "load_stack",
@@ -327,7 +328,7 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
             it as it was, with no temporary file behind. With several processes
             (``jax.distributed``) process 0 writes it, and every process returns its
             memory map once it is written: the folder must be one they all see.
-        progress: show progress (on process 0 of several); default on from 32
+        progress: show a tqdm bar (on process 0 of several); default on from 32
             depths; ``DIFFCAM_PROGRESS=0`` turns it off.
         devices: devices to shard the depth axis over (default ``jax.devices()``:
             every process's, after ``jax.distributed.initialize()``).
@@ -349,7 +350,7 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     shape = full if offsets is not None else (full[0],) + full[2:]
     show = depths.size >= _PROGRESS_FROM if progress is None else progress
     show = enabled(show) and jax.process_index() == 0  # one bar, however many processes
-    bar = new_bar(depths.size, "PSF stack", unit="depth", progress=show)
+    bar = tqdm(total=depths.size, unit="depth", disable=not show, desc="PSF stack")
     meta = _meta(camera, depths, offsets, spectrum, normalise)
 
     def pages():
