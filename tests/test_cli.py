@@ -255,3 +255,15 @@ def test_calibrate_psf_compare_failures(calibration_files, tmp_path, capsys):
     ]
     for args, message in cases:
         _fails_cleanly(capsys, args, message, out)
+
+
+def test_version_is_the_installed_distribution(capsys):
+    """`diffcam --version` prints the version pip installed (pyproject.toml), exit 0."""
+    from importlib.metadata import version
+
+    from diffcam.apps.cli import build_parser
+
+    with pytest.raises(SystemExit) as exit_:
+        build_parser().parse_args(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"diffcam {version('diffcam')}"
