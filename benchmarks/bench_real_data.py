@@ -42,12 +42,13 @@ BEFORE = ["--method", "rl", "--iterations", "150"]
 
 
 def readme_commands(readme: Path = ROOT / "README.md") -> list[list[str]]:
-    """The commands of the first ``sh`` block under "## Real data", each as argv
-    (comments dropped)."""
+    """The ``diffcam`` commands of the first ``sh`` block under "## Real data", each as
+    argv (comments and the shell set-up line dropped)."""
     text = readme.read_text()
     section = text.split("## Real data", 1)[1].split("\n## ", 1)[0]
     block = re.search(r"```sh\n(.*?)```", section, flags=re.S).group(1)
-    return [shlex.split(line, comments=True) for line in block.splitlines() if line.strip()]
+    lines = [shlex.split(line, comments=True) for line in block.splitlines()]
+    return [argv for argv in lines if argv and argv[0] == "diffcam"]
 
 
 def fista_reference(raw: np.ndarray, psf: np.ndarray, iterations: int = 200) -> np.ndarray:

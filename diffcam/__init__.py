@@ -20,6 +20,8 @@ Units are SI everywhere (metres, radians); grids are centred (index N//2 is the 
 ``docs/design.md`` maps the paper's equations to functions.
 """
 
+from importlib.metadata import PackageNotFoundError, version as _metadata_version
+
 from diffcam import calibrate, core, evaluate, model, optics, reconstruct
 from diffcam.calibrate import retrieve_phase
 from diffcam.core.errors import (ConvergenceWarning, DiffcamError, GeometryWarning,
@@ -32,7 +34,17 @@ from diffcam.optics import (angular_spectrum, apply_phase, circular_aperture, fo
                             thin_lens)
 from diffcam.reconstruct import admm_tv, richardson_lucy, wiener
 
-__version__ = "0.2.0"
+
+def _version() -> str:
+    """The installed distribution's version (pyproject.toml); ``0+unknown`` when diffcam
+    runs from a source tree that was never installed."""
+    try:
+        return _metadata_version("diffcam")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+__version__ = _version()
 
 __all__ = [
     "Camera", "HeightMap", "Spectrum", "psf", "random_diffuser", "psf_stack", "save_stack",

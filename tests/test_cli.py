@@ -257,21 +257,13 @@ def test_calibrate_psf_compare_failures(calibration_files, tmp_path, capsys):
         _fails_cleanly(capsys, args, message, out)
 
 
-def test_apps_import_no_cycle_and_no_private_names():
-    """The command modules import their shared helpers from diffcam.apps.common, never
-    from diffcam.apps.cli (which imports them: a cycle) nor a private name of another
-    module (read from the source with ast)."""
-    import ast
-    from pathlib import Path
+def test_version_is_the_installed_distribution(capsys):
+    """`diffcam --version` prints the version pip installed (pyproject.toml), exit 0."""
+    from importlib.metadata import version
 
-    import diffcam.apps
+    from diffcam.apps.cli import build_parser
 
-    offenders = []
-    for path in sorted(Path(diffcam.apps.__file__).parent.glob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("diffcam"):
-                if node.module == "diffcam.apps.cli" and path.name != "cli.py":
-                    offenders.append(f"{path.name} imports diffcam.apps.cli")
-                offenders += [f"{path.name} imports {node.module}.{a.name}"
-                              for a in node.names if a.name.startswith("_")]
-    assert offenders == []
+    with pytest.raises(SystemExit) as exit_:
+        build_parser().parse_args(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"diffcam {version('diffcam')}"

@@ -1,5 +1,6 @@
-"""Progress bars: the jitted loops tick the open bar once per iteration (batched or not),
-nothing breaks under jit or grad, and the opt-outs hold."""
+"""Progress: the jitted loops tick the open bar once per iteration (batched or not),
+nothing breaks under jit or grad, the opt-outs hold, and a log (stderr not a terminal,
+as under pytest) gets a few plain lines instead of a bar's carriage returns."""
 
 import jax
 import jax.numpy as jnp
@@ -9,12 +10,6 @@ import pytest
 from diffcam.calibrate import CalibrationGeometry, gerchberg_saxton
 from diffcam.core import progress
 from diffcam.reconstruct import admm_tv, focus_sweep, richardson_lucy
-
-
-@pytest.fixture(autouse=True)
-def bars_everywhere(monkeypatch):
-    """Bars also when stderr is not a terminal (pytest captures it)."""
-    monkeypatch.setattr(progress, "ON_TERMINALS_ONLY", False)
 
 
 @pytest.fixture
@@ -52,10 +47,10 @@ def test_projections_tick(problem):
 
 
 def test_inner_bar_shown_and_closed(problem, capsys, monkeypatch):
-    """With no delay the solver's own bar is drawn on stderr and closed after the run;
-    progress=False and DIFFCAM_PROGRESS=0 draw nothing."""
+    """With no delay the solver's own progress reaches stderr and its bar is closed after
+    the run; progress=False and DIFFCAM_PROGRESS=0 print nothing."""
     image, psf = problem
-    monkeypatch.setattr(progress, "DELAY", 0.0)
+    monkeypatch.setattr(progress, "LINE_EVERY", 0.0)
     richardson_lucy(image, psf, 5)
     assert "Richardson–Lucy" in capsys.readouterr().err and not progress._BARS
     richardson_lucy(image, psf, 5, progress=False)
@@ -74,3 +69,28 @@ def test_ticks_under_jit_and_grad(problem):
     with progress.progress_bar(4, "outer"):
         g2 = jax.grad(f)(jnp.asarray(psf))
     assert np.all(np.isfinite(g1)) and np.allclose(g1, g2, rtol=1e-5)
+
+
+def test_log_gets_occasional_plain_lines(capsys, monkeypatch):
+    """Off a terminal: whole lines no closer than LINE_EVERY, and a last line with the
+    final count; no carriage returns."""
+    clock = iter(np.arange(0.0, 1000.0, 0.5))       # each reading half a second later
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: float(next(clock)))
+    with progress.new_bar(400, "stack fit", unit="step") as bar:
+        for _ in range(400):
+            bar.update(1)
+            bar.set_postfix(val="0.9700")
+    lines = capsys.readouterr().err.splitlines()
+    # 200 s of updates: one line per 30 s, then the last
+    assert len(lines) == 200 // 30 + 1
+    assert lines[0].startswith("stack fit: 60/400 step, 30 s")
+    assert lines[-1].startswith("stack fit: 400/400 step") and lines[-1].endswith("val=0.9700")
+
+
+def test_quick_runs_and_opt_outs_print_nothing(capsys, monkeypatch):
+    with progress.new_bar(10, "quick") as bar:      # well under LINE_EVERY
+        bar.update(10)
+    with progress.new_bar(10, "off", progress=False) as bar:
+        monkeypatch.setattr(progress, "LINE_EVERY", -100.0)
+        bar.update(10)
+    assert capsys.readouterr().err == ""

@@ -438,6 +438,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.")
+    from diffcam import __version__
+    parser.add_argument("--version", action="version", version=f"diffcam {__version__}")
     talk = parser.add_mutually_exclusive_group()
     talk.add_argument("-q", "--quiet", dest="global_quiet", action="store_true",
                       help="print only errors: no progress bars, no summaries")

@@ -43,6 +43,7 @@ from jax import Array
 from diffcam.core.backend import fft_size, transfer_step
 from diffcam.core.errors import DiffcamError
 from diffcam.core.options import Options
+from diffcam.core.progress import new_bar
 from diffcam.core.phasor import expj
 from diffcam.calibrate.projections import fit_amplitude
 from diffcam.calibrate.stack_inputs import (check_physical, check_saturation, given_planes,
@@ -408,15 +409,12 @@ class _Run(NamedTuple):
 def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -> _Run:
     """Adam from ``model`` until validation stalls, ``max_steps`` or the time budget
     (counted from ``t0``, perf_counter seconds)."""
-    from tqdm.auto import tqdm
-
     optimiser = _optimiser(model, opts)
     state = optimiser.init(eqx.filter(model, eqx.is_array))
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
     reason = f"max_steps ({opts.max_steps})"
-    with tqdm(total=opts.max_steps, disable=not opts.progress, desc="stack fit", unit="step",
-              leave=False) as bar:
+    with new_bar(opts.max_steps, "stack fit", unit="step", progress=opts.progress) as bar:
         for k in range(opts.max_steps):
             new_model, state, r_tr, r_va = _step(model, state, data, optimiser)
             r_va = float(r_va)

@@ -1,48 +1,38 @@
 """The one seam between the physics and the FFT backend.
 
 Every transform in diffcam goes through :func:`fft2`, :func:`ifft2`, :func:`rfft2` and
-:func:`irfft2` (over the last two axes, batched over leading ones), and every
-propagation step through :func:`transfer_step`. Two backends stand behind them:
+:func:`irfft2` (over the last two axes, batched over leading ones, numpy's conventions),
+and every propagation step through :func:`transfer_step`. Two backends stand behind them:
 
+- ``"xla"``: ``jnp.fft``; the default, and the only one on GPU/TPU;
 - ``"fftw"`` (CPU): FFTW on its own threads through XLA FFI custom calls
   (:mod:`diffcam.core.fftw`; needs FFTW, e.g. ``pip install 'diffcam[fftw]'``, and a
-  C++ compiler once). On a 2-core machine a Fresnel step measured within 1.2x of
-  pyFFTW called directly when it writes over its input (1.2-1.6x XLA's FFT),
-  Gerchberg–Saxton 1.6-2.3x faster than with XLA's FFT (``benchmarks/bench_fft.py``).
-- ``"xla"``: ``jnp.fft``; the default, and the only one on GPU/TPU.
+  C++ compiler once).
 
-``"xla"`` is the default. ``"auto"`` takes FFTW on CPU when it loads, else XLA. Choose
-with :func:`set_fft` or the environment (``DIFFCAM_FFT=xla|auto|fftw``,
-``DIFFCAM_FFT_THREADS=n``); :func:`fft_backend` says which one runs. FFTW is not the
-default: it is GPL, it measures a plan for every new shape (kept between runs, but a
-session of many shapes pays for each), and ``psf_stack`` is no faster with it
-(``docs/fft.md``). The choice is made when a function is traced: :func:`set_fft`
-clears JAX's caches so that jitted functions trace again.
+``"auto"`` takes FFTW on CPU when it loads, else XLA. Choose with :func:`set_fft` or the
+environment (``DIFFCAM_FFT=xla|auto|fftw``, ``DIFFCAM_FFT_THREADS=n``);
+:func:`fft_backend` says which one runs. The choice is made when a function is traced:
+:func:`set_fft` clears JAX's caches so that jitted functions trace again. FFTW is not
+the default: it is GPL and measures a plan for every new shape (``docs/fft.md``;
+``python -m benchmarks.bench_fft`` times both).
 
-What is also here, and only here, are the scheduling aids that XLA's CPU FFT needs.
-None changes a result; each is differentiable and ``vmap``-able, and each is justified
-by a benchmark (``benchmarks/RESULTS.md``); with FFTW or on other backends they reduce
-to the plain expression (:func:`separable_factor` stays on CPU: it is not about the FFT).
-
-**The FFT rule (CPU).** XLA splits a large elementwise fusion over its intra-op thread
-pool and goes on with the program on whichever pool thread finishes last; an FFT that
-then starts on a pool thread runs about as fast as on one core. Measured at 2048²: an
-FFT pair with any product before or between the two FFTs costs 1.25–2× the pair alone,
-while on one core (``taskset``) the same programs cost the same. So on CPU:
+Also here, and only here, are the CPU scheduling aids for XLA's FFT. XLA splits a large
+elementwise fusion over its thread pool and continues on whichever pool thread finishes
+last, where a following FFT runs at one core's speed (the FFT rule, ``docs/design.md``,
+"The backend seam"). None of the aids changes a result; each is differentiable and
+``vmap``-able, and with FFTW or off the CPU each reduces to the plain expression
+(:func:`separable_factor` stays on CPU: it is not about the FFT):
 
 - :func:`transfer_step` writes the product between the two FFTs in place, in row
-  blocks, which XLA never splits (a Fresnel step: 1.25–1.45× → 0.99–1.03× the pair).
-  It is a linear primitive whose reverse rule runs the same row-block program on the
-  conjugated cotangent, so a gradient keeps the aid too (JAX's own transpose put
-  both reverse FFTs after products: the direct PSF's value_and_grad at 1024², 2.06 →
-  1.70× the forward);
+  blocks, which XLA never splits; it is a linear primitive whose reverse rule runs the
+  same program on the conjugated cotangent;
 - :func:`separable_factor` computes the 1-D factors of separable kernels in a loop, which XLA
   neither splits nor fuses into the N² product that consumes them;
 - :func:`staged` runs a computation whose FFT follows a large product as two jitted
   calls, so the FFT starts a call of its own.
 
-(The cubic sampling of the scaling-theorem PSF keeps XLA from copying its gathers into
-each consumer by itself: :mod:`diffcam.model.spline`.)
+What each aid saves: ``python -m benchmarks.bench_propagate`` and
+``python -m benchmarks.bench_psf``.
 """
 
 from __future__ import annotations
@@ -87,7 +77,8 @@ def set_fft(backend: str = "xla", *, threads: int | None = None,
         planning: FFTW's planning effort, ``"measure"``, ``"patient"`` or
             ``"estimate"`` (:func:`diffcam.core.fftw.configure`).
 
-    Clears JAX's compilation caches: functions traced before used the former choice.
+    Clears JAX's compilation caches, so that jitted functions trace again with this
+    choice.
     """
     _choose(backend, threads, planning)
     jax.clear_caches()

@@ -154,7 +154,7 @@ def _compile() -> Path:
 # must not sleep: with no spin (GOMP_SPINCOUNT=0) Richardson–Lucy's iterations at 1024²
 # took 15.7 ms against 11.5. After a transform it should: a spinning thread holds a core
 # that XLA's next operations need, and psf_stack took 15.8 ms a PSF at 1024² against
-# 12.4 with 30,000 (medians of 4–5 processes; benchmarks/RESULTS.md, bench_fft).
+# 12.4 with 30,000 (medians of 4–5 processes of python -m benchmarks.bench_fft).
 OPENMP_SPIN = 30_000
 
 

@@ -1,59 +1,30 @@
 """Fresh buffers and their page faults: whether this process gets huge pages and keeps
 freed blocks for reuse (CPU, Linux, glibc).
 
-XLA allocates every output and temporary of a jitted call afresh. glibc serves a block
-above its mmap threshold with ``mmap`` and hands it back with ``munmap`` when it is
-freed, so the next call's block is new memory again, which the kernel zero-fills on
-first touch, one page fault per page. The threshold starts at 128 KiB and rises to the
-size of each mapped block that is freed, up to 32 MiB on 64-bit systems (``mallopt(3)``,
-``M_MMAP_THRESHOLD``). So after a process's first calls, smaller blocks come from the
-heap and are reused, while a block of 32 MiB or more (a 2048² complex64 field is
-32 MiB, 4096² is 128 MiB) is mapped afresh on every call. The heap's free top is also
-given back to the kernel above ``M_TRIM_THRESHOLD`` (twice the mmap threshold once that
-has moved), and faults again when reused. With 4 KiB pages a fresh field costs 8192
-faults at 2048² and 32768 at 4096². With huge pages (2 MiB) it is 16 and 64.
-
-Measured on the project's 2-core VM (FFTW backend, one Fresnel step, ratio to pyFFTW's
-planned FFTW, which writes into arrays it owns; ``docs/fft.md``): 1.27× at 2048² and
-1.52× at 4096² with 4 KiB pages; 0.96× and 1.19× with huge pages; 0.82× and 1.11× when
-the step's input is donated (``u = step(u)``), so that no fresh buffer is needed.
+XLA allocates every output and temporary of a jitted call afresh. glibc maps a block of
+32 MiB or more (a 2048² complex64 field) afresh on every call and returns it when freed
+(``mallopt(3)``, ``M_MMAP_THRESHOLD``), so the kernel zero-fills it on first touch, one
+page fault per page: 8192 faults per 2048² field with 4 KiB pages, 16 with huge pages.
 
 glibc asks the kernel for huge pages on its own blocks when the process starts with
-``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` (glibc ≥ 2.35, and transparent huge pages in
-``madvise`` or ``always`` mode, as on most Linux distributions). A tunable is read
-when the process starts, so a library cannot set it for itself. Set it in the shell
-before starting Python, or in a Jupyter kernel's ``env``:
+``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` (glibc ≥ 2.35, transparent huge pages in
+``madvise`` or ``always`` mode). A tunable is read when the process starts, so a
+library cannot set it for itself: set it in the shell before starting Python, or in a
+Jupyter kernel's ``env``:
 
     GLIBC_TUNABLES=glibc.malloc.hugetlb=1 diffcam demo
 
-Huge pages still fault, once per 2 MiB, and glibc still returns every large block to
-the kernel, which must supply (and zero) the next one. :data:`KEEP` stops that: one
-malloc arena for all threads, no ``mmap`` for blocks, no trimming of the heap. A freed
-block stays in the process, and once the heap has grown to what a program needs, its
-calls cost no page fault and almost no kernel time. Set both together, before Python
-starts:
+:data:`KEEP` also keeps freed blocks in the process (one malloc arena, no ``mmap`` for
+blocks, no heap trimming), so that once the heap has grown a call faults no page:
 
     GLIBC_TUNABLES=glibc.malloc.hugetlb=1:glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=17179869184 python run.py
 
-Measured on the same VM with the 4096² scaling PSF's ``value_and_grad`` (FFTW;
-``python -m benchmarks.bench_grad``). With huge pages alone, calls took 505–970 ms,
-about one in four slow, with 50–350 ms of system time each. With both settings, once
-the heap had grown, calls took 494–545 ms with 1.5–5 ms of system time and no fault.
-
-The price is memory, and a slow start:
-- XLA's aligned requests do not fit exactly into a freed block of their own size, so
-  the heap grows by about one block per call for the first calls. In a probe, eight
-  72 MiB blocks were added before it settled; beside another busy process, the growth
-  went on for up to 19 calls, and an occasional later call grew it once more. The
-  calls that grow it are slow (about 850 ms of system time for 384 MB here).
-- The process then keeps its largest footprint until it exits: a peak of 2.6 GB
-  against 1.3 GB for the 4096² gradient.
-
-So it suits a long run of one size (a fit of many gradient steps), not a session that
-tries many sizes.
-
-Neither setting changes a result. :func:`status` (printed by ``diffcam -v``) says
-which is in use.
+The price: the heap grows by about one block per call for the first calls (XLA's
+aligned requests do not fit a freed block of their own size), and the process keeps its
+largest footprint until it exits. It suits a long run of one size, such as a fit of
+many gradient steps. Neither setting changes a result; :func:`status` (printed by
+``diffcam -v``) says which is in use. What they save: ``python -m
+benchmarks.bench_fft`` and ``python -m benchmarks.bench_grad`` (``docs/fft.md``).
 """
 
 from __future__ import annotations

@@ -1,31 +1,36 @@
-"""Progress bars for jitted iterations: one place for every long-running loop.
+"""Progress reports for long loops: one place for every long-running computation.
 
 A jitted loop calls :func:`tick` with its iteration index once per iteration; the call
 is a ``jax.debug.callback`` to a module-level function, so it is compiled once and does
 not depend on any bar. On the host, the tick advances the innermost bar opened by
 :func:`progress_bar` around the call, if any; without one it does nothing. A solver
 called under a caller's ``jit`` runs after its ``progress_bar`` block has closed, so it
-shows nothing. Bars appear only for runs longer than :data:`DELAY` seconds (tqdm's
-``delay``), so quick calls stay silent, and only on a terminal (a log file gets none); ``progress=False`` on the public functions, or
-``DIFFCAM_PROGRESS=0`` in the environment, turns them off.
+shows nothing. Host loops open a bar with :func:`new_bar` and advance it themselves.
 
-Measured on Richardson–Lucy, 1000 iterations at 300 × 400 (one tick per iteration, no
-bar open): the callback costs a few microseconds per iteration (docs/real_data.md).
+On a terminal a tqdm bar appears for runs longer than :data:`DELAY` seconds; elsewhere
+(a log file, a pipe, CI) a plain line every :data:`LINE_EVERY` seconds and one at the
+end, so runs shorter than that stay silent. ``progress=False`` on
+the public functions, or ``DIFFCAM_PROGRESS=0`` in the environment, turns them off.
+A tick costs a few microseconds per iteration (``docs/real_data.md``).
 """
 
 from __future__ import annotations
 
 import os
+import sys
+import time
 from contextlib import contextmanager
 from typing import Iterator
 
 import jax
 import numpy as np
 
-__all__ = ["tick", "progress_bar", "enabled", "DELAY"]
+__all__ = ["tick", "progress_bar", "new_bar", "enabled", "DELAY", "LINE_EVERY"]
 
-DELAY = 2.0  # seconds before a bar appears
-ON_TERMINALS_ONLY = True  # no bar when stderr is not a terminal (logs, pipes, CI)
+DELAY = 2.0
+"""Seconds before a bar appears on a terminal."""
+LINE_EVERY = 30.0
+"""Seconds between plain progress lines when stderr is not a terminal."""
 _BARS: list = []  # the bars open now, innermost last
 
 
@@ -61,13 +66,59 @@ def progress_bar(total: int, desc: str, progress: bool = True,
     if not enabled(progress):
         yield
         return
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=int(total), desc=desc, unit=unit, delay=DELAY, leave=False,
-               disable=None if ON_TERMINALS_ONLY else False)
+    bar = new_bar(total, desc, unit=unit)
     _BARS.append(bar)
     try:
         yield
     finally:
         _BARS.remove(bar)
         bar.close()
+
+
+def new_bar(total: int, desc: str, unit: str = "it", progress: bool = True):
+    """A progress bar of ``total`` steps with tqdm's ``update``, ``set_postfix``,
+    ``close`` and ``n``, also a context manager: a tqdm bar when stderr is a terminal,
+    else :class:`PlainProgress` lines. ``progress`` false (or ``DIFFCAM_PROGRESS=0``)
+    gives a bar that shows nothing."""
+    show = enabled(progress)
+    if show and sys.stderr.isatty():
+        from tqdm.auto import tqdm
+
+        return tqdm(total=int(total), desc=desc, unit=unit, delay=DELAY, leave=False)
+    return PlainProgress(total, desc, unit=unit, show=show)
+
+
+class PlainProgress:
+    """Progress for a log: ``desc: n/total unit, t s`` on stderr at most every
+    :data:`LINE_EVERY` seconds, and a last line on :meth:`close` if any was printed."""
+
+    def __init__(self, total: int, desc: str, unit: str = "it", show: bool = True):
+        self.total, self.desc, self.unit, self.show = int(total), desc, unit, show
+        self.n, self.postfix, self.printed = 0, "", False
+        self.start = self.last = time.perf_counter()
+
+    def update(self, steps: int = 1) -> None:
+        self.n += int(steps)
+        now = time.perf_counter()
+        if self.show and now - self.last >= LINE_EVERY:
+            self._line(now)
+
+    def set_postfix(self, **values) -> None:
+        self.postfix = ", ".join(f"{k}={v}" for k, v in values.items())
+
+    def close(self) -> None:
+        if self.show and self.printed:
+            self._line(time.perf_counter())
+        self.show = False
+
+    def _line(self, now: float) -> None:
+        extra = f", {self.postfix}" if self.postfix else ""
+        print(f"{self.desc}: {self.n}/{self.total} {self.unit}, {now - self.start:.0f} s"
+              f"{extra}", file=sys.stderr, flush=True)
+        self.last, self.printed = now, True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

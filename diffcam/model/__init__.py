@@ -2,7 +2,7 @@
 
 - :mod:`.camera` — :class:`Camera` (fixed geometry and traced physical numbers),
   :class:`HeightMap`, :class:`Spectrum`, random diffusers;
-- :mod:`.psf` — the PSF of a point source (direct, or by the Fresnel scaling theorem);
+- :mod:`.point_spread` — the PSF of a point source (direct, or by the Fresnel scaling theorem);
 - :mod:`.stack` — PSF stacks over depths and positions: chunked, sharded, streamed,
   saved and loaded;
 - :mod:`.sensor` — pixel integration, resampling, noise, saturation, quantisation.

@@ -39,9 +39,9 @@ Variants:
   runs of 100 iterations ended 7–19 % apart (24×28). A rise above 1e-4 issues a
   ``ConvergenceWarning`` (eager calls). Gradients through TV-RL are ill-conditioned from
   ``λ = 1e-2`` over tens of iterations (float32 and float64 ones disagree). A
-  backtracking line search along the update (Lange, IEEE TMI 9, 439, 1990) was tried:
-  it made the objective fall at every step, but at ``λ = 0.05`` it halved the step 6
-  times an iteration on average. For strong TV use :func:`~diffcam.reconstruct.admm_tv`.
+  backtracking line search along the update (Lange, IEEE TMI 9, 439, 1990) would make
+  the objective fall at every step, but at ``λ = 0.05`` it halves the step 6 times an
+  iteration on average. For strong TV use :func:`~diffcam.reconstruct.admm_tv`.
 """
 
 from __future__ import annotations
