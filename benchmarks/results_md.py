@@ -38,7 +38,16 @@ SECTIONS = {
                       "depth_error_planes", "same_depth_pm2", "depth_spearman"]),
     "stack_sim": ("Fig. 9 on simulated data the model did not make",
                   "python -m benchmarks.bench_stack_sim",
-                  ["predictor", "truth", "held_out_mean", "worst"]),
+                  ["predictor", "truth", "held_out_mean", "worst", "above_baseline"]),
+    "stack_sim_z2_5mm": ("Fig. 9 at DiffuserCam's scale (z2 = 5 mm, planes on both sides "
+                         "of the given pair)",
+                         "python -m benchmarks.bench_stack_sim --z2 5 --z1 20:200 --dx 2 "
+                         "--planes 3,8 --name stack_sim_z2_5mm",
+                         ["predictor", "truth", "held_out_mean", "worst", "above_baseline"]),
+    "stack_regimes": ("When the wave model helps: a regime map on simulated stacks",
+                      "python -m benchmarks.bench_stack_regimes",
+                      ["setting", "M_range", "model_gain", "rendered_gain", "outside_gain",
+                       "frozen_cost_outside", "above", "zeta_reference_px2"]),
     "distributed": ("PSF stacks over two processes against one",
                     "python -m benchmarks.bench_distributed",
                     ["config", "N", "depths", "repeat", "psfs_per_s", "peak_mb_each",

@@ -20,7 +20,6 @@ Units are SI everywhere (metres, radians); grids are centred (index N//2 is the 
 ``docs/design.md`` maps the paper's equations to functions.
 """
 
-from importlib.metadata import PackageNotFoundError, version as _metadata_version
 
 from diffcam import calibrate, core, evaluate, model, optics, reconstruct
 from diffcam.calibrate import retrieve_phase
@@ -33,18 +32,10 @@ from diffcam.optics import (angular_spectrum, apply_phase, circular_aperture, fo
                             fresnel_ir, fresnel_tf, plan_sampling, point_source_field,
                             thin_lens)
 from diffcam.reconstruct import admm_tv, richardson_lucy, wiener
+from diffcam.core.version import installed_version
 
 
-def _version() -> str:
-    """The installed distribution's version (pyproject.toml); ``0+unknown`` when diffcam
-    runs from a source tree that was never installed."""
-    try:
-        return _metadata_version("diffcam")
-    except PackageNotFoundError:
-        return "0+unknown"
-
-
-__version__ = _version()
+__version__ = installed_version()
 
 __all__ = [
     "Camera", "HeightMap", "Spectrum", "psf", "random_diffuser", "psf_stack", "save_stack",

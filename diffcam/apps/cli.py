@@ -32,6 +32,7 @@ from diffcam.calibrate.pipeline import retrieve_phase
 from diffcam.calibrate.stack_result import MAX_PLANES
 from diffcam.core import memory
 from diffcam.core.backend import fft_backend, fft_size, fft_status
+from diffcam.core.version import installed_version
 from diffcam.core.grid import crop_to, MAX_GRID_SAMPLES
 from diffcam.data import CAPTURES, export_captures
 from diffcam.evaluate.baseline import magnify_psf
@@ -438,8 +439,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.")
-    from diffcam import __version__
-    parser.add_argument("--version", action="version", version=f"diffcam {__version__}")
+    parser.add_argument("--version", action="version",
+                        version=f"diffcam {installed_version()}")
     talk = parser.add_mutually_exclusive_group()
     talk.add_argument("-q", "--quiet", dest="global_quiet", action="store_true",
                       help="print only errors: no progress bars, no summaries")

@@ -19,7 +19,8 @@ def warn_once(old: str, message: str) -> None:
 
 
 def renamed(new: Callable, old: str) -> Callable:
-    """``new`` under its former name ``old`` (a dotted path, for the message)."""
+    """``new``, callable as ``old`` too (``old``: the dotted path it replaces, for the
+    message)."""
     @functools.wraps(new)
     def alias(*args, **kwargs):
         warn_once(old, f"{old} is now {new.__module__}.{new.__qualname__}; the old name "
