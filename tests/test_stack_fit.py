@@ -348,6 +348,14 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     via_psf = tmp_path / "via_psf.tif"
     assert main(["psf", str(model), "--planes", "0:10", "-o", str(via_psf)]) == 0
     np.testing.assert_array_equal(tifffile.imread(via_psf), images)
+    alone, alone_psf = tmp_path / "alone.tif", tmp_path / "alone_psf.tif"   # the alias
+    assert main(["predict", str(model), "--planes", "2,7", "--kappa", "0", "--rendered-only",
+                 "-o", str(alone)]) == 0
+    assert main(["psf", str(model), "--planes", "2,7", "--kappa", "0", "--rendered-only",
+                 "-o", str(alone_psf)]) == 0
+    np.testing.assert_array_equal(tifffile.imread(alone_psf), tifffile.imread(alone))
+    np.testing.assert_allclose(tifffile.imread(alone),
+                               fit.predict([2, 7], kappa=0, residual=False), rtol=1e-6)
     capsys.readouterr()
     assert main(["psf", str(model), "--z1", "25mm", "--z2", "1mm", "-o", str(via_psf)]) == 2
     assert "stack-fit model" in capsys.readouterr().err

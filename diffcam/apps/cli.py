@@ -81,9 +81,13 @@ def _cmd_psf(args) -> int:
             raise DiffcamError("--processes is for a phase file; a stack-fit model's "
                                "planes are computed by one process.")
         return _psf_from_stack_fit(args)
-    if args.planes is not None:
-        raise DiffcamError("--planes is for a stack-fit model from `diffcam fit`; a phase "
-                           "file takes depths: --z1 and --z2.")
+    model_only = [f for f, v in (("--planes", args.planes is not None),
+                                 ("--kappa", args.kappa is not None),
+                                 ("--rendered-only", args.rendered_only)) if v]
+    if model_only:
+        raise DiffcamError(f"{', '.join(model_only)} {'is' if len(model_only) == 1 else 'are'}"
+                           f" for a stack-fit model from `diffcam fit`; a phase file takes "
+                           f"depths: --z1 and --z2.")
     if args.z1 is None or args.z2 is None:
         raise DiffcamError("a phase file needs --z1 (depths) and --z2 (diffuser to sensor), "
                            "with units, e.g. --z1 22mm:30mm:1mm --z2 1mm.")
@@ -133,8 +137,9 @@ def _psf_from_stack_fit(args) -> int:
     if given:
         raise DiffcamError(f"{args.phase} is a stack-fit model: it predicts plane indices "
                            f"(--planes 0:43), it does not take {', '.join(given)}.")
-    return cmd_predict(argparse.Namespace(model=args.phase, planes=args.planes, kappa=None,
-                                           rendered_only=False, out=args.out))
+    return cmd_predict(argparse.Namespace(model=args.phase, planes=args.planes,
+                                           kappa=args.kappa, rendered_only=args.rendered_only,
+                                           out=args.out))
 
 
 def _grid_for(aperture_radius, dx):
@@ -214,8 +219,8 @@ def _cmd_compare(args) -> int:
         return _compare_stack_fit(args)
     if args.z2 is None:
         raise DiffcamError("--phase needs --z2 (diffuser to sensor, with a unit).")
-    if args.json is not None:
-        raise DiffcamError("--json is written with --model; with --phase the table is "
+    if args.json is not None or args.key is not None:
+        raise DiffcamError("--json and --key go with --model; with --phase the table is "
                            "printed and the figure written.")
     captured, depths = read_psfs(args.captured)
     if captured.ndim != 3:
@@ -383,8 +388,8 @@ def _add_psf(sub) -> None:
                         description="Compute the camera's PSF (paper Eq. 7) for point "
                                     "sources on axis at each depth; writes .npz or a "
                                     "multi-page ImageJ TIFF with metadata. Given a model "
-                                    "from `diffcam fit`, predict its planes (--planes), as "
-                                    "`diffcam predict` does.")
+                                    "from `diffcam fit`, predict its planes (--planes; "
+                                    "`diffcam predict` is an alias).")
     ps.add_argument("phase", help="phase file from `diffcam calibrate`, or a stack-fit "
                                   "model from `diffcam fit`")
     ps.add_argument("--z1", type=lengths_arg("z1"),
@@ -394,6 +399,12 @@ def _add_psf(sub) -> None:
                     help="diffuser to sensor; needed with a phase file")
     ps.add_argument("--planes", type=planes_arg,
                     help="stack-fit model only: planes, e.g. 0:43 (default: all)")
+    ps.add_argument("--kappa", type=float,
+                    help="stack-fit model only: render with this depth-law exponent (0: "
+                         "frozen distance)")
+    ps.add_argument("--rendered-only", action="store_true",
+                    help="stack-fit model only: the model's rendering alone, without the "
+                         "measured planes' carried residuals")
     ps.add_argument("--crop", type=grid_count(1), help="square crop of each PSF (samples)")
     ps.add_argument("-o", "--out", required=True,
                     help="output .npz or .tif (a stack fit: .tif or .npy)")
@@ -413,7 +424,7 @@ def _compare_stack_fit(args) -> int:
         raise DiffcamError(f"--model compares by plane index; it does not take "
                            f"{', '.join(given)}.")
     return cmd_compare_stack(argparse.Namespace(stack=args.captured, model=args.model,
-                                                 key=None, out=args.out, json=args.json))
+                                                 key=args.key, out=args.out, json=args.json))
 
 
 def _add_compare(sub) -> None:
@@ -421,12 +432,14 @@ def _add_compare(sub) -> None:
                           description="Pearson (registered) of the wave model and of the "
                                       "scaling baseline against captured PSFs, per depth; "
                                       "prints a table and writes a figure. With --model (a "
-                                      "fit from `diffcam fit`), per plane as `diffcam "
-                                      "compare-stack`.")
+                                      "fit from `diffcam fit`), per plane against the "
+                                      "baseline and the frozen-distance rendering "
+                                      "(`diffcam compare-stack` is an alias).")
     cmp_.add_argument("captured", help="captured PSF stack (multi-page TIFF or diffcam .npz)")
     cmp_.add_argument("--phase", help="phase file from `diffcam calibrate`")
     cmp_.add_argument("--model", help="or a stack-fit model from `diffcam fit`")
     cmp_.add_argument("--json", help="with --model: per-plane scores (.json)")
+    cmp_.add_argument("--key", help="with --model: array name inside an .npz or .mat stack")
     cmp_.add_argument("--z1", type=lengths_arg("z1"), help="depth of each captured PSF")
     cmp_.add_argument("--z2", type=length_arg("z2"), help="diffuser to sensor (with --phase)")
     cmp_.add_argument("--pixel", type=length_arg("pixel"), help="captured PSFs' pixel pitch")

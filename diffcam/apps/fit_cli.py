@@ -272,9 +272,10 @@ def add_fit(sub) -> None:
     fit.add_argument("-o", "--out", required=True, help="model file (.npz)")
     fit.set_defaults(func=_cmd_fit)
 
-    pred = sub.add_parser("predict", help="render planes from a fitted stack model",
-                          description="Render planes of a stack model from `diffcam fit` "
-                                      "(each normalised to unit mean).")
+    pred = sub.add_parser("predict", help="alias of `diffcam psf MODEL`",
+                          description="An alias of `diffcam psf MODEL`: render planes of a "
+                                      "stack model from `diffcam fit` (each normalised to "
+                                      "unit mean).")
     pred.add_argument("model", help="model file from `diffcam fit`")
     pred.add_argument("--planes", type=planes_arg,
                       help="planes, e.g. 0:43 (ends included) or 0,5,9 (default: all)")
@@ -286,8 +287,9 @@ def add_fit(sub) -> None:
     pred.add_argument("-o", "--out", required=True, help="output .tif (multi-page) or .npy")
     pred.set_defaults(func=cmd_predict)
 
-    cmp_ = sub.add_parser("compare-stack", help="model vs scaling baseline per plane",
-                          description="Pearson of the fitted model, the scaling baseline "
+    cmp_ = sub.add_parser("compare-stack", help="alias of `diffcam compare STACK --model`",
+                          description="An alias of `diffcam compare STACK --model MODEL`. "
+                                      "Pearson of the fitted model, the scaling baseline "
                                       "(from the same given planes) and the frozen-distance "
                                       "rendering (κ = 0) against every plane of a measured "
                                       "stack; prints a table, writes a figure and JSON.")
