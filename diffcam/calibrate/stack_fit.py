@@ -51,7 +51,9 @@ from diffcam.calibrate.stack_inputs import (check_physical, check_saturation, gi
 from diffcam.calibrate.stack_model import (StackModel, coefficient_shape, coefficients_of,
                                            edge_taper, fresnel_kernel, identifiable,
                                            render_planes)
+from diffcam.calibrate import stack_result
 from diffcam.calibrate.stack_result import StackFit
+from diffcam.core.deprecation import renamed
 from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import (Registration, magnify_about,
                                            register_magnification,
@@ -450,3 +452,6 @@ def _baseline_validation(imgs, planes, reg, val, ref, anchor) -> float:
         pred = magnify_about(imgs[planes.index(k)], float(s), reg.centre)
         scores.append(float(pearson(pred, imgs[n], mask=val[n] > 0)))
     return float(np.mean(scores))
+
+
+load_stack_fit = renamed(stack_result.load_stack_fit, "diffcam.calibrate.stack_fit.load_stack_fit")

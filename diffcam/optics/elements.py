@@ -18,7 +18,8 @@ from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_
                                  fmt_length, is_concrete)
 from diffcam.core.grid import pitch_yx, radius2, yx
 from diffcam.core.phasor import expj
-from diffcam.optics.propagation import piston, spherical_chirp
+from diffcam.optics.fields import piston
+from diffcam.optics.propagation import spherical_chirp
 from diffcam.optics.sampling import check_point_source_sampling
 
 __all__ = [

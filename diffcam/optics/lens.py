@@ -15,7 +15,7 @@ from jaxtyping import Complex, Num
 
 from diffcam.core.errors import check_field, check_finite, check_positive, found_false
 from diffcam.core.grid import check_grid_size, fft2c, ifft2c, pad_by, pitch_yx
-from diffcam.optics.propagation import complex_dtype, pack_geometry, piston
+from diffcam.optics.fields import complex_dtype, pack_geometry, piston
 
 __all__ = ["fourier_lens", "inverse_fourier_lens"]
 

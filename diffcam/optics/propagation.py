@@ -45,9 +45,12 @@ from diffcam.core.errors import (DiffcamError, check_field, check_finite, check_
                                  sampling_problem)
 from diffcam.core.grid import (check_grid_size, coord_at, crop_to, fft_freq_at, fft_freqs,
                                int_pair, pad_by, pitch_yx)
+from diffcam.core.deprecation import renamed
 from diffcam.core.backend import (fft2, fft_size, ifft2, separable_factor,
                                   transfer_step)
 from diffcam.core.phasor import expj
+from diffcam.optics.fields import complex_dtype, pack_geometry, piston
+from diffcam.optics import lens
 
 __all__ = [
     "fresnel_tf",
@@ -66,35 +69,12 @@ __all__ = [
     "magnification",
     "effective_distance",
     "fresnel_number_factors",
-    "complex_dtype",
-    "pack_geometry",
 ]
 
 METHODS = ("fresnel_tf", "fresnel_ir", "angular_spectrum")
 
 
 # --------------------------------------------------------------------------- helpers
-
-def complex_dtype(field):
-    """The complex dtype a propagator computes ``field`` in: complex128 for float64 or
-    complex128 input (with x64 enabled), else complex64."""
-    dtype = field.dtype if hasattr(field, "dtype") else np.asarray(field).dtype
-    dtype = jax.dtypes.canonicalize_dtype(dtype)   # float64 is float32 without x64
-    return jnp.complex128 if dtype in (jnp.float64, jnp.complex128) else jnp.complex64
-
-
-def piston(wavelength, z):
-    """The constant phase factor e^{jkz}, k = 2π/λ, with kz reduced modulo 2π.
-
-    Concrete arguments are reduced in float64 (numpy); traced ones in their own dtype.
-    """
-    if is_concrete(wavelength, z):
-        cycles = np.asarray(z, dtype=np.float64) / np.asarray(wavelength, dtype=np.float64)
-        phase = 2 * np.pi * np.mod(cycles, 1.0)
-        return np.exp(1j * phase)
-    cycles = z / wavelength
-    return jnp.exp(2j * jnp.pi * (cycles - jnp.floor(cycles)))
-
 
 def critical_distance(shape, dx, wavelength) -> tuple[float, float]:
     """z at which a transfer function stops being sampled, per axis (m): N·dx²/λ.
@@ -338,17 +318,6 @@ def _prepare_on_device(*args):
     return None if prepared is None else (prepared[0], jax.device_put(prepared[1]))
 
 
-def pack_geometry(lengths, p, dtype):
-    """``(dy, dx, λ, z)`` and the piston's real and imaginary parts as one (6,) vector:
-    a NumPy array when all are concrete, so a call pays one host-to-device copy instead
-    of five (10 µs each, against 250 µs for a 128² step); else the traced values
-    stacked."""
-    values = (*lengths, p.real, p.imag)
-    if is_concrete(*values) and not any(isinstance(v, jax.Array) for v in values):
-        return np.asarray(values, dtype)
-    return jnp.stack([jnp.asarray(v).astype(dtype) for v in values])
-
-
 def fresnel_tf(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
                accept_undersampling: bool = False) -> Complex[Array, "... ny nx"]:
     """Fresnel propagation by the transfer function (paraxial), paper Eq. 6.
@@ -559,3 +528,8 @@ def propagate(field: Num[Array, "... ny nx"], dx, wavelength, z, *, method: str 
     if choice.method == "angular_spectrum":
         return angular_spectrum(field, dx, wavelength, z, pad=choice.pad)
     return _run(choice.method, field, dx, wavelength, z, choice.pad, accept_undersampling)
+
+
+fourier_lens = renamed(lens.fourier_lens, "diffcam.optics.propagation.fourier_lens")
+inverse_fourier_lens = renamed(lens.inverse_fourier_lens,
+                               "diffcam.optics.propagation.inverse_fourier_lens")
