@@ -502,7 +502,7 @@ def check_environment() -> None:
 
 
 @contextlib.contextmanager
-def _talk(args):
+def _verbosity(args):
     """``diffcam -q``: standard output and progress bars off (errors still reach
     stderr); ``diffcam -v``: the FFT backend and device first, the wall time last."""
     if args.global_quiet:
@@ -537,7 +537,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        with interrupts_as_keyboard_interrupt(), _talk(args):
+        with interrupts_as_keyboard_interrupt(), _verbosity(args):
             check_environment()
             return args.func(args)
     except DiffcamError as e:
