@@ -375,6 +375,7 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     assert "out of range" in capsys.readouterr().err
 
 
+@pytest.mark.slow   # two fits' compilation: 18 s
 def test_distance_starts_from_the_physical_inputs(synthetic_stack):
     """With pixel pitch, wavelength and z2 the ζ start is the far-source value
     o²·λ·z2/pitch² (fine samples²); a scan keeps the candidate with the best validation
