@@ -275,24 +275,29 @@ def _evaluate(model, data):
     return _loss(model, data)[1]
 
 
-def _optimiser(model: StackModel, opts: StackFitOptions) -> optax.GradientTransformation:
-    """Adam (β = 0.9, 0.999, ε = 1e-12) with one step size per parameter group."""
+_ADAM = optax.scale_by_adam(b1=0.9, b2=0.999, eps=1e-12)
+"""Adam's direction; each parameter group then takes its own step size
+(:func:`_step_sizes`). One transformation for every fit: the step compiles once per
+model geometry."""
+
+
+def _step_sizes(model: StackModel, opts: StackFitOptions):
+    """The step size of each parameter group, as a pytree of the model's arrays."""
     kappa = opts.step_kappa if (opts.fit_kappa and not opts.frozen) else 0.0
     sizes = dict(field_real=opts.step_field, field_imag=opts.step_field,
                  log_zeta=opts.step_zeta, log_s=opts.step_magnification,
                  centre=opts.step_centre, log_sigma=opts.step_blur, kappa=kappa)
     params = eqx.filter(model, eqx.is_array)
-    steps = dataclasses.replace(params, **{k: jnp.float32(-v) for k, v in sizes.items()})
-    per_group = optax.stateless(lambda updates, _: jax.tree.map(jnp.multiply, updates, steps))
-    return optax.chain(optax.scale_by_adam(b1=0.9, b2=0.999, eps=1e-12), per_group)
+    return dataclasses.replace(params, **{k: jnp.float32(v) for k, v in sizes.items()})
 
 
 @eqx.filter_jit
-def _step(model, state, data, optimiser):
-    """One optimiser step; returns the new model and state and the (training,
-    validation) Pearson of the model *before* the step."""
+def _step(model, state, data, steps):
+    """One Adam step with per-group ``steps``; returns the new model and state and the
+    (training, validation) Pearson of the model *before* the step."""
     (_, (r_tr, r_va)), grads = eqx.filter_value_and_grad(_loss, has_aux=True)(model, data)
-    updates, state = optimiser.update(grads, state)
+    direction, state = _ADAM.update(grads, state)
+    updates = jax.tree.map(lambda d, size: -size * d, direction, steps)
     return eqx.apply_updates(model, updates), state, r_tr, r_va
 
 
@@ -318,9 +323,9 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
         planes: two or more distinct plane indices; the first is the reference.
         options: :class:`StackFitOptions`; keywords named after its fields replace them
             (``saturation=``, ``progress=``, ``max_steps=``, ...).
-        pixel_pitch, wavelength, z2: optional physical inputs, metres; they turn ζ into
-            z2·M(t) and, with z2, into z1(t) in ``identifiable`` (nothing is fitted from
-            them).
+        pixel_pitch, wavelength, z2: optional physical inputs, metres; together they
+            start the distance (``zetas``); they turn ζ into z2·M(t) and, with z2, into
+            z1(t) in ``identifiable``.
         registration: M(anchor)/M(reference) and the fixed point, if already known
             (the anchor is the given plane farthest from the reference).
 
@@ -411,14 +416,14 @@ class _Run(NamedTuple):
 def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -> _Run:
     """Adam from ``model`` until validation stalls, ``max_steps`` or the time budget
     (counted from ``t0``, perf_counter seconds)."""
-    optimiser = _optimiser(model, opts)
-    state = optimiser.init(eqx.filter(model, eqx.is_array))
+    steps = _step_sizes(model, opts)
+    state = _ADAM.init(eqx.filter(model, eqx.is_array))
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
     reason = f"max_steps ({opts.max_steps})"
     with new_bar(opts.max_steps, "stack fit", unit="step", progress=opts.progress) as bar:
         for k in range(opts.max_steps):
-            new_model, state, r_tr, r_va = _step(model, state, data, optimiser)
+            new_model, state, r_tr, r_va = _step(model, state, data, steps)
             r_va = float(r_va)
             if not np.isfinite(r_va):
                 reason = f"diverged (validation Pearson {r_va}) at step {k}"
