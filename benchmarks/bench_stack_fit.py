@@ -29,9 +29,14 @@ prepared by :func:`diffcam.calibrate.prepare_planes` (border-median dark level, 
 mean), mean and worst over the held-out planes; ``rendered_above`` counts the held-out
 planes where the rendering alone beats the baseline, ``outside_gain`` is the model's
 mean gain over the baseline on the planes outside the given range (extrapolated),
-``frozen_cost_outside`` what the frozen ablation loses there, ``z2M_ref_mm`` the
-identifiable distance z2·M at the reference plane for the nominal pitch and wavelength
-below. Fit seconds include registration,
+``frozen_cost_outside`` what the frozen ablation loses there, ``depth_effect_outside``
+how much the depth law changes the fitted model's rendering there (1 − Pearson between
+the rendering with κ = 1 and with κ = 0, the same field: the largest cost the ablation
+could show were the κ = 1 rendering exact), ``z2M_first_mm``/``z2M_last_mm`` the
+identifiable distance z2·M at the stack's first and last planes (the same planes in
+every case) for the nominal pitch and wavelength below; the all-row cell is their
+spread over the cases. ``JAX_ENABLE_X64=1`` runs the fits in float64 (recorded).
+Fit seconds include registration,
 the GS start, compilation and all steps (default time budget 60 s); predict seconds
 include compilation. The machine is shared: timings are noisy, and a fit cut by its time
 budget says so in ``stop_reason``. Results go to ``benchmarks/results/stack_fit.json``
@@ -47,6 +52,7 @@ import os
 import time
 import warnings
 
+import jax
 import numpy as np
 
 from benchmarks.harness import markdown_table, write_json
@@ -120,6 +126,7 @@ def run_case(raw: np.ndarray, planes: list[int], label: str, **options) -> dict:
                                registration=fit.registration, **options)
         frozen = frozen_fit.predict(held)
         rendered = fit.predict(held, residual=False)
+        unlawful = fit.predict(held, residual=False, kappa=0.0)
     given = {k: measured[k] for k in planes}
     base = scaling_baseline(given, held, registration=fit.registration)
     blend = scaling_baseline(given, held, registration=fit.registration, blend=True)
@@ -127,6 +134,8 @@ def run_case(raw: np.ndarray, planes: list[int], label: str, **options) -> dict:
         np.asarray(pearson(x, measured[held])) for x in (pred, base, frozen, rendered, blend))
     worst = int(np.argmin(r_model))
     ident = fit.identifiable
+    z2m = ident.get("z2_M_range_m") or [None, None]
+    depth_effect = 1.0 - np.asarray(pearson(rendered, unlawful))
     return {
         "pair": "(" + ", ".join(map(str, planes)) + ")", "transform": label,
         "shape": list(raw.shape[1:]),
@@ -141,8 +150,12 @@ def run_case(raw: np.ndarray, planes: list[int], label: str, **options) -> dict:
         "outside_gain": float((r_model - r_base)[outside].mean()) if outside.any() else None,
         "frozen_cost_outside": float((r_model - r_frozen)[outside].mean())
         if outside.any() else None,
+        "depth_effect_outside": float(depth_effect[outside].mean())
+        if outside.any() else None,
         "z2M_ref_m": ident.get("z2_M_reference_m"),
         "z2M_range_m": ident.get("z2_M_range_m"),
+        "z2M_first_mm": None if z2m[0] is None else 1e3 * z2m[0],
+        "z2M_last_mm": None if z2m[1] is None else 1e3 * z2m[1],
         "fit_s": fit_s, "predict_s": predict_s,
         "steps": f"{fit.best_step}/{fit.steps}", "stop_reason": fit.stop_reason,
         "frozen_stop_reason": frozen_fit.stop_reason,
@@ -156,8 +169,14 @@ def run_case(raw: np.ndarray, planes: list[int], label: str, **options) -> dict:
 
 COLUMNS = ["pair", "transform", "model_mean", "worst_plane", "worst_r", "baseline_mean",
            "frozen_mean", "rendered_mean", "blend_mean", "above_baseline", "rendered_above",
-           "outside_gain", "frozen_cost_outside", "z2M_ref_mm", "fit_s", "predict_s", "steps",
-           "load"]
+           "outside_gain", "frozen_cost_outside", "depth_effect_outside", "z2M_first_mm",
+           "z2M_last_mm", "fit_s", "predict_s", "steps", "load"]
+
+
+def spread(rows: list[dict], key: str) -> str | None:
+    """(max − min)/mean of ``key`` over the rows, as a percentage (the all-row cell)."""
+    v = [r[key] for r in rows if r[key] is not None]
+    return f"{100 * (max(v) - min(v)) / np.mean(v):.1f} % spread" if v else None
 
 
 def main(argv=None) -> None:
@@ -198,13 +217,14 @@ def main(argv=None) -> None:
                   f"rendered {row['rendered_mean']:.4f} ({row['rendered_above']} above), "
                   f"blend {row['blend_mean']:.4f}, {row['above_baseline']} above, "
                   f"outside gain {row['outside_gain']}, frozen cost outside "
-                  f"{row['frozen_cost_outside']}, z2·M {row['z2M_ref_m']}, "
+                  f"{row['frozen_cost_outside']}, depth-law effect "
+                  f"{row['depth_effect_outside']}, z2·M at the first and last planes "
+                  f"{row['z2M_first_mm']}, {row['z2M_last_mm']} mm, "
                   f"fit {row['fit_s']:.1f} s "
                   f"({row['stop_reason']})", flush=True)
             write_json(args.name, rows, {"seed": args.seed, "pairs": len(cases),
-                                           "crop": args.crop, "options": args.options})
-    for r in rows:
-        r["z2M_ref_mm"] = None if r["z2M_ref_m"] is None else 1e3 * r["z2M_ref_m"]
+                                           "crop": args.crop, "options": args.options,
+                                           "float64": bool(jax.config.jax_enable_x64)})
     table = [{k: r[k] for k in COLUMNS} for r in rows]
     if rows:
         table.append({"pair": "**all**",
@@ -220,19 +240,24 @@ def main(argv=None) -> None:
                       "frozen_cost_outside": float(np.mean(
                           [r["frozen_cost_outside"] for r in rows
                            if r["frozen_cost_outside"] is not None])),
+                      "depth_effect_outside": float(np.mean(
+                          [r["depth_effect_outside"] for r in rows
+                           if r["depth_effect_outside"] is not None])),
+                      **{k: spread(rows, k) for k in ("z2M_first_mm", "z2M_last_mm")},
                       "fit_s": float(max(r["fit_s"] for r in rows)),
                       "predict_s": float(max(r["predict_s"] for r in rows))})
     def fmt(key, v):
         if not isinstance(v, float):
             return v
-        if key == "z2M_ref_mm":
+        if key.startswith("z2M"):
             return f"{v:.2f}"
         return f"{v:.1f}" if key in ("fit_s", "predict_s", "load") else f"{v:.4f}"
 
     table = [{k: fmt(k, v) for k, v in r.items()} for r in table]
     print(markdown_table(table, COLUMNS))
     print("wrote", write_json(args.name, rows, {"seed": args.seed, "pairs": len(cases),
-                                                  "crop": args.crop, "options": args.options}))
+                                                  "crop": args.crop, "options": args.options,
+                                                  "float64": bool(jax.config.jax_enable_x64)}))
 
 
 if __name__ == "__main__":

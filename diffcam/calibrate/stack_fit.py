@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import optimistix as optx
 import scipy.ndimage as ndi
 from jax import Array
 
@@ -67,6 +68,10 @@ class StackFitWarning(UserWarning):
 
 
 # ----------------------------------------------------------------------------- options
+
+_OPTIMISTIX = {"lbfgs": optx.LBFGS, "nonlinear_cg": optx.NonlinearCG}
+OPTIMISERS = ("adam", *_OPTIMISTIX)
+
 
 class StackFitOptions(Options):
     """How :func:`fit_stack` runs. Lengths in fine samples (1/``oversample`` pixel).
@@ -105,6 +110,9 @@ class StackFitOptions(Options):
             units): ``"auto"`` is 0.999 × the full scale of an integer input and no
             check for float input; ``None`` skips the check. Saturated pixels raise.
         progress: show a progress bar over the steps.
+        optimiser: ``"adam"`` (optax; per-group step sizes), or an optimistix minimiser
+            on the same loss and validation stopping, ``"lbfgs"`` or ``"nonlinear_cg"``
+            (both end lower on the shipped stack: docs/stack_fit.md, "Ablations").
         step_field, step_zeta, step_magnification, step_centre, step_blur, step_kappa:
             Adam step sizes of the field coefficients (of a field of unit mean
             intensity), log ζ, log s, centre (pixels), log σ and κ.
@@ -137,6 +145,7 @@ class StackFitOptions(Options):
     step_kappa: float = 0.01
     saturation: float | str | None = "auto"
     progress: bool = True
+    optimiser: str = "adam"
 
     def __check_init__(self):
         for name in ("max_steps", "patience", "oversample", "field_stride", "scan_steps"):
@@ -150,6 +159,9 @@ class StackFitOptions(Options):
         if not 0 < float(self.validation_fraction) < 0.5:
             raise DiffcamError(f"validation_fraction must be in (0, 0.5), got "
                                f"{self.validation_fraction!r}.")
+        if self.optimiser not in OPTIMISERS:
+            raise DiffcamError(f"optimiser must be one of {OPTIMISERS}, got "
+                               f"{self.optimiser!r}.")
         if not float(self.time_budget) > 0:
             raise DiffcamError(f"time_budget must be > 0 s, got {self.time_budget!r}.")
         zetas = (16.0,) if self.zetas is None else tuple(self.zetas)
@@ -301,6 +313,41 @@ def _step(model, state, data, steps):
     return eqx.apply_updates(model, updates), state, r_tr, r_va
 
 
+def _adam(model: StackModel, data: _Data, opts: StackFitOptions):
+    """Adam with per-group step sizes, as ``advance(model) → (next model, training and
+    validation Pearson of model)``."""
+    steps = _step_sizes(model, opts)
+    state = _ADAM.init(eqx.filter(model, eqx.is_array))
+
+    def advance(m):
+        nonlocal state
+        new, state, r_tr, r_va = _step(m, state, data, steps)
+        return new, r_tr, r_va
+    return advance
+
+
+def _optimistix(model: StackModel, data: _Data, opts: StackFitOptions):
+    """``opts.optimiser`` from optimistix on the same loss, over the parameter groups
+    with a non-zero step size, as ``advance`` (:func:`_adam`)."""
+    spec = jax.tree.map(lambda size: bool(size > 0), _step_sizes(model, opts))
+    params, static = eqx.partition(model, spec)
+    solver = _OPTIMISTIX[opts.optimiser](rtol=1e-9, atol=1e-9)
+
+    def fn(p, _):
+        return _loss(eqx.combine(p, static), data)
+
+    f_struct, aux_struct = jax.eval_shape(fn, params, None)
+    state = solver.init(fn, params, None, {}, f_struct, aux_struct, frozenset())
+    step = eqx.filter_jit(lambda p, s: solver.step(fn, p, None, {}, s, frozenset())[:2])
+
+    def advance(m):
+        nonlocal state
+        r_tr, r_va = _evaluate(m, data)
+        p, state = step(eqx.filter(m, spec), state)
+        return eqx.combine(p, static), r_tr, r_va
+    return advance
+
+
 def _validation_masks(shape, n, fraction, seed):
     """(train, val) float32 masks: ``fraction`` of the pixels of each plane, drawn
     independently per plane from ``seed``."""
@@ -414,16 +461,15 @@ class _Run(NamedTuple):
 
 
 def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -> _Run:
-    """Adam from ``model`` until validation stalls, ``max_steps`` or the time budget
-    (counted from ``t0``, perf_counter seconds)."""
-    steps = _step_sizes(model, opts)
-    state = _ADAM.init(eqx.filter(model, eqx.is_array))
+    """The optimiser from ``model`` until validation stalls, ``max_steps`` or the time
+    budget (counted from ``t0``, perf_counter seconds)."""
+    advance = (_adam if opts.optimiser == "adam" else _optimistix)(model, data, opts)
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
     reason = f"max_steps ({opts.max_steps})"
     with new_bar(opts.max_steps, "stack fit", unit="step", progress=opts.progress) as bar:
         for k in range(opts.max_steps):
-            new_model, state, r_tr, r_va = _step(model, state, data, steps)
+            new_model, r_tr, r_va = advance(model)
             r_va = float(r_va)
             if not np.isfinite(r_va):
                 reason = f"diverged (validation Pearson {r_va}) at step {k}"

@@ -21,8 +21,10 @@ pitch or depths:
 
 Forward, per plane: G = FFT(g) once; u_t = IFFT(G·e^{−jπζ(t)(fx² + fy²)}) (f in cycles
 per fine sample, so ζ is in fine samples²: ζ = λ·z_eff/dx_fine²); u_t sampled at the
-fine sensor grid magnified by s(t)/m0 by separable Keys cubic convolution (zero
-outside); |·|²; blur (FFT, zero-padded); bin.
+fine sensor grid magnified by s(t)/m0 by the engine's separable cubic B-spline
+(:func:`~diffcam.model.spline.spline_sample`, its prefilter folded into the transfer
+function, zero outside), as the scaling-theorem PSF samples its field; |·|²; blur (FFT,
+zero-padded); bin.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from jaxtyping import Float
 
 from diffcam.core.backend import fft2, ifft2, irfft2, rfft2
 from diffcam.evaluate.registration import relative_magnification_at
+from diffcam.model.sensor import bspline_prefilter
 from diffcam.model.spline import spline_sample
 from diffcam.optics.propagation import fresnel_number_factors
 
@@ -57,31 +60,6 @@ def edge_taper(n: int, pad: int) -> np.ndarray:
     return x
 
 
-def _keys_weights(u):
-    """Keys cubic-convolution (a = −½) weights of taps −1, 0, 1, 2 at offset u ∈ [0, 1)."""
-    a = -0.5
-
-    def near(x):
-        return (a + 2) * x ** 3 - (a + 3) * x ** 2 + 1
-
-    def far(x):
-        return a * x ** 3 - 5 * a * x ** 2 + 8 * a * x - 4 * a
-
-    return jnp.stack([far(1 + u), near(u), near(1 - u), far(2 - u)])
-
-
-def _interp_rows(f, q):
-    """``f`` (n, m) sampled at fractional rows ``q`` (k,) → (k, m): cubic convolution,
-    zero outside the grid; gathers whole rows (differentiable in ``q``)."""
-    n = f.shape[0]
-    q0 = jnp.floor(q)
-    w = _keys_weights(q - q0)
-    idx = q0.astype(jnp.int32)[None, :] + jnp.arange(-1, 3)[:, None]
-    w = jnp.where((idx >= 0) & (idx < n), w, 0.0)
-    rows = f[jnp.clip(idx, 0, n - 1)]
-    return jnp.einsum("tk,tkm->km", w.astype(f.real.dtype), rows)
-
-
 def _gauss_blur(img, sigma, margin: int = 8):
     """Gaussian blur of std ``sigma`` samples by FFT on a grid zero-padded by
     ``margin`` (nothing wraps around)."""
@@ -97,6 +75,16 @@ def fresnel_kernel(grid, zeta):
     """The Fresnel transfer function over ζ = λz/dx² (fine samples²) on the field grid."""
     hy, hx = fresnel_number_factors(grid, zeta)
     return hy * hx
+
+
+def spline_kernel(grid, zeta):
+    """:func:`fresnel_kernel` times the cubic B-spline prefilter: its product with the
+    field's spectrum has as inverse FFT the spline coefficients of the propagated field,
+    which :func:`~diffcam.model.spline.spline_sample` then samples anywhere (the scaling
+    theorem's path in :mod:`diffcam.model.point_spread`)."""
+    ny, nx = grid
+    return fresnel_kernel(grid, zeta) * (bspline_prefilter(ny)[:, None]
+                                         * bspline_prefilter(nx)[None, :])
 
 
 class StackModel(eqx.Module):
@@ -164,8 +152,8 @@ class StackModel(eqx.Module):
         return fft2(self.field())
 
     def _sample(self, u, s):
-        """u on the field grid → the fine sensor grid of a plane at s (magnified by
-        s/m0 relative to the field grid)."""
+        """Spline coefficients ``u`` on the field grid → the field on the fine sensor grid
+        of a plane at s (magnified by s/m0 relative to the field grid; zero outside)."""
         o, (h, w) = self.oversample, self.frame
         half = (o - 1) / 2.0
         ay = (jnp.arange(o * h) - half) / o
@@ -174,12 +162,12 @@ class StackModel(eqx.Module):
         s = s / self.grid_magnification
         qy = o * (cy + (ay - cy) / s) + half + self.pad
         qx = o * (cx + (ax - cx) / s) + half + self.pad
-        return _interp_rows(_interp_rows(u, qy).T, qx).T
+        return spline_sample(spline_sample(u, qy, -2), qx, -1)
 
     def render_plane(self, spec, t) -> Float[Array, "h w"]:
         """Pixel image of plane ``t`` (arbitrary gain) from ``spec`` = :meth:`spectrum`."""
         o, (h, w) = self.oversample, self.frame
-        u = ifft2(spec * fresnel_kernel(self.grid, self.distance(t)))
+        u = ifft2(spec * spline_kernel(self.grid, self.distance(t)))
         v = self._sample(u, self.magnification(t))
         inten = jnp.real(v) ** 2 + jnp.imag(v) ** 2
         inten = _gauss_blur(inten, jnp.exp(self.log_sigma))
