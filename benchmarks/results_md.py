@@ -27,11 +27,25 @@ SECTIONS = {
              ["cpus", "run", "wall_s", "peak_gb", "fig3_gs", "fig3_calibrated",
               "fig5_psf", "fig6_nearfar_psf", "fig6_psf", "fig9_model"]),
     "stack_fit": ("Measured PSF stack: planes fitted, the others predicted",
-                  "python -m benchmarks.bench_stack_fit --pairs 2 --spread 3 "
+                  "python -m benchmarks.bench_stack_fit --pairs 6 --spread 3 5 "
                   "--time-budget 400",
                   ["pair", "transform", "model_mean", "baseline_mean", "rendered_mean",
-                   "blend_mean", "frozen_mean", "above_baseline", "outside_gain", "steps",
-                   "fit_s"]),
+                   "blend_mean", "frozen_mean", "above_baseline", "rendered_above",
+                   "outside_gain", "frozen_cost_outside", "depth_effect_outside",
+                   "z2M_first_mm", "steps", "fit_s"]),
+    **{f"stack_fit_{o}": (f"Measured PSF stack, one pair: {label}",
+                          f"python -m benchmarks.bench_stack_fit --quick --time-budget 400 "
+                          f"--options '{{\"optimiser\": \"{o}\"}}' --name stack_fit_{o}",
+                          ["pair", "transform", "model_mean", "baseline_mean",
+                           "rendered_mean", "above_baseline", "steps", "fit_s"])
+       for o, label in (("lbfgs", "optimistix LBFGS instead of Adam"),
+                        ("nonlinear_cg", "optimistix NonlinearCG instead of Adam"))},
+    "stack_fit_float64": ("Measured PSF stack, one pair, in float64",
+                          "JAX_ENABLE_X64=1 python -m benchmarks.bench_stack_fit --quick "
+                          "--time-budget 400 --name stack_fit_float64",
+                          ["pair", "transform", "model_mean", "baseline_mean",
+                           "rendered_mean", "above_baseline", "steps", "fit_s",
+                           "predict_s", "load"]),
     "stack_volume": ("3-D reconstruction of the real capture with a predicted stack",
                      "python -m benchmarks.bench_stack_volume",
                      ["stack", "volume_pearson", "plane_pearson_mean",
