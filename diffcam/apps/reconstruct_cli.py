@@ -280,8 +280,10 @@ def add_reconstruct(sub) -> None:
                     "(OUT.tif, OUT_max.png, OUT_depth.png, OUT_projections.png, "
                     "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm; "
                     "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5 "
-                    "and residual-balanced penalties (diffcam.reconstruct.admm.VOLUME, "
-                    "recorded in OUT.tif's metadata). See docs/cli_reconstruct.md.")
+                    "and residual-balanced penalties (diffcam.reconstruct.admm.VOLUME), "
+                    "each PSF plane's vertical envelope matched to the capture first "
+                    "(--psf-envelope), all recorded in OUT.tif's metadata. See "
+                    "docs/cli_reconstruct.md and docs/volume.md.")
     rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
     rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
                      help="channel order of colour files, RGB or BGR (OpenCV .npy arrays); "
