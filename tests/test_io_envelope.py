@@ -75,3 +75,16 @@ def test_bad_inputs_are_refused():
         apply_envelope(psfs, [1.0, 2.0])
     with pytest.raises(DiffcamError, match="widths > 0"):
         apply_envelope(psfs, [1.0, 0.0, 1.0, 1.0])
+
+
+def test_widths_scale_with_the_pixel_grid_on_the_shipped_capture():
+    """The shipped 3-D capture: the widths (σ ≈ 100 px on plane 0, decreasing with the
+    planes' height) double when every row is repeated twice (the fit then bins the
+    540-row profiles to 90 rows as it bins the 270-row ones to 90): within 2 %."""
+    from diffcam.data import load_psf_stack_3d, load_raw_3d
+
+    raw, psfs = load_raw_3d(), np.clip(load_psf_stack_3d() - 2 / 65535, 0, None)
+    widths = envelope_widths(raw, psfs)
+    assert 90 < widths[0] < 110 and np.all(np.diff(widths) < 0)
+    doubled = envelope_widths(np.repeat(raw, 2, axis=0), np.repeat(psfs, 2, axis=1))
+    np.testing.assert_allclose(doubled, 2 * widths, rtol=0.02)
