@@ -13,9 +13,13 @@ environment variables; a missing peer is a printed note):
   ``diffcam reconstruct captures/usaf_raw.png --psf captures/psfs --3d -o usaf.tif`` in
   a fresh process (:func:`benchmarks.harness.run_probed`: wall time with start-up, peak
   RSS), with ``DIFFCAM_FFT`` unset and ``=fftw``; the volume is read back and judged.
+* ``readme, --psf-envelope none``: the same command with the PSFs as measured (XLA's
+  FFT), the effect of the envelope.
 * ``reference``: :func:`diffcam.reconstruct.admm_tv_3d` with DiffuserCam's settings
   (raw minus its 100-count bias, the stack's 2-count dark level removed, τ = 6e-4 on
-  raw counts, isotropic 3-D TV) and residual balancing, ``--reference-iterations``.
+  raw counts, isotropic 3-D TV), residual balancing and each PSF plane's vertical
+  envelope matched to the capture (:func:`diffcam.io.envelope_widths`),
+  ``--reference-iterations``.
 * ``scico``, ``lensless``: ``benchmarks/peers_3d/*.py`` for ``--peer-iterations``
   (their seconds per iteration; their ridges only mean something for full runs).
 
@@ -27,7 +31,8 @@ found in the reference's max projection, the same box for every row. The printed
 residual is checked against the residual of the returned volume recomputed with
 :func:`diffcam.reconstruct.convolution_model`.
 
-Fig. 10: the capture reconstructed with the CLI's settings and the measured stack, the
+Fig. 10: the capture reconstructed with the CLI's solver settings (``VOLUME``, the
+stacks without the envelope, so that the stacks alone differ) and the measured stack, the
 stack :func:`diffcam.calibrate.fit_stack` predicts from planes 5 and 27, and the scaling
 baseline's (``benchmarks.bench_stack_volume.stacks``); per-column ridge depths compared
 with the measured stack's.
@@ -125,12 +130,15 @@ def seconds_per_iteration(raw, psf, options, lengths=(5, 15)) -> dict:
 
 
 def reference(raw, psf, iterations) -> tuple[dict, np.ndarray]:
-    """DiffuserCam's settings (raw counts, τ 6e-4, 3-D TV) with residual balancing; and
-    the residual of the returned volume recomputed with the forward model."""
+    """DiffuserCam's settings (raw counts, τ 6e-4, 3-D TV) with residual balancing and
+    the PSF envelope matched to the capture; and the residual of the returned volume
+    recomputed with the forward model."""
     from diffcam.core.grid import crop_to
+    from diffcam.io import apply_envelope, envelope_widths
     from diffcam.reconstruct import AdmmOptions, admm_tv_3d, convolution_model
     from diffcam.reconstruct.loop import relative_residual
 
+    psf = apply_envelope(psf, envelope_widths(raw, psf))
     t = time.perf_counter()
     rec = admm_tv_3d(raw, psf, iterations, AdmmOptions(balance=True), progress=False)
     seconds = time.perf_counter() - t
@@ -165,7 +173,8 @@ def peer(name: str, python: str | None, raw, psf, iterations: int, note: list):
 
 
 def fig10(raw, iterations: int, downsample: int = 1) -> dict:
-    """Volumes with the measured, model-predicted and baseline stacks (CLI settings)."""
+    """Volumes with the measured, model-predicted and baseline stacks (``VOLUME``, no
+    envelope)."""
     from benchmarks.bench_stack_volume import stacks
     from diffcam.core.grid import crop_to
     from diffcam.data import load_psf_stack_3d
@@ -251,7 +260,7 @@ def _speeds(raw, psf, rows) -> None:
     set_fft("xla")
     scico = next((r["s_per_it"] for r in rows if r["run"] == "scico"), None)
     for row in rows:
-        if "readme" in row["run"]:
+        if row["run"].startswith("readme ("):
             row.update(speed["fftw" if "fftw" in row["run"] else "xla"])
             if scico:
                 row["s_per_it_vs_scico"] = row["s_per_it"] / scico
@@ -281,9 +290,10 @@ def main(argv=None) -> None:
     box = target_box(ref_volume.max(axis=0))
     rows = [ridge_row("reference", ref_volume, box, ref_record)]
     volumes = {"reference": ref_volume}
-    for fft in (None, "fftw"):
-        name = f"readme ({fft or 'xla'})"
-        record, volumes[name] = readme_run(fft, extra)
+    for name, fft, options in (("readme (xla)", None, []), ("readme (fftw)", "fftw", []),
+                               ("readme, --psf-envelope none", None,
+                                ["--psf-envelope", "none"])):
+        record, volumes[name] = readme_run(fft, extra + options)
         rows.append(ridge_row(name, volumes[name], box, record))
     for name in PEERS:
         record, volume = peer(name, getattr(args, f"{name}_python"), raw, psf,

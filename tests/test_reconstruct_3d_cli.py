@@ -89,21 +89,27 @@ def test_volume_puts_each_point_in_its_plane(scene, capsys):
     assert info["method"] == "rl" and info["iterations"] == 200 and info["residual"] < 0.1
 
 
-def test_printed_residual_is_the_written_volumes(scene, capsys):
+@pytest.mark.parametrize("envelope", ["auto", "none"])
+def test_printed_residual_is_the_written_volumes(scene, capsys, envelope):
     """ADMM-TV: the residual printed is ||A x - b|| / ||b|| of the volume written
-    (--full-field: the whole object grid), recomputed with the forward model; the split
+    (--full-field: the whole object grid), recomputed with the forward model of the
+    PSFs it used (with the envelope of the widths recorded, or as measured); the split
     gap is printed and recorded beside it."""
+    from diffcam.io import apply_envelope
     from diffcam.reconstruct import convolution_model
     from diffcam.reconstruct.loop import relative_residual
 
     d, psfs = scene
     out = d / "vol.tif"
     assert _run(d / "raw.npy", "--psf", d / "psfs.tif", "--3d", "--iterations", 40,
-                "--full-field", "--quiet", "-o", out) == 0
+                "--full-field", "--quiet", "--psf-envelope", envelope, "-o", out) == 0
     printed = float(re.search(r"residual ([0-9.eE+-]+)", capsys.readouterr().out).group(1))
     volume, _, meta = _volume(out)
+    widths = json.loads(meta["Info"])["psf_envelope_sigma_px"]
+    assert (widths is None) == (envelope == "none")
+    used = psfs if widths is None else apply_envelope(psfs, widths)
     raw = np.load(d / "raw.npy")
-    model = convolution_model(jnp.asarray(psfs), raw.shape, "crop", volume=True)
+    model = convolution_model(jnp.asarray(used), raw.shape, "crop", volume=True)
     recomputed = float(relative_residual(model(jnp.asarray(volume)), raw))
     assert printed == pytest.approx(recomputed, rel=2e-3, abs=1e-4)
     info = json.loads(meta["Info"])
@@ -230,6 +236,7 @@ def _bad_inputs(d):
         ((raw, "--psf", d / "fake_model.npz", "--3d"), "stack-fit"),
         ((raw, "--psf", psf, "--3d", "--dark-raw", 1e6), "background"),
         ((raw, "--psf", psf, "--3d", "--downsample", 0), "--downsample"),
+        ((raw, "--psf", psf, "--psf-envelope", "auto"), "with --3d"),
     ]
 
 
@@ -265,13 +272,15 @@ def test_help_shows_defaults_with_units(capsys):
 def test_real_capture_matches_the_api(tmp_path):
     """The shipped DiffuserCam capture at 1/8 size (33×40, 44 planes) through the CLI
     gives the volume admm_tv_3d (the default method, with the CLI's settings
-    diffcam.reconstruct.admm.VOLUME on the raw scaled to unit L2 norm, the volume scaled
-    back) gives called directly (cropped to the sensor frame as the CLI does): finite,
+    diffcam.reconstruct.admm.VOLUME on the raw scaled to unit L2 norm and the PSF
+    envelope matched to the capture, the volume scaled back) gives called directly
+    (cropped to the sensor frame as the CLI does): finite,
     max projections correlated (measured:
     Pearson 1.000000; a CLI that changed the data, the crop or the plane order would
     fall well below the bound)."""
     from diffcam.core.grid import crop_to
     from diffcam.data import load_psf_stack_3d, load_raw_3d
+    from diffcam.io import apply_envelope, envelope_widths
     from diffcam.reconstruct import admm_tv_3d
     from diffcam.reconstruct.admm import VOLUME
 
@@ -284,7 +293,9 @@ def test_real_capture_matches_the_api(tmp_path):
     volume = _volume(tmp_path / "vol.tif")[0]
     assert volume.shape == (44, 33, 40) and np.isfinite(volume).all()
     norm = np.linalg.norm(raw)
-    direct = np.asarray(crop_to(admm_tv_3d(raw / norm, psfs, 60, VOLUME).image, raw.shape))
+    matched = apply_envelope(psfs, envelope_widths(raw, psfs))
+    direct = np.asarray(crop_to(admm_tv_3d(raw / norm, matched, 60, VOLUME).image,
+                                raw.shape))
     assert np.allclose(volume.max(), direct.max() * norm, rtol=1e-3)
     pearson = np.corrcoef(volume.max(axis=0).ravel(), direct.max(axis=0).ravel())[0, 1]
     assert pearson > 0.999, pearson

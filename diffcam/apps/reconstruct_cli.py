@@ -25,7 +25,8 @@ import numpy as np
 from diffcam.apps.common import (DefaultsFormatter, count, iterations_count, length_arg,
                                  planes_arg, save_figure, save_image, save_rgb)
 from diffcam.apps.reconstruct_inputs import (DARK_RING, WORKING_SIZE, PsfSource, dark_arg,
-                                             gains_arg, read_inputs, white_balance)
+                                             gains_arg, match_envelope, read_inputs,
+                                             white_balance)
 from diffcam.apps.volume_views import depth_map_figure, montage_figure, projections_figure
 from diffcam.calibrate.stack_result import MAX_PLANES
 from diffcam.core.errors import DiffcamError
@@ -92,6 +93,9 @@ def _iterations(args) -> int:
 def _run_2d(args, say) -> int:
 
     check_output_path(args.out, suffixes=(".png", ".tif", ".tiff", ".npy"))
+    if args.psf_envelope is not None:
+        raise DiffcamError("--psf-envelope shapes the PSF stack of a volume; use it with "
+                           "--3d.")
     say(f"reading {args.raw} and {args.psf}")
     raw, source = read_inputs(args, say)
     psf = _pick_plane(raw, source, args, say)
@@ -181,6 +185,8 @@ def _run_3d(args, say) -> int:
     if source.psfs.ndim != 3:
         raise DiffcamError(f"{args.psf}: --3d needs a PSF stack (one PSF per depth), got one "
                            f"PSF of shape {source.psfs.shape}.")
+    psfs, widths = match_envelope(raw, source.psfs, args.psf_envelope or "auto", say)
+    source = source._replace(psfs=psfs)
     nz, my, mx = source.psfs.shape
     say(f"reconstructing {nz} planes from a {raw.shape[0]}×{raw.shape[1]} image ({my}×{mx} "
         f"PSFs): {args.method}, {_iterations(args)} iterations")
@@ -191,7 +197,7 @@ def _run_3d(args, say) -> int:
         raise DiffcamError("the reconstruction holds NaN/Inf values; check the dark levels "
                            "and try fewer --iterations.")
     seconds = time.perf_counter() - t0
-    info = _volume_info(args, rec, seconds)
+    info = _volume_info(args, rec, seconds, widths)
     say(f"writing {paths.volume} and " + ", ".join(p.name for p in paths[1:]))
     write_volume(paths, volume, source, info)
     gap = "" if rec.split_gap is None else f", split gap {info['split_gap']:.2g}"
@@ -201,8 +207,9 @@ def _run_3d(args, say) -> int:
     return 0
 
 
-def _volume_info(args, rec, seconds: float) -> dict:
-    """What the volume's metadata records: solver, settings, dark levels, how far it
+def _volume_info(args, rec, seconds: float, widths) -> dict:
+    """What the volume's metadata records: solver, settings, dark levels, the PSF
+    envelope's widths (pixels, per plane; ``None`` without one), how far it
     converged."""
     import dataclasses
 
@@ -210,7 +217,8 @@ def _volume_info(args, rec, seconds: float) -> dict:
     info = {"method": args.method, "iterations": int(np.max(rec.iterations)),
             "seconds": round(seconds, 2), "residual": final_residual(rec),
             "dark_raw": args.dark_raw, "dark_psf": args.dark_psf, "bias": args.bias,
-            "downsample": args.downsample}
+            "downsample": args.downsample, "psf_envelope": args.psf_envelope or "auto",
+            "psf_envelope_sigma_px": None if widths is None else np.round(widths, 1).tolist()}
     if args.method == "admm":
         info["options"] = {f.name: getattr(VOLUME, f.name)
                            for f in dataclasses.fields(VOLUME)}
@@ -272,8 +280,10 @@ def add_reconstruct(sub) -> None:
                     "(OUT.tif, OUT_max.png, OUT_depth.png, OUT_projections.png, "
                     "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm; "
                     "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5 "
-                    "and residual-balanced penalties (diffcam.reconstruct.admm.VOLUME, "
-                    "recorded in OUT.tif's metadata). See docs/cli_reconstruct.md.")
+                    "and residual-balanced penalties (diffcam.reconstruct.admm.VOLUME), "
+                    "each PSF plane's vertical envelope matched to the capture first "
+                    "(--psf-envelope), all recorded in OUT.tif's metadata. See "
+                    "docs/cli_reconstruct.md and docs/volume.md.")
     rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
     rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
                      help="channel order of colour files, RGB or BGR (OpenCV .npy arrays); "
@@ -318,6 +328,11 @@ def _add_input_arguments(rec) -> None:
     rec.add_argument("--dark-psf", type=dark_arg, metavar="COUNTS|auto",
                      help="dark level of the PSFs, counts, or 'auto': per plane, the "
                           f"median of a {DARK_RING}-pixel ring at the frame border")
+    rec.add_argument("--psf-envelope", choices=["auto", "none"],
+                     help="--3d: 'auto' (default) multiplies each PSF plane by the vertical "
+                          "Gaussian whose footprint explains the capture's row profile best "
+                          "(diffcam.io.envelope_widths; the widths go to OUT.tif's "
+                          "metadata), 'none' uses the PSFs as measured")
     rec.add_argument("--downsample", type=int, metavar="FACTOR",
                      help="box-average factor, pixels per side (raw and PSFs alike); "
                           f"default: 1 up to {WORKING_SIZE} pixels per side, else the least "

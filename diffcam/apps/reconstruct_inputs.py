@@ -16,9 +16,10 @@ from diffcam.apps.fit_cli import model_planes
 from diffcam.calibrate import load_stack_fit
 from diffcam.calibrate.stack_result import FORMAT
 from diffcam.core.errors import DiffcamError
-from diffcam.io import (BackgroundWarning, IMAGE_SUFFIXES, as_rgb, border_dark_level,
-                        downsample, image_files, npz_keys, read_image, read_npz,
-                        read_psf_stack, subtract_background)
+from diffcam.io import (BackgroundWarning, IMAGE_SUFFIXES, apply_envelope, as_rgb,
+                        border_dark_level, downsample, envelope_widths, image_files,
+                        npz_keys, read_image, read_npz, read_psf_stack,
+                        subtract_background)
 
 DARK_RING = 6        # pixels: width of the frame-border band whose median is the dark level
 WORKING_SIZE = 480
@@ -148,6 +149,19 @@ def subtract_dark(images, level, what: str, say=print):
     for w in caught:
         say(f"{what}: {w.message}")
     return out
+
+
+def match_envelope(raw: np.ndarray, psfs: np.ndarray, mode: str, say):
+    """The PSF stack with each plane's vertical footprint matched to the capture's
+    (``mode`` ``"auto"``: :func:`diffcam.io.envelope_widths` then
+    :func:`diffcam.io.apply_envelope`), and the widths used (pixels; ``None`` for
+    ``mode`` ``"none"``)."""
+    if mode == "none":
+        return psfs, None
+    widths = envelope_widths(raw, psfs)
+    say(f"PSF envelope matched to the capture: vertical Gaussian σ {widths[0]:.0f} px "
+        f"(plane 0) to {widths[-1]:.0f} px (plane {len(widths) - 1})")
+    return apply_envelope(psfs, widths), widths
 
 
 def gains_arg(text: str):

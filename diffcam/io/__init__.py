@@ -11,6 +11,7 @@ order (LenslessPiCam-style, as the DiffuserCam tutorial does it)::
     image = subtract_background(capture.image, level)     # small negatives clipped
     image = downsample(image, 4)                          # box average
     image = normalise_l2(image)
+    psfs = apply_envelope(psfs, envelope_widths(image, psfs))   # volumes: footprints
 
 Everything here is NumPy (files are read once, outside ``jit``); the results go to the
 JAX solvers in :mod:`diffcam.reconstruct`.
@@ -27,8 +28,9 @@ with ``os.replace``, so an existing file is either untouched or wholly replaced.
 
 from __future__ import annotations
 
-from diffcam.io.preprocessing import (BackgroundWarning, border_dark_level, dark_level,
-                                      downsample, normalise_l2, saturation_mask,
+from diffcam.io.preprocessing import (BackgroundWarning, apply_envelope,
+                                      border_dark_level, dark_level, downsample,
+                                      envelope_widths, normalise_l2, saturation_mask,
                                       subtract_background)
 from diffcam.io.reading import (IMAGE_SUFFIXES, Capture, as_rgb, check_read_size,
                                 file_kind, image_files, natural_key, npz_keys, read_image,
@@ -40,7 +42,7 @@ __all__ = [
     "Capture", "read_image", "read_rgb", "as_rgb", "read_psf_stack", "image_files",
     "natural_key", "IMAGE_SUFFIXES", "border_dark_level", "read_mat_stack", "dark_level",
     "subtract_background", "saturation_mask", "downsample", "normalise_l2",
-    "BackgroundWarning", "read_npz", "npz_keys", "file_kind", "check_read_size",
+    "envelope_widths", "apply_envelope", "BackgroundWarning", "read_npz", "npz_keys", "file_kind", "check_read_size",
     "check_output_path", "atomic_output", "Terminated", "temporary_files",
     "interrupts_as_keyboard_interrupt", "MAX_READ_BYTES",
 ]
