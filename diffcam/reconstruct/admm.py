@@ -89,6 +89,11 @@ class AdmmOptions(Options):
         boundary: ``"crop"`` (the sensor sees the centre of the full convolution; the
             estimate is on the larger object grid) or ``"circular"``.
         tol: stop early when the objective changes by less than ``tol`` (relative).
+        background: degree of a smooth background on the sensor solved jointly with
+            the scene: the data term becomes ``½ ||C H v + B c - b||²`` with ``B`` the
+            2-D Legendre polynomials of total degree ``<= background`` over the sensor
+            (unpenalised, either sign: ambient or scattered light, a dark-level
+            gradient); ``None``: no background.
     """
 
     mu1: float = 1e-3
@@ -100,6 +105,7 @@ class AdmmOptions(Options):
     balance: bool = False
     boundary: str = "crop"
     tol: float | None = None
+    background: int | None = None
 
     def __check_init__(self):
         if self.boundary not in _BOUNDARIES:
@@ -107,6 +113,10 @@ class AdmmOptions(Options):
                                f"{self.boundary!r}; for a 'same'-size model use "
                                f"richardson_lucy.")
         check_tol(self.tol)
+        if self.background is not None and not (
+                isinstance(self.background, int) and 0 <= self.background <= 8):
+            raise DiffcamError(f"background is a polynomial degree from 0 to 8 (or None), "
+                               f"got {self.background!r}.")
         for name in ("mu1", "mu2", "mu3"):
             value = getattr(self, name)
             if is_concrete(value) and not 0 < float(value) < math.inf:
@@ -210,17 +220,20 @@ def _admm(image, psf, iterations, options, *, volume, progress):
     with progress_bar(iterations, "ADMM-TV", progress):
         out = jax.block_until_ready(_admm_batched(
             flat(image, 2), flat(psf, 3), settings, tol, iterations=iterations,
-            boundary=options.boundary, axial=axial, balance=bool(options.balance)))
+            boundary=options.boundary, axial=axial, balance=bool(options.balance),
+            background=options.background))
     if not volume:
         out = out._replace(image=out.image[:, 0])
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
-@partial(jax.jit, static_argnames=("iterations", "boundary", "axial", "balance"))
-def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, balance):
+@partial(jax.jit, static_argnames=("iterations", "boundary", "axial", "balance",
+                                   "background"))
+def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, balance,
+                  background):
     def one(b, h):
         return _admm_solve(b, h, settings, tol, iterations=iterations, boundary=boundary,
-                           axial=axial, balance=balance)
+                           axial=axial, balance=balance, background=background)
     return jax.vmap(one)(image, psf)
 
 
@@ -342,8 +355,36 @@ def _norm(a):
     return jnp.sqrt(jnp.sum(a ** 2))
 
 
-def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
-    """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid."""
+class _Background(NamedTuple):
+    """A smooth background on the sensor, ``B c``: ``basis`` holds the ``(k, ny, nx)``
+    orthonormal images spanning it (``k = 0``: no background)."""
+
+    basis: jax.Array
+
+    def fit(self, r):
+        """The background closest to ``r`` (``B Bᵀ r``, the least-squares fit)."""
+        return jnp.tensordot(jnp.tensordot(self.basis, r, 2), self.basis, 1)
+
+
+def _background(shape, degree, dtype) -> _Background:
+    """The 2-D Legendre polynomials ``P_i(y) P_j(x)``, ``i + j <= degree``, over the
+    sensor (``y``, ``x`` mapped to [-1, 1]), orthonormalised on its pixels."""
+    if degree is None:
+        return _Background(jnp.zeros((0,) + tuple(shape), dtype))
+    y = np.polynomial.legendre.legvander(np.linspace(-1, 1, shape[0]), degree)
+    x = np.polynomial.legendre.legvander(np.linspace(-1, 1, shape[1]), degree)
+    terms = [np.outer(y[:, i], x[:, j]).ravel() for i in range(degree + 1)
+             for j in range(degree + 1 - i)]
+    q = np.linalg.qr(np.stack(terms, axis=1))[0]
+    return _Background(jnp.asarray(q.T.reshape((-1,) + tuple(shape)), dtype))
+
+
+def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
+                background):
+    """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid.
+    With a ``background`` (polynomial degree), the ``x = Hv`` update minimises jointly
+    over ``x`` and the background's coefficients: eliminating ``x`` leaves the
+    least-squares fit of the background to ``b - C(Hv + ξ/μ1)``."""
     # solved for the image and the PSF at unit L2 norm (the weights scaled alike), so
     # that no square under- or overflows; the estimate is scaled back at the end
     b_norm, h_norm = _safe_norm(b), _safe_norm(psf)
@@ -353,12 +394,14 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
     grid = model.fft_shape
     a = (tau_axial / jnp.where(tau > 0, tau, 1)) if axial else None
     basis = _basis(model.otf, grid, a, b.dtype)
-    crop_mask = pad_to(jnp.ones_like(b), grid) if boundary == "crop" else jnp.ones_like(b)
-    data = pad_to(b, grid) if boundary == "crop" else b
+    sensor = (lambda a: pad_to(a, grid)) if boundary == "crop" else (lambda a: a)
+    crop_mask, data = sensor(jnp.ones_like(b)), sensor(b)
+    smooth = _background(b.shape, background, b.dtype)
 
     def fit(v, hv, tv_v):
-        """Relative residual and objective of a volume."""
+        """Relative residual and objective of a volume (with its best background)."""
         predicted = crop_to(hv, b.shape)
+        predicted = predicted + smooth.fit(b - predicted)
         objective = (0.5 * jnp.sum((predicted - b) ** 2) + tau * jnp.sum(jnp.abs(tv_v))
                      + sparsity * jnp.sum(v))
         return relative_residual(predicted, b), objective
@@ -367,7 +410,8 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
         v, hv, tv_v, xi, eta, rho, mu = state
         mu1, mu2, mu3 = mu
         u = _soft(tv_v + eta / mu2, tau / mu2)
-        x = (data + mu1 * hv + xi) / (crop_mask + mu1)
+        bg = sensor(smooth.fit(b - crop_to(hv + xi / mu1, b.shape)))
+        x = (data - bg + mu1 * hv + xi) / (crop_mask + mu1)
         w = jnp.maximum(v + (rho - sparsity) / mu3, 0)
         rest = _tv_adjoint(mu2 * u - eta, a) + mu3 * w - rho
         v_new, hv_new = _v_update(basis, rfft2(mu1 * x - xi), rest, mu)
@@ -387,12 +431,15 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
     state, res, obj, its, done = iterate(step, state, iterations, tol)
     v, _, _, _, _, rho, mu = state
     w = jnp.maximum(v + (rho - sparsity) / mu[2], 0)
-    final_residual, final_objective = fit(w, basis.image(basis.forward(w)), _tv(w, a))
+    hw = basis.image(basis.forward(w))
+    final_residual, final_objective = fit(w, hw, _tv(w, a))
+    fitted = None if background is None else smooth.fit(b - crop_to(hw, b.shape)) * b_norm
     return Reconstruction(image=w * (b_norm / h_norm), residual=res,
                           objective=obj * b_norm ** 2, iterations=its,
                           converged=done, final_residual=final_residual,
                           final_objective=final_objective * b_norm ** 2,
-                          split_gap=_norm(v - w) / jnp.maximum(_norm(w), 1e-30))
+                          split_gap=_norm(v - w) / jnp.maximum(_norm(w), 1e-30),
+                          background=fitted)
 
 
 def _soft(x, threshold):
