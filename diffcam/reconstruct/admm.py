@@ -60,8 +60,11 @@ from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
 from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import convolution_model, divergence, gradient
 
-__all__ = ["AdmmOptions", "TUTORIAL_2D", "VOLUME", "admm_tv", "admm_tv_3d"]
+__all__ = ["AdmmOptions", "MAX_BACKGROUND_DEGREE", "TUTORIAL_2D", "VOLUME", "admm_tv",
+           "admm_tv_3d", "legendre_terms"]
 
+MAX_BACKGROUND_DEGREE = 8
+"""Highest degree of :attr:`AdmmOptions.background` (45 polynomials)."""
 _AXES = (-2, -1)
 _BOUNDARIES = ("crop", "circular")
 
@@ -114,9 +117,10 @@ class AdmmOptions(Options):
                                f"richardson_lucy.")
         check_tol(self.tol)
         if self.background is not None and not (
-                isinstance(self.background, int) and 0 <= self.background <= 8):
-            raise DiffcamError(f"background is a polynomial degree from 0 to 8 (or None), "
-                               f"got {self.background!r}.")
+                isinstance(self.background, int)
+                and 0 <= self.background <= MAX_BACKGROUND_DEGREE):
+            raise DiffcamError(f"background is a polynomial degree from 0 to "
+                               f"{MAX_BACKGROUND_DEGREE} (or None), got {self.background!r}.")
         for name in ("mu1", "mu2", "mu3"):
             value = getattr(self, name)
             if is_concrete(value) and not 0 < float(value) < math.inf:
@@ -366,16 +370,25 @@ class _Background(NamedTuple):
         return jnp.tensordot(jnp.tensordot(self.basis, r, 2), self.basis, 1)
 
 
-def _background(shape, degree, dtype) -> _Background:
-    """The 2-D Legendre polynomials ``P_i(y) P_j(x)``, ``i + j <= degree``, over the
-    sensor (``y``, ``x`` mapped to [-1, 1]), orthonormalised on its pixels."""
-    if degree is None:
-        return _Background(jnp.zeros((0,) + tuple(shape), dtype))
+def legendre_terms(shape: tuple, degree: int) -> tuple[np.ndarray, list]:
+    """The background's polynomials: ``P_i(y) P_j(x)`` for ``i + j <= degree``, with
+    ``y``, ``x`` mapped to [-1, 1] over an image of ``shape`` (pixels).
+
+    Returns:
+        ``(k, ny, nx)`` float64 images and the ``k`` pairs ``(i, j)``.
+    """
     y = np.polynomial.legendre.legvander(np.linspace(-1, 1, shape[0]), degree)
     x = np.polynomial.legendre.legvander(np.linspace(-1, 1, shape[1]), degree)
-    terms = [np.outer(y[:, i], x[:, j]).ravel() for i in range(degree + 1)
-             for j in range(degree + 1 - i)]
-    q = np.linalg.qr(np.stack(terms, axis=1))[0]
+    pairs = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
+    return np.stack([np.outer(y[:, i], x[:, j]) for i, j in pairs]), pairs
+
+
+def _background(shape, degree, dtype) -> _Background:
+    """:func:`legendre_terms` orthonormalised on the sensor's pixels."""
+    if degree is None:
+        return _Background(jnp.zeros((0,) + tuple(shape), dtype))
+    terms = legendre_terms(shape, degree)[0]
+    q = np.linalg.qr(terms.reshape(len(terms), -1).T)[0]
     return _Background(jnp.asarray(q.T.reshape((-1,) + tuple(shape)), dtype))
 
 
