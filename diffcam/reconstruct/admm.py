@@ -19,6 +19,11 @@ taken into the DCT basis once; the DCT of each iterate along depth is a product 
 the ``(nz, nz)`` DCT matrix applied to real volumes (one each way per iteration), so an
 iteration costs one real FFT pair of the stack, one of a plane, and element-wise work.
 
+With ``background`` (a polynomial degree), the data term is ``½ ||C H v + B c - b||²``
+with ``B`` smooth polynomials on the sensor and ``c`` free; the ``x = Hv`` update then
+minimises over ``x`` and ``c`` together, which leaves for ``c`` the least-squares fit of
+``B`` to ``b - C(Hv + ξ/μ1)``.
+
 The solvers return the non-negative split variable ``w``; ``final_residual`` and
 ``final_objective`` are those of ``w`` itself, and ``split_gap`` is ``||v - w|| / ||w||``
 (the residual history is that of the iterates ``v``, which fit the data more closely
@@ -195,7 +200,9 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100,
         progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
 
     Returns:
-        :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)``.
+        :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)`` and,
+        with ``background``, ``background`` the fitted sensor background ``(..., ny,
+        nx)`` in the image's units.
     """
     options = AdmmOptions.of(options, **overrides)
     return _admm(image, as_psf_stack(psf_stack), iterations, options, volume=True,
