@@ -119,9 +119,8 @@ def test_printed_residual_is_the_written_volumes(scene, capsys, envelope):
 
 def test_background_is_recorded_and_fits_with_the_volume(scene, capsys):
     """--background 1 on a capture plus a tilted background: the metadata's Legendre
-    coefficients rebuild a background with which the volume written reproduces the
-    printed residual (recomputed with the forward model), and the fit is closer than
-    without the term."""
+    coefficients rebuild the solve's background, with which the volume written
+    reproduces the residual recorded and printed (recomputed with the forward model)."""
     from diffcam.reconstruct import convolution_model
     from diffcam.reconstruct.admm import legendre_terms
     from diffcam.reconstruct.loop import relative_residual
@@ -145,10 +144,10 @@ def test_background_is_recorded_and_fits_with_the_volume(scene, capsys):
     background = np.tensordot(record["coefficients"], terms, 1)
     model = convolution_model(jnp.asarray(psfs), tilted.shape, "crop", volume=True)
     recomputed = float(relative_residual(model(jnp.asarray(volume)) + background, tilted))
-    assert printed == pytest.approx(recomputed, rel=2e-3, abs=1e-4)
+    assert info["residual"] == pytest.approx(recomputed, rel=2e-3, abs=1e-4)
+    assert printed == pytest.approx(recomputed, rel=5e-3, abs=1e-4)
     assert record["min"] <= record["mean"] <= record["max"]
-    plain = json.loads(_volume(d / "plain.tif")[2]["Info"])
-    assert plain["background_counts"] is None and plain["residual"] > printed
+    assert json.loads(_volume(d / "plain.tif")[2]["Info"])["background_counts"] is None
 
 
 def test_folder_and_glob_give_the_stack_volume(scene):

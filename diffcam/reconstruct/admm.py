@@ -404,7 +404,10 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
     """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid.
     With a ``background`` (polynomial degree), the ``x = Hv`` update minimises jointly
     over ``x`` and the background's coefficients: eliminating ``x`` leaves the
-    least-squares fit of the background to ``b - C(Hv + ξ/μ1)``."""
+    least-squares fit of the background to ``b - C(Hv + ξ/μ1)``. The background
+    returned is that fit at the last iterate, and ``final_residual`` is that of the
+    volume returned plus it (the residual history: each iterate with its best
+    background)."""
     # solved for the image and the PSF at unit L2 norm (the weights scaled alike), so
     # that no square under- or overflows; the estimate is scaled back at the end
     b_norm, h_norm = _safe_norm(b), _safe_norm(psf)
@@ -418,10 +421,9 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
     crop_mask, data = sensor(jnp.ones_like(b)), sensor(b)
     smooth = _background(b.shape, background, b.dtype)
 
-    def fit(v, hv, tv_v):
-        """Relative residual and objective of a volume (with its best background)."""
-        predicted = crop_to(hv, b.shape)
-        predicted = predicted + smooth.fit(b - predicted)
+    def fit(v, hv, tv_v, bg):
+        """Relative residual and objective of a volume with a sensor background."""
+        predicted = crop_to(hv, b.shape) + bg
         objective = (0.5 * jnp.sum((predicted - b) ** 2) + tau * jnp.sum(jnp.abs(tv_v))
                      + sparsity * jnp.sum(v))
         return relative_residual(predicted, b), objective
@@ -442,18 +444,19 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
         eta = eta + mu2 * (tv_new - u)
         rho = rho + mu3 * (v_new - w)
         mu = _balanced(mu, primal, dual) if balance else mu
-        return (v_new, hv_new, tv_new, xi, eta, rho, mu), fit(v, hv, tv_v)
+        best = smooth.fit(b - crop_to(hv, b.shape))
+        return (v_new, hv_new, tv_new, xi, eta, rho, mu), fit(v, hv, tv_v, best)
 
     v0 = jnp.zeros((psf.shape[0],) + grid, b.dtype)
     plane = jnp.zeros(grid, b.dtype)
     tv0 = _tv(v0, a)
     state = (v0, plane, tv0, plane, tv0, v0, settings[:3])
     state, res, obj, its, done = iterate(step, state, iterations, tol)
-    v, _, _, _, _, rho, mu = state
+    v, hv, _, xi, _, rho, mu = state
     w = jnp.maximum(v + (rho - sparsity) / mu[2], 0)
-    hw = basis.image(basis.forward(w))
-    final_residual, final_objective = fit(w, hw, _tv(w, a))
-    fitted = None if background is None else smooth.fit(b - crop_to(hw, b.shape)) * b_norm
+    bg = smooth.fit(b - crop_to(hv + xi / mu[0], b.shape))      # the solve's background
+    final_residual, final_objective = fit(w, basis.image(basis.forward(w)), _tv(w, a), bg)
+    fitted = None if background is None else bg * b_norm
     return Reconstruction(image=w * (b_norm / h_norm), residual=res,
                           objective=obj * b_norm ** 2, iterations=its,
                           converged=done, final_residual=final_residual,
