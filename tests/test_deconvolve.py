@@ -555,3 +555,74 @@ def test_tiny_negative_psf_values_are_clipped_with_a_warning():
     dented[2, 0, 0] = -0.01
     with pytest.raises(DiffcamError, match="negative"):
         admm_tv_3d(image, dented, 5)
+
+
+def _plane_background(shape, level, tilt_y, tilt_x):
+    """``level + tilt_y·y + tilt_x·x`` over the sensor, ``y, x`` in [-1, 1]."""
+    y, x = np.meshgrid(np.linspace(-1, 1, shape[0]), np.linspace(-1, 1, shape[1]),
+                       indexing="ij")
+    return level + tilt_y * y + tilt_x * x
+
+
+def test_admm_background_basis_is_the_least_squares_polynomial(x64):
+    """The background's fit equals numpy's least-squares fit of the monomials
+    ``y^i x^j``, ``i + j <= degree`` (the same space as the Legendre products)."""
+    from diffcam.reconstruct.admm import _background
+
+    rng = np.random.default_rng(32)
+    shape, degree = (11, 14), 3
+    r = rng.standard_normal(shape)
+    y, x = np.meshgrid(np.linspace(-1, 1, shape[0]), np.linspace(-1, 1, shape[1]),
+                       indexing="ij")
+    a = np.stack([(y ** i * x ** j).ravel() for i in range(degree + 1)
+                  for j in range(degree + 1 - i)], axis=1)
+    expected = (a @ np.linalg.lstsq(a, r.ravel(), rcond=None)[0]).reshape(shape)
+    fitted = np.asarray(_background(shape, degree, jnp.float64).fit(jnp.asarray(r)))
+    assert _rel(fitted, expected) < 1e-10
+
+
+def test_admm_background_absorbs_a_smooth_background_exactly(x64):
+    """The joint problem is invariant to adding a background of the term's degree to
+    the image: the volume is unchanged and the fitted background moves by exactly that
+    background; without the term the background's light goes into the volume."""
+    image, stack, _ = _volume_problem()
+    settings = dict(mu1=1e-2, mu2=1e-2, mu3=1e-2, tau=1e-4, sparsity=1e-2, balance=True)
+    bg = _plane_background(image.shape, 0.3 * image.mean(), 0.1 * image.mean(),
+                           -0.2 * image.mean())
+    clean = admm_tv_3d(image, stack, 100, **settings, background=1, progress=False)
+    joint = admm_tv_3d(image + bg, stack, 100, **settings, background=1, progress=False)
+    plain = admm_tv_3d(image + bg, stack, 100, **settings, progress=False)
+    assert _rel(joint.image, clean.image) < 1e-8
+    assert _rel(joint.background - clean.background, bg) < 1e-8
+    assert _rel(plain.image, clean.image) > 0.2 and plain.background is None
+
+
+def test_admm_background_reaches_bounded_least_squares(x64):
+    """tau=0, circular: ADMM with a background of degree 1 minimises
+    ½||A x + B c - b||² over x >= 0 and free c (scipy.optimize.lsq_linear with bounds
+    on the stacked matrix [A, B])."""
+    rng = np.random.default_rng(33)
+    psf = rng.random((4, 4))
+    scene = np.maximum(rng.standard_normal((8, 8)), 0)
+    model = convolution_model(jnp.asarray(psf), scene.shape, "circular")
+    image = (np.asarray(model(scene)) + 0.1 * rng.standard_normal(scene.shape)
+             + _plane_background(scene.shape, -0.5, 0.3, 0.2))
+    y, x = np.meshgrid(np.linspace(-1, 1, 8), np.linspace(-1, 1, 8), indexing="ij")
+    a = np.concatenate([_dense(model, scene.shape),
+                        np.stack([np.ones(64), y.ravel(), x.ravel()], axis=1)], axis=1)
+    lower = np.r_[np.zeros(64), -np.inf * np.ones(3)]
+    ref = scipy.optimize.lsq_linear(a, image.ravel(), bounds=(lower, np.inf), tol=1e-12)
+    f_ref = 0.5 * np.sum(ref.fun ** 2)
+    out = admm_tv(image, psf, 3000, mu1=0.05, mu2=0.05, mu3=0.05, tau=0.0,
+                  boundary="circular", background=1, progress=False)
+    predicted = np.asarray(model(out.image)) + np.asarray(out.background)
+    f = 0.5 * np.sum((predicted - image) ** 2)
+    assert float(out.image.min()) >= 0
+    assert f <= f_ref * (1 + 1e-3) + 1e-12
+
+
+@pytest.mark.parametrize("degree", [-1, 9, 1.5])
+def test_admm_background_degree_errors(degree):
+    image, psf = _problem()
+    with pytest.raises(DiffcamError, match="background is a polynomial degree"):
+        admm_tv(image, psf, 3, background=degree)

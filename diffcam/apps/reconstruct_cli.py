@@ -34,7 +34,7 @@ from diffcam.core.grid import crop_to
 from diffcam.io import atomic_output, check_output_path
 from diffcam.reconstruct import (admm_tv, admm_tv_3d, focus_sweep, richardson_lucy,
                                  richardson_lucy_3d, wiener)
-from diffcam.reconstruct.admm import VOLUME
+from diffcam.reconstruct.admm import MAX_BACKGROUND_DEGREE, VOLUME, legendre_terms
 from diffcam.reconstruct.checks import MAX_ITERATIONS
 
 SWEEP_ITERATIONS = 60  # ADMM iterations per plane of the 2-D focus sweep
@@ -96,6 +96,9 @@ def _run_2d(args, say) -> int:
     if args.psf_envelope is not None:
         raise DiffcamError("--psf-envelope shapes the PSF stack of a volume; use it with "
                            "--3d.")
+    if args.background is not None:
+        raise DiffcamError("--background is a term of the --3d ADMM solve; use it with "
+                           "--3d.")
     say(f"reading {args.raw} and {args.psf}")
     raw, source = read_inputs(args, say)
     psf = _pick_plane(raw, source, args, say)
@@ -155,7 +158,9 @@ def _solve_3d(raw, psfs, args):
         return rec.image, rec
     norm = float(np.linalg.norm(raw))
     rec = admm_tv_3d(raw / norm, psfs, _iterations(args), VOLUME,
-                     progress=not args.quiet)
+                     background=args.background, progress=not args.quiet)
+    if rec.background is not None:
+        rec = rec._replace(background=rec.background * norm)
     return rec.image * norm, rec
 
 
@@ -176,6 +181,9 @@ def _run_3d(args, say) -> int:
                            "choose the planes of the volume).")
     if args.method == "wiener":
         raise DiffcamError("--3d solves with --method rl or admm; wiener is 2-D only.")
+    if args.method == "rl" and args.background is not None:
+        raise DiffcamError("--background is a term of the ADMM solve; drop it or use "
+                           "--method admm.")
     paths = volume_paths(args.out)
     say(f"reading {args.raw} and {args.psf}")
     raw, source = read_inputs(args, say)
@@ -222,8 +230,25 @@ def _volume_info(args, rec, seconds: float, widths) -> dict:
     if args.method == "admm":
         info["options"] = {f.name: getattr(VOLUME, f.name)
                            for f in dataclasses.fields(VOLUME)}
+        info["options"]["background"] = args.background
         info["split_gap"] = float(np.max(rec.split_gap))
+        info["background_counts"] = _background_summary(rec.background, args.background)
     return info
+
+
+def _background_summary(background, degree) -> dict | None:
+    """The fitted sensor background (``--background``) in the raw's units (as read,
+    less any dark level): its coefficients on the polynomials ``P_i(y) P_j(x)``
+    (:func:`diffcam.reconstruct.admm.legendre_terms`), mean, least and largest value;
+    ``None`` without one."""
+    if background is None:
+        return None
+    b = np.asarray(background, np.float64)
+    terms, pairs = legendre_terms(b.shape, degree)
+    c = np.linalg.lstsq(terms.reshape(len(terms), -1).T, b.ravel(), rcond=None)[0]
+    return {"degree": degree, "legendre_ij": [list(p) for p in pairs],
+            "coefficients": [float(x) for x in c], "mean": float(b.mean()),
+            "min": float(b.min()), "max": float(b.max())}
 
 
 def _cmd_reconstruct(args) -> int:
@@ -333,6 +358,13 @@ def _add_input_arguments(rec) -> None:
                           "Gaussian whose footprint explains the capture's row profile best "
                           "(diffcam.io.envelope_widths; the widths go to OUT.tif's "
                           "metadata), 'none' uses the PSFs as measured")
+    rec.add_argument("--background", type=count(0, MAX_BACKGROUND_DEGREE,
+                                                 "MAX_BACKGROUND_DEGREE"),
+                     metavar="DEGREE",
+                     help="--3d with admm: solve jointly for a smooth background on the "
+                          "sensor, a 2-D polynomial of this degree (ambient or scattered "
+                          "light, a dark-level gradient; summary in OUT.tif's metadata); "
+                          "default: none (docs/volume.md measures it)")
     rec.add_argument("--downsample", type=int, metavar="FACTOR",
                      help="box-average factor, pixels per side (raw and PSFs alike); "
                           f"default: 1 up to {WORKING_SIZE} pixels per side, else the least "

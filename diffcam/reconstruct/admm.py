@@ -19,6 +19,11 @@ taken into the DCT basis once; the DCT of each iterate along depth is a product 
 the ``(nz, nz)`` DCT matrix applied to real volumes (one each way per iteration), so an
 iteration costs one real FFT pair of the stack, one of a plane, and element-wise work.
 
+With ``background`` (a polynomial degree), the data term is ``½ ||C H v + B c - b||²``
+with ``B`` smooth polynomials on the sensor and ``c`` free; the ``x = Hv`` update then
+minimises over ``x`` and ``c`` together, which leaves for ``c`` the least-squares fit of
+``B`` to ``b - C(Hv + ξ/μ1)``.
+
 The solvers return the non-negative split variable ``w``; ``final_residual`` and
 ``final_objective`` are those of ``w`` itself, and ``split_gap`` is ``||v - w|| / ||w||``
 (the residual history is that of the iterates ``v``, which fit the data more closely
@@ -60,8 +65,11 @@ from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
 from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import convolution_model, divergence, gradient
 
-__all__ = ["AdmmOptions", "TUTORIAL_2D", "VOLUME", "admm_tv", "admm_tv_3d"]
+__all__ = ["AdmmOptions", "MAX_BACKGROUND_DEGREE", "TUTORIAL_2D", "VOLUME", "admm_tv",
+           "admm_tv_3d", "legendre_terms"]
 
+MAX_BACKGROUND_DEGREE = 8
+"""Highest degree of :attr:`AdmmOptions.background` (45 polynomials)."""
 _AXES = (-2, -1)
 _BOUNDARIES = ("crop", "circular")
 
@@ -89,6 +97,11 @@ class AdmmOptions(Options):
         boundary: ``"crop"`` (the sensor sees the centre of the full convolution; the
             estimate is on the larger object grid) or ``"circular"``.
         tol: stop early when the objective changes by less than ``tol`` (relative).
+        background: degree of a smooth background on the sensor solved jointly with
+            the scene: the data term becomes ``½ ||C H v + B c - b||²`` with ``B`` the
+            2-D Legendre polynomials of total degree ``<= background`` over the sensor
+            (unpenalised, either sign: ambient or scattered light, a dark-level
+            gradient); ``None``: no background.
     """
 
     mu1: float = 1e-3
@@ -100,6 +113,7 @@ class AdmmOptions(Options):
     balance: bool = False
     boundary: str = "crop"
     tol: float | None = None
+    background: int | None = None
 
     def __check_init__(self):
         if self.boundary not in _BOUNDARIES:
@@ -107,6 +121,11 @@ class AdmmOptions(Options):
                                f"{self.boundary!r}; for a 'same'-size model use "
                                f"richardson_lucy.")
         check_tol(self.tol)
+        if self.background is not None and not (
+                isinstance(self.background, int)
+                and 0 <= self.background <= MAX_BACKGROUND_DEGREE):
+            raise DiffcamError(f"background is a polynomial degree from 0 to "
+                               f"{MAX_BACKGROUND_DEGREE} (or None), got {self.background!r}.")
         for name in ("mu1", "mu2", "mu3"):
             value = getattr(self, name)
             if is_concrete(value) and not 0 < float(value) < math.inf:
@@ -181,7 +200,9 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100,
         progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
 
     Returns:
-        :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)``.
+        :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)`` and,
+        with ``background``, ``background`` the fitted sensor background ``(..., ny,
+        nx)`` in the image's units.
     """
     options = AdmmOptions.of(options, **overrides)
     return _admm(image, as_psf_stack(psf_stack), iterations, options, volume=True,
@@ -210,17 +231,20 @@ def _admm(image, psf, iterations, options, *, volume, progress):
     with progress_bar(iterations, "ADMM-TV", progress):
         out = jax.block_until_ready(_admm_batched(
             flat(image, 2), flat(psf, 3), settings, tol, iterations=iterations,
-            boundary=options.boundary, axial=axial, balance=bool(options.balance)))
+            boundary=options.boundary, axial=axial, balance=bool(options.balance),
+            background=options.background))
     if not volume:
         out = out._replace(image=out.image[:, 0])
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
-@partial(jax.jit, static_argnames=("iterations", "boundary", "axial", "balance"))
-def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, balance):
+@partial(jax.jit, static_argnames=("iterations", "boundary", "axial", "balance",
+                                   "background"))
+def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, balance,
+                  background):
     def one(b, h):
         return _admm_solve(b, h, settings, tol, iterations=iterations, boundary=boundary,
-                           axial=axial, balance=balance)
+                           axial=axial, balance=balance, background=background)
     return jax.vmap(one)(image, psf)
 
 
@@ -342,8 +366,48 @@ def _norm(a):
     return jnp.sqrt(jnp.sum(a ** 2))
 
 
-def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
-    """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid."""
+class _Background(NamedTuple):
+    """A smooth background on the sensor, ``B c``: ``basis`` holds the ``(k, ny, nx)``
+    orthonormal images spanning it (``k = 0``: no background)."""
+
+    basis: jax.Array
+
+    def fit(self, r):
+        """The background closest to ``r`` (``B Bᵀ r``, the least-squares fit)."""
+        return jnp.tensordot(jnp.tensordot(self.basis, r, 2), self.basis, 1)
+
+
+def legendre_terms(shape: tuple, degree: int) -> tuple[np.ndarray, list]:
+    """The background's polynomials: ``P_i(y) P_j(x)`` for ``i + j <= degree``, with
+    ``y``, ``x`` mapped to [-1, 1] over an image of ``shape`` (pixels).
+
+    Returns:
+        ``(k, ny, nx)`` float64 images and the ``k`` pairs ``(i, j)``.
+    """
+    y = np.polynomial.legendre.legvander(np.linspace(-1, 1, shape[0]), degree)
+    x = np.polynomial.legendre.legvander(np.linspace(-1, 1, shape[1]), degree)
+    pairs = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
+    return np.stack([np.outer(y[:, i], x[:, j]) for i, j in pairs]), pairs
+
+
+def _background(shape, degree, dtype) -> _Background:
+    """:func:`legendre_terms` orthonormalised on the sensor's pixels."""
+    if degree is None:
+        return _Background(jnp.zeros((0,) + tuple(shape), dtype))
+    terms = legendre_terms(shape, degree)[0]
+    q = np.linalg.qr(terms.reshape(len(terms), -1).T)[0]
+    return _Background(jnp.asarray(q.T.reshape((-1,) + tuple(shape)), dtype))
+
+
+def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
+                background):
+    """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid.
+    With a ``background`` (polynomial degree), the ``x = Hv`` update minimises jointly
+    over ``x`` and the background's coefficients: eliminating ``x`` leaves the
+    least-squares fit of the background to ``b - C(Hv + ξ/μ1)``. The background
+    returned is that fit at the last iterate, and ``final_residual`` is that of the
+    volume returned plus it (the residual history: each iterate with its best
+    background)."""
     # solved for the image and the PSF at unit L2 norm (the weights scaled alike), so
     # that no square under- or overflows; the estimate is scaled back at the end
     b_norm, h_norm = _safe_norm(b), _safe_norm(psf)
@@ -353,12 +417,13 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
     grid = model.fft_shape
     a = (tau_axial / jnp.where(tau > 0, tau, 1)) if axial else None
     basis = _basis(model.otf, grid, a, b.dtype)
-    crop_mask = pad_to(jnp.ones_like(b), grid) if boundary == "crop" else jnp.ones_like(b)
-    data = pad_to(b, grid) if boundary == "crop" else b
+    sensor = (lambda a: pad_to(a, grid)) if boundary == "crop" else (lambda a: a)
+    crop_mask, data = sensor(jnp.ones_like(b)), sensor(b)
+    smooth = _background(b.shape, background, b.dtype)
 
-    def fit(v, hv, tv_v):
-        """Relative residual and objective of a volume."""
-        predicted = crop_to(hv, b.shape)
+    def fit(v, hv, tv_v, bg):
+        """Relative residual and objective of a volume with a sensor background."""
+        predicted = crop_to(hv, b.shape) + bg
         objective = (0.5 * jnp.sum((predicted - b) ** 2) + tau * jnp.sum(jnp.abs(tv_v))
                      + sparsity * jnp.sum(v))
         return relative_residual(predicted, b), objective
@@ -367,7 +432,8 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
         v, hv, tv_v, xi, eta, rho, mu = state
         mu1, mu2, mu3 = mu
         u = _soft(tv_v + eta / mu2, tau / mu2)
-        x = (data + mu1 * hv + xi) / (crop_mask + mu1)
+        bg = sensor(smooth.fit(b - crop_to(hv + xi / mu1, b.shape)))
+        x = (data - bg + mu1 * hv + xi) / (crop_mask + mu1)
         w = jnp.maximum(v + (rho - sparsity) / mu3, 0)
         rest = _tv_adjoint(mu2 * u - eta, a) + mu3 * w - rho
         v_new, hv_new = _v_update(basis, rfft2(mu1 * x - xi), rest, mu)
@@ -378,21 +444,25 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance):
         eta = eta + mu2 * (tv_new - u)
         rho = rho + mu3 * (v_new - w)
         mu = _balanced(mu, primal, dual) if balance else mu
-        return (v_new, hv_new, tv_new, xi, eta, rho, mu), fit(v, hv, tv_v)
+        best = smooth.fit(b - crop_to(hv, b.shape))
+        return (v_new, hv_new, tv_new, xi, eta, rho, mu), fit(v, hv, tv_v, best)
 
     v0 = jnp.zeros((psf.shape[0],) + grid, b.dtype)
     plane = jnp.zeros(grid, b.dtype)
     tv0 = _tv(v0, a)
     state = (v0, plane, tv0, plane, tv0, v0, settings[:3])
     state, res, obj, its, done = iterate(step, state, iterations, tol)
-    v, _, _, _, _, rho, mu = state
+    v, hv, _, xi, _, rho, mu = state
     w = jnp.maximum(v + (rho - sparsity) / mu[2], 0)
-    final_residual, final_objective = fit(w, basis.image(basis.forward(w)), _tv(w, a))
+    bg = smooth.fit(b - crop_to(hv + xi / mu[0], b.shape))      # the solve's background
+    final_residual, final_objective = fit(w, basis.image(basis.forward(w)), _tv(w, a), bg)
+    fitted = None if background is None else bg * b_norm
     return Reconstruction(image=w * (b_norm / h_norm), residual=res,
                           objective=obj * b_norm ** 2, iterations=its,
                           converged=done, final_residual=final_residual,
                           final_objective=final_objective * b_norm ** 2,
-                          split_gap=_norm(v - w) / jnp.maximum(_norm(w), 1e-30))
+                          split_gap=_norm(v - w) / jnp.maximum(_norm(w), 1e-30),
+                          background=fitted)
 
 
 def _soft(x, threshold):

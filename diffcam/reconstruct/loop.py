@@ -34,6 +34,8 @@ class Reconstruction(NamedTuple):
         split_gap: ``(...)`` ADMM: ``||v - w|| / ||w||`` between the iterate and the
             returned non-negative split variable (0 when the split has closed);
             ``None`` for other solvers.
+        background: ``(..., ny, nx)`` ADMM with a background term: the smooth
+            background fitted on the sensor, in the image's units; ``None`` otherwise.
     """
 
     image: Array
@@ -44,6 +46,7 @@ class Reconstruction(NamedTuple):
     final_residual: Array | None = None
     final_objective: Array | None = None
     split_gap: Array | None = None
+    background: Array | None = None
 
 
 def relative_residual(predicted: Array, data: Array) -> Array:
