@@ -272,6 +272,7 @@ def test_batched_psfs_and_vmap_agree():
     assert _rel(mapped, batched.image) < 1e-5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver, options", [
     (richardson_lucy, {}), (richardson_lucy, {"accelerate": True}),
     (richardson_lucy, {"tv_weight": 1e-3}), (admm_tv, {}), (wiener, {})],

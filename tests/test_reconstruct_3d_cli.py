@@ -226,6 +226,7 @@ def models(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_stack_fit_model_as_psf_source(models):
     """A model renders its planes: all 44 by default, or --planes; a model that does not
     know its plane count needs --planes."""
@@ -367,6 +368,7 @@ def _declaring(model, folder, n_planes):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n_planes", [0, -3, 10**9])
 def test_a_model_declaring_a_hostile_plane_count(models, tmp_path, capsys, n_planes):
     """A model file declaring 0, −3 or 10⁹ planes, through predict, psf, reconstruct

@@ -55,6 +55,7 @@ def test_transpose_is_the_adjoint(axis, m, x64):
     np.testing.assert_allclose(jnp.sum(s * g), jnp.sum(f * st_g), rtol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("m", [61, 50], ids=["more points than samples", "as many"])
 def test_derivatives_equal_jax_on_the_plain_gathers(m, x64):
     """Gradients in f and t, forward mode, a Hessian in t and vmap over the points of

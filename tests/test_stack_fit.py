@@ -379,6 +379,7 @@ def test_optimistix_minimisers_descend_the_same_loss(synthetic_stack, optimiser)
     assert float(fit.model.kappa) == 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack_fit.StackFitWarning")
 def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     """`diffcam fit` on a crop of the built-in stack, then `predict` and `compare-stack`."""
