@@ -82,9 +82,9 @@ def spline_kernel(grid, zeta):
     field's spectrum has as inverse FFT the spline coefficients of the propagated field,
     which :func:`~diffcam.model.spline.spline_sample` then samples anywhere (the scaling
     theorem's path in :mod:`diffcam.model.point_spread`)."""
-    ny, nx = grid
-    return fresnel_kernel(grid, zeta) * (bspline_prefilter(ny)[:, None]
-                                         * bspline_prefilter(nx)[None, :])
+    hy, hx = fresnel_number_factors(grid, zeta)
+    by, bx = bspline_prefilter(grid[0])[:, None], bspline_prefilter(grid[1])[None, :]
+    return (hy * by) * (hx * bx)
 
 
 class StackModel(eqx.Module):

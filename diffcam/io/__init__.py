@@ -42,7 +42,8 @@ __all__ = [
     "Capture", "read_image", "read_rgb", "as_rgb", "read_psf_stack", "image_files",
     "natural_key", "IMAGE_SUFFIXES", "border_dark_level", "read_mat_stack", "dark_level",
     "subtract_background", "saturation_mask", "downsample", "normalise_l2",
-    "envelope_widths", "apply_envelope", "BackgroundWarning", "read_npz", "npz_keys", "file_kind", "check_read_size",
+    "envelope_widths", "apply_envelope", "BackgroundWarning", "read_npz", "npz_keys",
+    "file_kind", "check_read_size",
     "check_output_path", "atomic_output", "Terminated", "temporary_files",
     "interrupts_as_keyboard_interrupt", "MAX_READ_BYTES",
 ]

@@ -7,6 +7,8 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.linalg import toeplitz
+from scipy.optimize import minimize_scalar, nnls
 
 from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_finite
 from diffcam.io.reading import Capture
@@ -170,8 +172,6 @@ def envelope_widths(image: np.ndarray, psfs: np.ndarray, samples: int = 5) -> np
     Returns:
         float64 ``(nz,)``, pixels: ``σ_z`` per plane (:func:`apply_envelope`).
     """
-    from scipy.optimize import minimize_scalar
-
     profile, planes, centres = _profiles(image, psfs)
     rows = np.arange(planes.shape[1])
     spread = np.sqrt(planes @ rows ** 2 / planes.sum(axis=1) - centres ** 2)
@@ -246,9 +246,6 @@ def _profiles(image, psfs):
 def _nnls_misfit(profile, kernels) -> float:
     """``min ||Σ_k valid(kernel_k * s_k) - profile||`` over ``s_k >= 0``: the part of a
     1-D profile that non-negative signals blurred by the ``kernels`` cannot explain."""
-    from scipy.linalg import toeplitz
-    from scipy.optimize import nnls
-
     n = len(profile)
     matrix = np.hstack([toeplitz(np.r_[k[-1], np.zeros(n - 1)],
                                  np.concatenate([k[::-1], np.zeros(n - 1)]))
