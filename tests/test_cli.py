@@ -207,6 +207,11 @@ def test_calibrate_psf_compare_pipeline(calibration_files):
              if line.startswith("| 2")]
     assert len(model) == 3 and min(model) > 0.95
     assert (d / "compare.png").stat().st_size > 5000
+    # --model takes the phase file too (one option for either kind of camera model)
+    r2 = _diffcam("compare", str(d / "captured.tif"), "--model", str(d / "phase.npz"),
+                  "--z2", "1mm", "-o", str(d / "compare2.png"))
+    assert r2.returncode == 0, r2.stderr
+    assert r2.stdout.replace("compare2.png", "compare.png") == r.stdout
 
 
 def test_calibrate_with_a_projection_solver(calibration_files, tmp_path):
@@ -230,7 +235,11 @@ def test_calibrate_psf_compare_failures(calibration_files, tmp_path, capsys):
     import numpy as np
     import tifffile
 
+    from diffcam.calibrate import PhaseFile, save_phase
+
     d, focal = calibration_files
+    phase = tmp_path / "phase.npz"
+    save_phase(phase, PhaseFile(np.zeros((64, 64)), 5e-6, 532e-9, 0.1e-3))
     (tmp_path / "corrupt.tif").write_bytes(b"II*\x00nonsense")
     tifffile.imwrite(tmp_path / "small.tif", np.ones((100, 120), np.uint16))
     common = ["--focal-length", focal, "--wavelength", "532nm", "--pixel", "5um",
@@ -243,18 +252,25 @@ def test_calibrate_psf_compare_failures(calibration_files, tmp_path, capsys):
           "--pixel", "5 parsecs"], "unit"),
         (["psf", str(d / "near.tif"), "--z1", "20mm", "--z2", "1mm"], "phase file"),
         (["psf", str(tmp_path / "none.npz"), "--z1", "20mm", "--z2", "1mm"], "no such file"),
-        (["psf", str(d / "phase.npz"), "--z1", "20mm:10mm:1mm", "--z2", "1mm"], "start ≤ stop"),
-        (["psf", str(d / "phase.npz"), "--z2", "1mm"], "needs --z1"),
-        (["psf", str(d / "phase.npz"), "--planes", "0:3", "--z1", "20mm", "--z2", "1mm"],
+        (["psf", str(phase), "--z1", "20mm:10mm:1mm", "--z2", "1mm"], "start ≤ stop"),
+        (["psf", str(phase), "--z2", "1mm"], "needs --z1"),
+        (["psf", str(phase), "--planes", "0:3", "--z1", "20mm", "--z2", "1mm"],
          "--planes is for a stack-fit model"),
-        (["compare", str(tmp_path / "small.tif"), "--phase", str(d / "phase.npz"),
+        (["compare", str(tmp_path / "small.tif"), "--phase", str(phase),
           "--z2", "1mm"], "stack"),
-        (["compare", str(tmp_path / "small.tif"), "--phase", str(d / "phase.npz")],
+        (["compare", str(tmp_path / "small.tif"), "--phase", str(phase)],
          "needs --z2"),
-        (["compare", str(tmp_path / "small.tif")], "either --phase"),
+        (["compare", str(tmp_path / "small.tif")], "give the camera model"),
+        (["compare", str(tmp_path / "small.tif"), "--model", str(d / "near.tif")],
+         "not a diffcam camera model"),
+
     ]
     for args, message in cases:
         _fails_cleanly(capsys, args, message, out)
+    # a phase file where plane indices are needed: the command that renders it instead
+    for args in (["predict", str(phase)],
+                 ["reconstruct", str(d / "near.tif"), "--psf", str(phase)]):
+        _fails_cleanly(capsys, args, f"diffcam psf {phase} --z1", tmp_path / "o.tif")
 
 
 def test_version_is_the_installed_distribution(capsys):

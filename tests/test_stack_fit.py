@@ -12,8 +12,8 @@ import pytest
 import scipy.ndimage as ndi
 
 from diffcam.apps.cli import main
-from diffcam.calibrate import (StackFitOptions, StackFitWarning, fit_stack, load_stack_fit,
-                               prepare_planes)
+from diffcam.calibrate import (StackFitOptions, StackFitWarning, fit_stack, load_model,
+                               load_stack_fit, model_kind, prepare_planes)
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import (Registration, magnify_about,
@@ -75,6 +75,9 @@ def test_save_load_round_trip(synthetic_fit, tmp_path):
     np.testing.assert_array_equal(loaded.predict(planes), synthetic_fit.predict(planes))
     assert loaded.summary() == synthetic_fit.summary()
     np.testing.assert_array_equal(loaded.validation, synthetic_fit.validation)
+    # the one door for camera models reads it as a stack fit
+    assert model_kind(path) == "stack-fit"
+    assert load_model(path).summary() == synthetic_fit.summary()
 
 
 def test_prediction_reproduces_given_planes_and_carries_residuals(synthetic_stack,
@@ -196,6 +199,8 @@ def test_load_refuses_older_format_with_what_to_do(synthetic_fit, tmp_path):
     with pytest.raises(DiffcamError, match="fit the stack again") as err:
         load_stack_fit(old)
     assert "\n" not in str(err.value)
+    with pytest.raises(DiffcamError, match="fit the stack again"):
+        load_model(old)
 
 
 def test_z2_and_magnification_are_one_unknown():

@@ -24,9 +24,9 @@ from diffcam.apps.processes import (distributed_settings, ERRORS, in_distributed
                                     initialize_from_environment, report_error,
                                     run_processes)
 from diffcam.apps.reconstruct_cli import add_reconstruct
-from diffcam.apps.reconstruct_inputs import is_stack_fit
 from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane,
                                resolve_twin, retrieve_projections)
+from diffcam.calibrate.model_file import model_kind, not_a_model
 from diffcam.calibrate.phase_io import load_phase, PhaseFile, save_phase
 from diffcam.calibrate.pipeline import retrieve_phase
 from diffcam.calibrate.stack_result import MAX_PLANES
@@ -76,7 +76,10 @@ def _camera_for(phase_file, z2, crop):
 
 def _cmd_psf(args) -> int:
 
-    if is_stack_fit(args.phase):
+    kind = model_kind(args.phase)
+    if kind is None:
+        raise not_a_model(args.phase)
+    if kind == "stack-fit":
         if args.processes != 1:
             raise DiffcamError("--processes is for a phase file; a stack-fit model's "
                                "planes are computed by one process.")
@@ -213,15 +216,21 @@ def _reference_psf(dx, shape, args):
 def _cmd_compare(args) -> int:
 
     if (args.model is None) == (args.phase is None):
-        raise DiffcamError("give either --phase (a phase file, with --z2) or --model (a "
-                           "stack fit from `diffcam fit`).")
-    if args.model is not None:
-        return _compare_stack_fit(args)
+        raise DiffcamError("give the camera model: --model FILE (a phase file from `diffcam "
+                           "calibrate`, with --z2, or a stack fit from `diffcam fit`); "
+                           "--phase is the same option.")
+    path = args.model or args.phase
+    kind = model_kind(path)
+    if kind is None:
+        raise not_a_model(path)
+    if kind == "stack-fit":
+        return _compare_stack_fit(argparse.Namespace(**{**vars(args), "model": path}))
     if args.z2 is None:
-        raise DiffcamError("--phase needs --z2 (diffuser to sensor, with a unit).")
+        raise DiffcamError(f"{path} is a phase file: it needs --z2 (diffuser to sensor, "
+                           f"with a unit).")
     if args.json is not None or args.key is not None:
-        raise DiffcamError("--json and --key go with --model; with --phase the table is "
-                           "printed and the figure written.")
+        raise DiffcamError("--json and --key go with a stack fit; with a phase file the "
+                           "table is printed and the figure written.")
     captured, depths = read_psfs(args.captured)
     if captured.ndim != 3:
         raise DiffcamError(f"{args.captured}: expected a stack of PSFs (nz, ny, nx), got "
@@ -230,7 +239,7 @@ def _cmd_compare(args) -> int:
         depths = args.z1
     if depths is None or len(depths) != len(captured):
         raise DiffcamError(f"give --z1 with one depth per captured PSF ({len(captured)}).")
-    phase_file = load_phase(args.phase)
+    phase_file = load_phase(path)
     pitch = args.pixel or phase_file.dx
     camera = _camera_for(phase_file, args.z2, None)
     model = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 8)
@@ -421,7 +430,8 @@ def _compare_stack_fit(args) -> int:
     given = [f for f, v in (("--z1", args.z1), ("--z2", args.z2), ("--pixel", args.pixel),
                             ("--anchor", args.anchor)) if v is not None]
     if given:
-        raise DiffcamError(f"--model compares by plane index; it does not take "
+        raise DiffcamError(f"{args.model} is a stack fit: it compares by plane index; it "
+                           f"does not take "
                            f"{', '.join(given)}.")
     return cmd_compare_stack(argparse.Namespace(stack=args.captured, model=args.model,
                                                  key=args.key, out=args.out, json=args.json))
@@ -431,15 +441,17 @@ def _add_compare(sub) -> None:
     cmp_ = sub.add_parser("compare", help="captured vs model vs scaled PSFs per depth",
                           description="Pearson (registered) of the wave model and of the "
                                       "scaling baseline against captured PSFs, per depth; "
-                                      "prints a table and writes a figure. With --model (a "
-                                      "fit from `diffcam fit`), per plane against the "
+                                      "prints a table and writes a figure. With a stack "
+                                      "fit (from `diffcam fit`), per plane against the "
                                       "baseline and the frozen-distance rendering "
                                       "(`diffcam compare-stack` is an alias).")
     cmp_.add_argument("captured", help="captured PSF stack (multi-page TIFF or diffcam .npz)")
-    cmp_.add_argument("--phase", help="phase file from `diffcam calibrate`")
-    cmp_.add_argument("--model", help="or a stack-fit model from `diffcam fit`")
-    cmp_.add_argument("--json", help="with --model: per-plane scores (.json)")
-    cmp_.add_argument("--key", help="with --model: array name inside an .npz or .mat stack")
+    cmp_.add_argument("--model", help="camera model: a phase file from `diffcam calibrate` "
+                                      "(with --z2) or a stack fit from `diffcam fit`")
+    cmp_.add_argument("--phase", help="the same as --model")
+    cmp_.add_argument("--json", help="with a stack fit: per-plane scores (.json)")
+    cmp_.add_argument("--key", help="with a stack fit: array name inside an .npz or .mat "
+                                    "stack")
     cmp_.add_argument("--z1", type=lengths_arg("z1"), help="depth of each captured PSF")
     cmp_.add_argument("--z2", type=length_arg("z2"), help="diffuser to sensor (with --phase)")
     cmp_.add_argument("--pixel", type=length_arg("pixel"), help="captured PSFs' pixel pitch")

@@ -24,7 +24,8 @@ import numpy as np
 from diffcam.core.errors import DiffcamError
 from diffcam.apps.common import (iterations_count, length_arg, planes_arg, save_figure,
                                  save_image)
-from diffcam.calibrate import fit_stack, load_stack_fit, prepare_planes
+from diffcam.calibrate import fit_stack, prepare_planes
+from diffcam.calibrate.model_file import load_stack_model
 from diffcam.calibrate.stack_result import MAX_PLANES
 from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import scaling_baseline
@@ -128,7 +129,7 @@ def _z2m(fit) -> str:
 def cmd_predict(args) -> int:
 
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
-    fit = load_stack_fit(args.model)
+    fit = load_stack_model(args.model)
     t0 = time.perf_counter()
     planes = model_planes(fit, args.planes, args.model)
     pred = fit.predict(planes, kappa=args.kappa, residual=not args.rendered_only)
@@ -196,7 +197,7 @@ def cmd_compare_stack(args) -> int:
     if args.json:
         check_output_path(args.json, suffixes=(".json",))
     stack, _ = read_stack(args.stack, args.key)
-    fit = load_stack_fit(args.model)
+    fit = load_stack_model(args.model)
     result = compare_stack(stack, fit)
     lines = ["| plane | model | scaling baseline | frozen distance (κ=0) | rendering alone |",
              "|---|---|---|---|---|"]

@@ -13,12 +13,11 @@ import numpy as np
 
 from diffcam.apps.common import has_stack_meta, read_psfs
 from diffcam.apps.fit_cli import model_planes
-from diffcam.calibrate import load_stack_fit
-from diffcam.calibrate.stack_result import FORMAT
+from diffcam.calibrate.model_file import load_stack_model, model_kind
 from diffcam.core.errors import DiffcamError
 from diffcam.io import (BackgroundWarning, IMAGE_SUFFIXES, apply_envelope, as_rgb,
                         border_dark_level, downsample, envelope_widths, image_files,
-                        npz_keys, read_image, read_npz, read_psf_stack,
+                        read_image, read_psf_stack,
                         subtract_background)
 
 DARK_RING = 6        # pixels: width of the frame-border band whose median is the dark level
@@ -54,27 +53,10 @@ class PsfSource(NamedTuple):
         return [f"plane {t}" + (f" ({f})" if f else "") for t, f in zip(self.planes, files)]
 
 
-def is_stack_fit(path) -> bool:
-    """Whether ``path`` is an ``.npz`` whose ``metadata`` says ``diffcam-stack-fit``."""
-    import json
-
-
-    path = Path(path)
-    if path.suffix.lower() != ".npz" or not path.exists():
-        return False
-    if "metadata" not in npz_keys(path, what="a diffcam .npz file"):
-        return False
-    meta = read_npz(path, ["metadata"], what="a diffcam stack-fit file")["metadata"]
-    try:
-        return json.loads(str(meta[()])).get("format") == FORMAT
-    except (ValueError, AttributeError, IndexError):
-        return False
-
-
 def read_model(path, planes) -> PsfSource:
     """The planes (default all) a stack-fit model renders, clipped at 0."""
 
-    fit = load_stack_fit(path)
+    fit = load_stack_model(path)
     planes = model_planes(fit, planes, path)
     if min(planes) < 0:
         raise DiffcamError(f"--planes {planes}: plane numbers start at 0.")
@@ -87,8 +69,13 @@ def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:
     selects planes of the stack (default all; for a model, the planes to render)."""
 
     files = image_files(source)
-    if files is None and is_stack_fit(source):
+    kind = None if files is not None else model_kind(source)
+    if kind == "stack-fit":
         return read_model(source, planes)
+    if kind == "phase":
+        raise DiffcamError(f"{source} is a phase file: it gives PSFs at depths z1 once z2 is "
+                           f"known; render them with `diffcam psf {source}"
+                           f" --z1 … --z2 … -o psfs.tif` and pass --psf psfs.tif.")
     if files is not None:
         try:
             psfs, depths = read_psf_stack(files), None

@@ -13,6 +13,7 @@
 - :mod:`.captures`    — preprocessing of captures, HDR merge, synthetic captures
 - :mod:`.simulation`  — the paper's Fig. 3 simulation (the cameraman diffuser)
 - :mod:`.phase_io`    — phase files
+- :mod:`.model_file`  — the camera-model files (phase file or stack fit) through one door
 - :mod:`.stack_model`, :mod:`.stack_fit`, :mod:`.stack_result`, :mod:`.stack_inputs`
   — the wave model of a measured PSF stack, its fit to a few planes, the fitted result
   (prediction, file) and the given planes' checks and preparation
@@ -27,6 +28,7 @@ from diffcam.calibrate.captures import (CaptureOptions, PreparedCaptures, Synthe
 from diffcam.calibrate.lsq import (ConvergenceWarning, FitOptions, PhaseGrid, fit_phase,
                                    near_far_model,
                                    retrieve_lsq)
+from diffcam.calibrate.model_file import load_model, model_kind
 from diffcam.calibrate.near_far import (CalibrationGeometry, NearFarModel,
                                         calibration_intensities, check_far_pitch,
                                         glass_equivalent_distance)
@@ -56,6 +58,7 @@ __all__ = [
     "initial_phase", "ProjectionOptions", "DefocusedPlane", "psf_plane",
     "retrieve_lsq", "fit_phase", "FitOptions", "near_far_model", "PhaseGrid",
     "fit_to_psfs", "PsfFitOptions", "DepthLaw", "predict_psfs", "resolve_twin", "PhaseFile", "save_phase", "load_phase",
+    "load_model", "model_kind",
     # captures
     "prepare_captures", "PreparedCaptures", "CaptureOptions", "synthetic_captures",
     "SyntheticSensor", "merge_exposures",

@@ -1,0 +1,86 @@
+"""The camera-model files, read through one door.
+
+diffcam writes two kinds of camera model, both ``.npz`` with their provenance inside:
+
+- a **phase file** (``diffcam calibrate``, :func:`~diffcam.calibrate.save_phase`): the
+  diffuser phase θd in SI units (grid pitch, wavelength, aperture, how it was
+  retrieved). It gives the PSF at any source depth z1 once the diffuser-to-sensor
+  distance z2 is given (``diffcam psf PHASE --z1 … --z2 …``);
+- a **stack fit** (``diffcam fit``, :meth:`~diffcam.calibrate.StackFit.save`): the
+  field, distance and magnification law fitted to measured planes of a PSF stack, the
+  given planes, the fit's history and options. It gives the planes of that stack by
+  index (``diffcam predict FIT``); its planes fix z2·M(z1), not z2 and z1 apart.
+
+:func:`model_kind` tells them apart from the file's contents (not its name);
+:func:`load_model` reads either. ``diffcam psf``, ``predict``, ``compare`` and
+``reconstruct`` all take a model file this way, and each says in one line what to do
+with the other kind when it needs depths or plane indices that the file cannot give.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from diffcam.calibrate.phase_io import PhaseFile, load_phase
+from diffcam.calibrate.stack_result import FORMAT, StackFit, load_stack_fit
+from diffcam.core.errors import DiffcamError
+from diffcam.io import npz_keys, read_npz
+
+__all__ = ["model_kind", "load_model", "load_stack_model", "not_a_model", "MODEL_FILES"]
+
+MODEL_FILES = "a phase file from `diffcam calibrate` or a stack fit from `diffcam fit`"
+
+
+def model_kind(path: str | os.PathLike) -> str | None:
+    """``"phase"``, ``"stack-fit"``, or ``None`` for anything else (another suffix, a
+    missing file, an ``.npz`` of other arrays). Reads the zip directory, and for a
+    stack fit its metadata entry; a damaged ``.npz`` raises :class:`DiffcamError`."""
+    path = Path(path)
+    if path.suffix.lower() != ".npz" or not path.is_file():
+        return None
+    keys = set(npz_keys(path, what="a diffcam model file"))
+    if {"phase", "meta"} <= keys:
+        return "phase"
+    if "metadata" not in keys:
+        return None
+    meta = read_npz(path, ["metadata"], what="a diffcam model file")["metadata"]
+    try:
+        fmt = json.loads(str(meta[()])).get("format")
+    except (ValueError, AttributeError, IndexError):
+        return None
+    return "stack-fit" if fmt == FORMAT else None
+
+
+def load_model(path: str | os.PathLike) -> PhaseFile | StackFit:
+    """The camera model in ``path``: a :class:`PhaseFile` or a :class:`StackFit`.
+
+    Raises:
+        DiffcamError: a file of neither kind (one line naming both), or a damaged or
+            outdated one (the kind's own loader's message).
+    """
+    kind = model_kind(path)
+    if kind == "phase":
+        return load_phase(path)
+    if kind == "stack-fit":
+        return load_stack_fit(path)
+    raise not_a_model(path)
+
+
+def load_stack_model(path: str | os.PathLike) -> StackFit:
+    """:func:`load_model` for what renders planes by index (``diffcam predict``,
+    ``compare`` against a stack): a phase file is refused with the command that
+    renders it at depths instead."""
+    model = load_model(path)
+    if isinstance(model, PhaseFile):
+        raise DiffcamError(f"{path} is a phase file: it gives PSFs at depths z1, not plane "
+                           f"indices; render them with `diffcam psf {path} --z1 … --z2 …`.")
+    return model
+
+
+def not_a_model(path: str | os.PathLike) -> DiffcamError:
+    """The one-line error for a file that is neither kind of model."""
+    if not Path(path).exists():
+        return DiffcamError(f"{path}: no such file; give {MODEL_FILES}.")
+    return DiffcamError(f"{path}: not a diffcam camera model; give {MODEL_FILES}.")
