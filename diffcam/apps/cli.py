@@ -77,8 +77,6 @@ def _camera_for(phase_file, z2, crop):
 def _cmd_psf(args) -> int:
 
     kind = model_kind(args.phase)
-    if kind is None:
-        raise not_a_model(args.phase)
     if kind == "stack-fit":
         if args.processes != 1:
             raise DiffcamError("--processes is for a phase file; a stack-fit model's "
@@ -97,7 +95,10 @@ def _cmd_psf(args) -> int:
     suffix = Path(args.out).suffix.lower()
     if suffix not in (".npz", ".tif", ".tiff"):
         raise DiffcamError(f"{args.out}: write the stack as .npz or .tif, not {suffix!r}.")
-    if _several_processes(args):
+    several = _several_processes(args)
+    if kind is None:
+        raise not_a_model(args.phase)
+    if several:
         return run_processes("psf", args.argv, args.processes, outputs=[args.out])
     phase_file = load_phase(args.phase)
     camera = _camera_for(phase_file, args.z2, args.crop)
