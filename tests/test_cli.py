@@ -283,3 +283,23 @@ def test_version_is_the_installed_distribution(capsys):
         build_parser().parse_args(["--version"])
     assert exit_.value.code == 0
     assert capsys.readouterr().out.strip() == f"diffcam {version('diffcam')}"
+
+
+def test_warnings_are_one_line(tmp_path):
+    """A warning on the command line is one line naming the command and the warning's
+    category, without Python's file name and source line."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    psf = rng.random((48, 48)).astype(np.float32)
+    psf[0, 0] = -1e-7                       # rounding left by a background subtraction
+    np.save(tmp_path / "psf.npy", psf)
+    np.save(tmp_path / "raw.npy", 100 * rng.random((48, 48)).astype(np.float32))
+    r = _diffcam("reconstruct", str(tmp_path / "raw.npy"), "--psf", str(tmp_path / "psf.npy"),
+                 "--iterations", "2", "-o", str(tmp_path / "out.npy"))
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    warned = [line for line in lines if "BackgroundWarning" in line]
+    assert warned == [line for line in lines if "clipped to 0" in line]
+    assert len(warned) == 1 and warned[0].startswith("diffcam reconstruct: warning (")
+    assert not [line for line in lines if ".py:" in line or line.startswith("  ")], r.stderr

@@ -400,6 +400,7 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
                  "--time-budget", "900", "--pixel", "3.45um", "-o", str(model)]) == 0
     out = capsys.readouterr().out
     assert "stopped: max_steps (4)" in out and "scaling baseline" in out
+    assert "from a start at 4 px² (the default" in out     # where ζ_ref started, and why
     fit = load_stack_fit(model)
     assert fit.planes == (4, 12) and fit.steps == 4
     assert fit.identifiable["lambda_z2_M_reference_m2"] > 0 and "z2_M_reference_m" not in fit.identifiable

@@ -113,7 +113,8 @@ def _cmd_fit(args) -> int:
           f"{fit.steps}\n"
           f"  validation Pearson: model {fit.validation_score:.4f}, scaling baseline "
           f"{fit.baseline_validation:.4f}{worse}\n"
-          f"  ζ_ref {fit.model.zeta_pixels:.3g} px² (λ·z2·M/pixel²){_z2m(fit)}, κ "
+          f"  ζ_ref {fit.model.zeta_pixels:.3g} px² (λ·z2·M/pixel²){_z2m(fit)}"
+          f"{_zeta_start(fit)}, κ "
           f"{float(fit.model.kappa):.3f}, magnification {fit.registration.magnification:.5f}"
           f" about ({fit.registration.centre[0]:.1f}, {fit.registration.centre[1]:.1f}) px\n"
           f"  {fit.seconds:.1f} s → {args.out}")
@@ -124,6 +125,17 @@ def _z2m(fit) -> str:
     """z2·M at the reference plane in mm, when the pitch and wavelength were given."""
     z2m = fit.identifiable.get("z2_M_reference_m")
     return "" if z2m is None else f" = z2·M {1e3 * z2m:.2f} mm at plane {fit.planes[0]}"
+
+
+def _zeta_start(fit) -> str:
+    """Where ζ_ref started: two planes can leave it near its start (docs/stack_fit.md,
+    "Two planes of this stack do not pin the distance")."""
+    o = fit.model.oversample
+    starts = ", ".join(f"{z / o ** 2:.3g}" for z in fit.zeta_scan)
+    physical = None not in (fit.physical.get(k) for k in ("pixel_pitch", "wavelength", "z2"))
+    how = "" if physical or fit.options.get("zetas") else \
+        " (the default: --pixel, --wavelength and --z2 give a physical one)"
+    return f", from a start at {starts} px²{how}"
 
 
 def cmd_predict(args) -> int:

@@ -244,8 +244,10 @@ def identifiable(phys: dict, model: StackModel, n_planes: int | None) -> dict:
     """
     zeta_px = model.zeta_pixels
     ident = {"zeta_reference_px2": zeta_px,
-             "note": "the planes fix ζ = λ·z2·M/pixel², i.e. z2·M(t) = z2 + z2²/z1(t) "
-                     "given the pixel pitch and wavelength; z1 needs z2 as well."}
+             "note": "the planes can fix at most ζ = λ·z2·M/pixel², i.e. z2·M(t) = z2 + "
+                     "z2²/z1(t) given the pixel pitch and wavelength; z1 needs z2 as well. "
+                     "Where the planes change little with the distance the fit ends near "
+                     "its start (docs/stack_fit.md)."}
     pitch, lam, z2 = phys["pixel_pitch"], phys["wavelength"], phys["z2"]
     if pitch is None:
         return ident
