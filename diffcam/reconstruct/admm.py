@@ -156,12 +156,14 @@ TUTORIAL_2D = AdmmOptions(mu1=1e-6, mu2=1e-5, mu3=4e-5, tau=1e-4)
 """The DiffuserCam 2-D tutorial's settings, :func:`admm_tv`'s defaults (for an
 L2-normalised image)."""
 
-VOLUME = AdmmOptions(tau=1e-5, tau_axial=2e-6, sparsity=2e-5, balance=True)
+VOLUME = AdmmOptions(mu1=0.5, mu2=0.25, mu3=0.5, tau=1e-5, tau_axial=2e-6, sparsity=2e-5,
+                     balance=True, relaxation=1.85)
 """Settings for a volume from a capture scaled to unit L2 norm, chosen by measurement
 on the shipped DiffuserCam 3-D capture (docs/volume.md, ``benchmarks/bench_3d.py``):
 lateral TV 1e-5, a five times weaker axial TV (isotropic 3-D TV smears the tilted
 target into axial blocks), an L1 pull of 2e-5 (it empties the haze planes), residual
-balancing. ``diffcam reconstruct --3d`` uses them."""
+balancing from the penalties it settles at on that capture (0.5, 0.25, 0.5), and
+over-relaxation 1.85. ``diffcam reconstruct --3d`` uses them."""
 
 
 def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100,
