@@ -159,7 +159,8 @@ L2-normalised image)."""
 VOLUME = AdmmOptions(mu1=0.5, mu2=0.25, mu3=0.5, tau=1e-5, tau_axial=2e-6, sparsity=2e-5,
                      balance=True, relaxation=1.85)
 """Settings for a volume from a capture scaled to unit L2 norm, chosen by measurement
-on the shipped DiffuserCam 3-D capture (docs/volume.md, ``benchmarks/bench_3d.py``):
+on the shipped DiffuserCam 3-D capture (docs/volume.md, ``benchmarks/bench_3d.py``,
+``benchmarks/bench_3d_convergence.py``):
 lateral TV 1e-5, a five times weaker axial TV (isotropic 3-D TV smears the tilted
 target into axial blocks), an L1 pull of 2e-5 (it empties the haze planes), residual
 balancing from the penalties it settles at on that capture (0.5, 0.25, 0.5), and
@@ -448,13 +449,12 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
         bg = sensor(smooth.fit(b - crop_to(hv + xi / mu1, b.shape)))
         x = (data - bg + mu1 * hv + xi) / (crop_mask + mu1)
         w = jnp.maximum(v + (rho - sparsity) / mu3, 0)
-        primal_old = (x, u, w)
-        x, u, w = (alpha * s + (1 - alpha) * k for s, k in zip(primal_old, (hv, tv_v, v)))
+        splits = (x, u, w)          # relaxed below; the primal residuals use them as is
+        x, u, w = (alpha * s + (1 - alpha) * k for s, k in zip(splits, (hv, tv_v, v)))
         rest = _tv_adjoint(mu2 * u - eta, a) + mu3 * w - rho
         v_new, hv_new = _v_update(basis, rfft2(mu1 * x - xi), rest, mu)
         tv_new = _tv(v_new, a)
-        primal = jnp.stack([_norm(k - s) for k, s in zip((hv_new, tv_new, v_new),
-                                                          primal_old)])
+        primal = jnp.stack([_norm(k - s) for k, s in zip((hv_new, tv_new, v_new), splits)])
         dual = mu * jnp.stack([_norm(hv_new - hv), _norm(tv_new - tv_v), _norm(v_new - v)])
         xi = xi + mu1 * (hv_new - x)
         eta = eta + mu2 * (tv_new - u)
