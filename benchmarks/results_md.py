@@ -68,6 +68,13 @@ SECTIONS = {
                  ["run", "s_per_it", "fft_s_per_it", "s_per_it_vs_scico", "slope", "rms",
                   "axial_width", "outside", "wall_s", "peak_mb", "printed_residual",
                   "recomputed_residual", "slope_diff", "within_1_plane"]),
+    "bench_3d_convergence": ("3-D from one capture: the solve's convergence by iteration "
+                             "count, over-relaxation and the penalties' start",
+                             "python -m benchmarks.bench_3d_convergence",
+                             ["setting", "iterations", "seconds", "residual", "objective",
+                              "split_gap", "side_slope", "side_rms", "side_axial_width",
+                              "side_outside", "diffcam_rms", "diffcam_outside", "own_rms",
+                              "own_outside"]),
     "distributed": ("PSF stacks over two processes against one",
                     "python -m benchmarks.bench_distributed",
                     ["config", "N", "depths", "repeat", "psfs_per_s", "peak_mb_each",

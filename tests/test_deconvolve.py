@@ -357,22 +357,42 @@ def test_wiener_equals_dense_tikhonov(x64):
 # --- ADMM ---------------------------------------------------------------------------
 
 
-def test_admm_without_tv_reaches_nnls(x64):
-    """tau=0, circular: ADMM minimises ½||Ax-b||² over x >= 0 (scipy.optimize.nnls)."""
+def _nnls_problem():
+    """A circular 8×8 deconvolution without TV: the image, the PSF, the dense model
+    matrix and the non-negative least-squares solution (scipy.optimize.nnls)."""
     rng = np.random.default_rng(13)
     psf = rng.random((4, 4))
     scene = np.maximum(rng.standard_normal((8, 8)), 0)
     model = convolution_model(jnp.asarray(psf), scene.shape, "circular")
     image = np.asarray(model(scene)) + 0.01 * rng.standard_normal(scene.shape)
     a = _dense(model, scene.shape)
-    x_ref, _ = scipy.optimize.nnls(a, image.ravel())
+    return image, psf, a, scipy.optimize.nnls(a, image.ravel())[0]
+
+
+@pytest.mark.parametrize("relaxation", [1.0, 1.7])
+def test_admm_without_tv_reaches_nnls(x64, relaxation):
+    """tau=0, circular: ADMM minimises ½||Ax-b||² over x >= 0 (scipy.optimize.nnls),
+    plain or over-relaxed (the fixed point does not depend on the relaxation)."""
+    image, psf, a, x_ref = _nnls_problem()
     f_ref = 0.5 * np.sum((a @ x_ref - image.ravel()) ** 2)
     out = admm_tv(image, psf, 3000, mu1=0.05, mu2=0.05, mu3=0.05, tau=0.0,
-                  boundary="circular")
+                  boundary="circular", relaxation=relaxation)
     est = np.asarray(out.image).ravel()
     assert est.min() >= 0
     f = 0.5 * np.sum((a @ est - image.ravel()) ** 2)
     assert f <= f_ref * (1 + 1e-3) + 1e-12
+    assert _rel(est, x_ref) < 1e-6
+
+
+def test_admm_over_relaxation_converges_in_fewer_iterations(x64):
+    """Over-relaxation (Boyd et al. 2011, §3.4.3) with α = 1.7: after 300 iterations the
+    estimate is at least ten times closer to the NNLS solution than plain ADMM's."""
+    image, psf, _, x_ref = _nnls_problem()
+    error = {alpha: _rel(admm_tv(image, psf, 300, mu1=0.05, mu2=0.05, mu3=0.05, tau=0.0,
+                                 boundary="circular", relaxation=alpha,
+                                 progress=False).image.ravel(), x_ref)
+             for alpha in (1.0, 1.7)}
+    assert error[1.7] < 0.1 * error[1.0]
 
 
 def test_admm_decreases_its_objective(x64):
@@ -479,6 +499,9 @@ def test_admm_specific_errors():
         admm_tv(image, psf, 3, boundary="same")
     with pytest.raises(DiffcamError, match="all zeros"):
         admm_tv(np.zeros_like(image), psf, 3)
+    for alpha in (0.0, 2.0):
+        with pytest.raises(DiffcamError, match="relaxation must be in"):
+            admm_tv(image, psf, 3, relaxation=alpha)
 
 
 def _volume_problem(seed=30, nz=4):
@@ -598,10 +621,11 @@ def test_admm_background_absorbs_a_smooth_background_exactly(x64):
     assert _rel(plain.image, clean.image) > 0.2 and plain.background is None
 
 
-def test_admm_background_reaches_bounded_least_squares(x64):
+@pytest.mark.parametrize("relaxation", [1.0, 1.7])
+def test_admm_background_reaches_bounded_least_squares(x64, relaxation):
     """tau=0, circular: ADMM with a background of degree 1 minimises
     ½||A x + B c - b||² over x >= 0 and free c (scipy.optimize.lsq_linear with bounds
-    on the stacked matrix [A, B])."""
+    on the stacked matrix [A, B]), plain or over-relaxed."""
     rng = np.random.default_rng(33)
     psf = rng.random((4, 4))
     scene = np.maximum(rng.standard_normal((8, 8)), 0)
@@ -615,7 +639,8 @@ def test_admm_background_reaches_bounded_least_squares(x64):
     ref = scipy.optimize.lsq_linear(a, image.ravel(), bounds=(lower, np.inf), tol=1e-12)
     f_ref = 0.5 * np.sum(ref.fun ** 2)
     out = admm_tv(image, psf, 3000, mu1=0.05, mu2=0.05, mu3=0.05, tau=0.0,
-                  boundary="circular", background=1, progress=False)
+                  boundary="circular", background=1, relaxation=relaxation,
+                  progress=False)
     predicted = np.asarray(model(out.image)) + np.asarray(out.background)
     f = 0.5 * np.sum((predicted - image) ** 2)
     assert float(out.image.min()) >= 0

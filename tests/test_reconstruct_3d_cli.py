@@ -15,6 +15,7 @@ from scipy.signal import fftconvolve
 
 from diffcam.apps.cli import main
 from diffcam.io import border_dark_level, natural_key
+from diffcam.reconstruct.admm import VOLUME
 
 N, NZ = 32, 3
 POINTS = [(0, 8, 10), (1, 20, 22), (2, 12, 24)]  # (plane, y, x): one point per plane
@@ -115,6 +116,8 @@ def test_printed_residual_is_the_written_volumes(scene, capsys, envelope):
     info = json.loads(meta["Info"])
     assert info["residual"] == pytest.approx(recomputed, rel=2e-3, abs=1e-4)
     assert info["split_gap"] >= 0 and info["options"]["balance"] is True
+    assert info["options"]["relaxation"] == VOLUME.relaxation
+    assert info["options"]["mu2"] == VOLUME.mu2
 
 
 def test_background_is_recorded_and_fits_with_the_volume(scene, capsys):
@@ -318,7 +321,6 @@ def test_real_capture_matches_the_api(tmp_path):
     from diffcam.data import load_psf_stack_3d, load_raw_3d
     from diffcam.io import apply_envelope, envelope_widths
     from diffcam.reconstruct import admm_tv_3d
-    from diffcam.reconstruct.admm import VOLUME
 
     raw, psfs = load_raw_3d(downsample_by=8), load_psf_stack_3d(downsample_by=8)
     assert raw.shape == (33, 40) and psfs.shape == (44, 33, 40)

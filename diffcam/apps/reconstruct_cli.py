@@ -304,8 +304,9 @@ def add_reconstruct(sub) -> None:
                     "reconstruct every plane as a volume "
                     "(OUT.tif, OUT_max.png, OUT_depth.png, OUT_projections.png, "
                     "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm; "
-                    "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5 "
-                    "and residual-balanced penalties (diffcam.reconstruct.admm.VOLUME), "
+                    "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5, "
+                    "residual-balanced penalties and over-relaxation 1.85 "
+                    "(diffcam.reconstruct.admm.VOLUME), "
                     "each PSF plane's vertical envelope matched to the capture first "
                     "(--psf-envelope), all recorded in OUT.tif's metadata. See "
                     "docs/cli_reconstruct.md and docs/volume.md.")
