@@ -8,14 +8,14 @@ import functools
 import os
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
-                                 length_arg, lengths_arg, planes_arg, read_psfs,
-                                 save_figure, save_image, save_open_figures, save_rgb)
+                                 length_arg, lengths_arg, one_line_warnings, planes_arg,
+                                 read_psfs, save_figure, save_image, save_open_figures,
+                                 save_rgb)
 from diffcam.apps.scene_psf_cli import add_calibrate_psf
 from diffcam.core.errors import DiffcamError
 from diffcam.apps.demo import run_demo
@@ -546,25 +546,12 @@ def _verbosity(args):
         print(f"diffcam {args.command}: {time.perf_counter() - start:.1f} s", file=sys.stderr)
 
 
-@contextlib.contextmanager
-def _one_line_warnings(args):
-    """Warnings on stderr as one line, ``diffcam CMD: warning (Category): message``,
-    without Python's file and source line."""
-    shown = warnings.formatwarning
-    warnings.formatwarning = lambda message, category, *_, **__: (
-        f"diffcam {args.command}: warning ({category.__name__}): {message}\n")
-    try:
-        yield
-    finally:
-        warnings.formatwarning = shown
-
-
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        with interrupts_as_keyboard_interrupt(), _verbosity(args), _one_line_warnings(args):
+        with interrupts_as_keyboard_interrupt(), _verbosity(args), one_line_warnings(args.command):
             check_environment()
             return args.func(args)
     except DiffcamError as e:

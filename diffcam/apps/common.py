@@ -7,8 +7,10 @@ readers. The command modules (:mod:`~diffcam.apps.cli`, :mod:`~diffcam.apps.fit_
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -231,3 +233,16 @@ def planes_arg(text):
         return parse_planes(text)
     except DiffcamError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+@contextlib.contextmanager
+def one_line_warnings(command: str):
+    """Warnings on stderr as one line, ``diffcam COMMAND: warning (Category): message``,
+    without Python's file name and source line."""
+    shown = warnings.formatwarning
+    warnings.formatwarning = lambda message, category, *_, **__: (
+        f"diffcam {command}: warning ({category.__name__}): {message}\n")
+    try:
+        yield
+    finally:
+        warnings.formatwarning = shown
