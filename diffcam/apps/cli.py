@@ -226,7 +226,7 @@ def _cmd_compare(args) -> int:
     if kind is None:
         raise not_a_model(path)
     if kind == "stack-fit":
-        return _compare_stack_fit(argparse.Namespace(**{**vars(args), "model": path}))
+        return _compare_stack_fit(args, path)
     if args.z2 is None:
         raise DiffcamError(f"{path} is a phase file: it needs --z2 (diffuser to sensor, "
                            f"with a unit).")
@@ -426,16 +426,16 @@ def _add_psf(sub) -> None:
     ps.set_defaults(func=_cmd_psf)
 
 
-def _compare_stack_fit(args) -> int:
+def _compare_stack_fit(args, model) -> int:
     """``diffcam compare STACK --model MODEL.npz``: as ``diffcam compare-stack``."""
 
     given = [f for f, v in (("--z1", args.z1), ("--z2", args.z2), ("--pixel", args.pixel),
                             ("--anchor", args.anchor)) if v is not None]
     if given:
-        raise DiffcamError(f"{args.model} is a stack fit: it compares by plane index; it "
+        raise DiffcamError(f"{model} is a stack fit: it compares by plane index; it "
                            f"does not take "
                            f"{', '.join(given)}.")
-    return cmd_compare_stack(argparse.Namespace(stack=args.captured, model=args.model,
+    return cmd_compare_stack(argparse.Namespace(stack=args.captured, model=model,
                                                  key=args.key, out=args.out, json=args.json))
 
 
