@@ -454,3 +454,13 @@ def test_distance_starts_from_the_physical_inputs(synthetic_stack):
     assert sorted(scan.zeta_scan) == [4.0, 64.0]
     best = max(scan.zeta_scan, key=scan.zeta_scan.get)
     assert scan.model.zeta_pixels * 4 == pytest.approx(best, rel=0.05)
+
+
+@pytest.mark.parametrize("oversample", [2, 3])
+def test_default_distance_start_is_in_pixels(oversample):
+    """Without physical inputs ζ_ref starts at ZETA_START pixel² whatever the
+    oversampling (o² fine samples per pixel²), not at a fixed number of fine samples."""
+    from diffcam.calibrate.stack_fit import ZETA_START, _zetas
+    opts = StackFitOptions(oversample=oversample, field_stride=oversample)
+    none = dict(pixel_pitch=None, wavelength=None, z2=None)
+    assert _zetas(opts, none) == (ZETA_START * oversample ** 2,)

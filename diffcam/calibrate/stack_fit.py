@@ -71,6 +71,9 @@ class StackFitWarning(UserWarning):
 
 _OPTIMISTIX = {"lbfgs": optx.LBFGS, "nonlinear_cg": optx.NonlinearCG}
 OPTIMISERS = ("adam", *_OPTIMISTIX)
+ZETA_START = 4.0
+"""ζ_ref's start without physical inputs, pixel² (λ·z_eff/pitch²): the shipped stack's
+scale. Two planes can leave the fit near its start (docs/stack_fit.md)."""
 
 
 class StackFitOptions(Options):
@@ -86,8 +89,8 @@ class StackFitOptions(Options):
         seed: the validation split's and the GS start's seed.
         zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²).
             ``None``: the far-source value o²·λ·z2/pitch² when ``pixel_pitch``,
-            ``wavelength`` and ``z2`` are given to :func:`fit_stack`, else 16 (the
-            shipped stack's scale). With several, each start descends ``scan_steps``
+            ``wavelength`` and ``z2`` are given to :func:`fit_stack`, else
+            o²·:data:`ZETA_START` (4 pixel², the shipped stack's scale). With several, each start descends ``scan_steps``
             steps and the best validation Pearson is kept.
         scan_steps: steps each candidate of a ζ scan descends before one is chosen
             (the ranking of the starts themselves can differ from the ranking after
@@ -164,7 +167,7 @@ class StackFitOptions(Options):
                                f"{self.optimiser!r}.")
         if not float(self.time_budget) > 0:
             raise DiffcamError(f"time_budget must be > 0 s, got {self.time_budget!r}.")
-        zetas = (16.0,) if self.zetas is None else tuple(self.zetas)
+        zetas = (ZETA_START,) if self.zetas is None else tuple(self.zetas)
         if not zetas or not all(np.isfinite(float(z)) and float(z) > 0 for z in zetas):
             raise DiffcamError(f"zetas must be positive distances (fine samples²), got "
                                f"{self.zetas!r}.")
@@ -426,11 +429,11 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
 def _zetas(opts: StackFitOptions, phys: dict) -> tuple[float, ...]:
     """The ζ_ref candidates: as given, else the far-source value o²·λ·z2/pitch² (fine
     samples²; M ≥ 1 makes the true one larger by M(ref)) when the physical inputs
-    allow it, else 16."""
+    allow it, else :data:`ZETA_START` pixel²."""
     if opts.zetas is not None:
         return opts.zetas
     if None in (phys["pixel_pitch"], phys["wavelength"], phys["z2"]):
-        return (16.0,)
+        return (opts.oversample ** 2 * ZETA_START,)
     return (opts.oversample ** 2 * phys["wavelength"] * phys["z2"]
             / phys["pixel_pitch"] ** 2,)
 
