@@ -40,6 +40,15 @@ SECTIONS = {
                            "rendered_mean", "above_baseline", "steps", "fit_s"])
        for o, label in (("lbfgs", "optimistix LBFGS instead of Adam"),
                         ("nonlinear_cg", "optimistix NonlinearCG instead of Adam"))},
+    "stack_fit_oversample3": ("Measured PSF stack: 3 × 3 samples per pixel (one field "
+                              "coefficient per pixel, the default distance start)",
+                              "python -m benchmarks.bench_stack_fit --pairs 6 --spread 3 5 "
+                              "--time-budget 400 --options '{\"oversample\": 3, "
+                              "\"field_stride\": 3, \"zetas\": [36.0]}' "
+                              "--name stack_fit_oversample3",
+                              ["pair", "transform", "model_mean", "baseline_mean",
+                               "rendered_mean", "frozen_mean", "above_baseline",
+                               "rendered_above", "steps", "stop_reason", "fit_s", "load"]),
     "stack_fit_float64": ("Measured PSF stack, one pair, in float64",
                           "JAX_ENABLE_X64=1 python -m benchmarks.bench_stack_fit --quick "
                           "--time-budget 400 --name stack_fit_float64",
