@@ -25,11 +25,11 @@ from diffcam.apps.processes import (distributed_settings, ERRORS, in_distributed
                                     initialize_from_environment, report_error,
                                     run_processes)
 from diffcam.apps.reconstruct_cli import add_reconstruct
+from diffcam import calibrate   # retrieve_phase, resolve_twin: optimistix loads with them
 from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane,
-                               resolve_twin, retrieve_projections)
+                               retrieve_projections)
 from diffcam.calibrate.model_file import model_kind, not_a_model
 from diffcam.calibrate.phase_io import load_phase, PhaseFile, save_phase
-from diffcam.calibrate.pipeline import retrieve_phase
 from diffcam.calibrate.stack_result import MAX_PLANES
 from diffcam.core import memory
 from diffcam.core.backend import fft_backend, fft_size, fft_status
@@ -175,9 +175,10 @@ def _cmd_calibrate(args) -> int:
           f"{args.iterations} iterations{', PSF as a third plane' if planes else ''} ...",
           flush=True)
     if args.solver == "default":
-        result = retrieve_phase(prepared.near, prepared.far, geometry, aperture,
-                           iterations=args.iterations, planes=planes, key=key,
-                           restarts=args.restarts, masks=(prepared.near_mask, prepared.far_mask))
+        result = calibrate.retrieve_phase(
+            prepared.near, prepared.far, geometry, aperture, iterations=args.iterations,
+            planes=planes, key=key, restarts=args.restarts,
+            masks=(prepared.near_mask, prepared.far_mask))
     else:
         result = retrieve_projections(prepared.near, prepared.far, geometry,
                                       method=args.solver, iterations=args.iterations,
@@ -190,7 +191,7 @@ def _cmd_calibrate(args) -> int:
             "twin_resolved": False, "near": str(args.near), "far": str(args.far)}
     if reference is not None:
         psf_ref, camera = reference
-        phase, info["twin_chosen"] = resolve_twin(phase, psf_ref, camera, args.psf_z1)
+        phase, info["twin_chosen"] = calibrate.resolve_twin(phase, psf_ref, camera, args.psf_z1)
         info.update(twin_resolved=True, psf=str(args.psf))
     save_phase(args.out, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
     twin = "twin resolved by the PSF" if info["twin_resolved"] else \
