@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diffcam.apps.compile_cache import enable_compilation_cache
 from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
                                  length_arg, lengths_arg, one_line_warnings, planes_arg,
                                  read_psfs, save_figure, save_image, save_open_figures,
@@ -466,7 +467,10 @@ def _add_compare(sub) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="diffcam",
-        description="Differentiable wave optics for lensless diffuser cameras.")
+        description="Differentiable wave optics for lensless diffuser cameras.",
+        epilog="Compiled programs are kept in $XDG_CACHE_HOME/diffcam/jax (~/.cache/diffcam/"
+               "jax), so a repeated command starts faster; JAX_COMPILATION_CACHE_DIR "
+               "chooses another folder, DIFFCAM_NO_CACHE=1 turns the cache off.")
     parser.add_argument("--version", action="version",
                         version=f"diffcam {installed_version()}")
     talk = parser.add_mutually_exclusive_group()
@@ -539,7 +543,8 @@ def _verbosity(args):
 
 
     print(f"diffcam {args.command}: JAX {jax.__version__} on {jax.devices()[0]}; "
-          f"{fft_status()}; {memory.status()}", file=sys.stderr)
+          f"{fft_status()}; {memory.status()}; compilation cache "
+          f"{jax.config.jax_compilation_cache_dir or 'off'}", file=sys.stderr)
     start = time.perf_counter()
     try:
         yield
@@ -578,7 +583,9 @@ def run() -> None:
     run ends the same way: the interpreter's teardown would wait in JAX's shutdown
     barrier for peers blocked in a collective, until the heartbeat timeout aborts it.
     Outputs are already in place or cleaned up by then
-    (:func:`diffcam.io.atomic_output`)."""
+    (:func:`diffcam.io.atomic_output`). Compiled programs are cached on disk
+    (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`)."""
+    enable_compilation_cache()
     status = main()
     if status == 130 or (status and in_distributed_run()):
         sys.stdout.flush()
