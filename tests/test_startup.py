@@ -64,6 +64,13 @@ def test_every_public_name_resolves_to_its_modules_object(package):
 
 def test_a_lazy_package_imports_an_unlisted_submodule_on_access():
     assert diffcam.calibrate.pipeline is importlib.import_module("diffcam.calibrate.pipeline")
+    # the limits the error messages name are reachable from a bare ``import diffcam``
+    code = ("import diffcam; print(diffcam.core.grid.MAX_GRID_SAMPLES, "
+            "diffcam.calibrate.stack_result.MAX_PLANES, diffcam.io.MAX_READ_BYTES)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["268435456", "4096", str(4 * 2**30)]
 
 
 def test_stub_names_reads_imports_aliases_and_all(tmp_path):

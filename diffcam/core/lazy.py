@@ -14,7 +14,8 @@ A lazy package keeps its public names, and where each comes from, as ordinary
     __getattr__, __dir__, __all__ = attach_stub(__name__, __file__)
 
 A submodule that no stub line names (``diffcam.calibrate.pipeline``) is imported on
-first attribute access as well.
+first attribute access as well; a package without a stub (``diffcam.core``) gets only
+that, so ``diffcam.core.grid.MAX_GRID_SAMPLES`` works after a bare ``import diffcam``.
 """
 
 from __future__ import annotations
@@ -45,9 +46,11 @@ def stub_names(stub: str | Path) -> tuple[dict[str, tuple[str, str]], list[str]]
 
 def attach_stub(package: str, init_file: str):
     """``(__getattr__, __dir__, __all__)`` for the package ``package`` whose
-    ``__init__.py`` is ``init_file``: the names of the ``__init__.pyi`` beside it,
-    each imported from its module on first access and then kept in the package."""
-    origin, exported = stub_names(Path(init_file).with_suffix(".pyi"))
+    ``__init__.py`` is ``init_file``: the names of the ``__init__.pyi`` beside it (none
+    if it has no stub), each imported from its module on first access and then kept in
+    the package; any other name that is a submodule is imported as well."""
+    stub = Path(init_file).with_suffix(".pyi")
+    origin, exported = stub_names(stub) if stub.is_file() else ({}, [])
 
     def __getattr__(name: str):
         if name in origin:
