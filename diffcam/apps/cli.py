@@ -22,9 +22,9 @@ from diffcam.core.errors import DiffcamError
 from diffcam.apps.demo import run_demo
 from diffcam.apps.fit_cli import add_fit, cmd_compare_stack, cmd_predict
 from diffcam.apps.paper import Settings
-from diffcam.apps.processes import (distributed_settings, ERRORS, in_distributed_run,
-                                    initialize_from_environment, report_error,
-                                    run_processes)
+from diffcam.apps.processes import (distributed_settings, end_process, ERRORS,
+                                    in_distributed_run, initialize_from_environment,
+                                    report_error, run_processes)
 from diffcam.apps.reconstruct_cli import add_reconstruct
 from diffcam import calibrate   # retrieve_phase, resolve_twin: optimistix loads with them
 from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane,
@@ -574,24 +574,11 @@ def main(argv=None) -> int:
 
 
 def run() -> None:
-    """The ``diffcam`` command: :func:`main`, then exit with its status.
-
-    After an interrupt (status 130) the process ends without the interpreter's
-    teardown: XLA's threads may still be running the interrupted computation, and
-    tearing the interpreter down under them crashed with SIGSEGV in about one run of
-    five (an interrupted ``diffcam psf``). A failed process of a ``jax.distributed``
-    run ends the same way: the interpreter's teardown would wait in JAX's shutdown
-    barrier for peers blocked in a collective, until the heartbeat timeout aborts it.
-    Outputs are already in place or cleaned up by then
-    (:func:`diffcam.io.atomic_output`). Compiled programs are cached on disk
-    (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`)."""
+    """The ``diffcam`` command: :func:`main` with compiled programs cached on disk
+    (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), then the process
+    ends with its status (:func:`~diffcam.apps.processes.end_process`)."""
     enable_compilation_cache()
-    status = main()
-    if status == 130 or (status and in_distributed_run()):
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(status)
-    sys.exit(status)
+    end_process(main())
 
 
 if __name__ == "__main__":
