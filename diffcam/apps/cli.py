@@ -576,9 +576,16 @@ def main(argv=None) -> int:
 def run() -> None:
     """The ``diffcam`` command: :func:`main` with compiled programs cached on disk
     (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), then the process
-    ends with its status (:func:`~diffcam.apps.processes.end_process`)."""
+    ends with its status (:func:`~diffcam.apps.processes.end_process`), also after
+    ``--help``, ``--version`` and usage errors (argparse's ``SystemExit``)."""
     enable_compilation_cache()
-    end_process(main())
+    try:
+        status = main()
+    except SystemExit as done:
+        if not isinstance(done.code, (int, type(None))):
+            raise
+        status = done.code or 0
+    end_process(status)
 
 
 if __name__ == "__main__":
