@@ -79,7 +79,7 @@ def cases(model: Path, folder: Path, round_: int) -> dict[str, tuple[list[str], 
 
 def run(model: Path, folder: Path, rounds: int) -> list[dict]:
     """One row per case: median, min and max wall time (s) and the peak RSS (MB)."""
-    base = {"DIFFCAM_NO_CACHE": None, "XDG_CACHE_HOME": None,
+    base = {"DIFFCAM_NO_CACHE": None, "DIFFCAM_CACHE": None, "XDG_CACHE_HOME": None,
             "JAX_COMPILATION_CACHE_DIR": None}
     with environment(**{**base, "XDG_CACHE_HOME": str(folder / "warm")}):
         run_probed([sys.executable, "-m", "diffcam", "predict", str(model), "-o",

@@ -104,7 +104,8 @@ def _psf(phase, out, **env):
     """``diffcam psf PHASE --z1 20mm --z2 1mm -o OUT`` in a subprocess, the cache
     settings of the test session (``DIFFCAM_NO_CACHE``) replaced by ``env``."""
     base = {k: v for k, v in os.environ.items()
-            if k not in ("DIFFCAM_NO_CACHE", "XDG_CACHE_HOME", "JAX_COMPILATION_CACHE_DIR")}
+            if k not in ("DIFFCAM_NO_CACHE", "DIFFCAM_CACHE", "XDG_CACHE_HOME",
+                         "JAX_COMPILATION_CACHE_DIR")}
     # every program is written, however fast it compiled: the test does not rely on timing
     base["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     return subprocess.run([sys.executable, "-m", "diffcam", "psf", str(phase), "--z1",

@@ -468,7 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.",
-        epilog="Compiled programs are kept in $XDG_CACHE_HOME/diffcam/jax (~/.cache/diffcam/"
+        epilog="Compiled programs are kept in $DIFFCAM_CACHE/jax (default ~/.cache/diffcam/"
                "jax), so a repeated command starts faster; JAX_COMPILATION_CACHE_DIR "
                "chooses another folder, DIFFCAM_NO_CACHE=1 turns the cache off.")
     parser.add_argument("--version", action="version",

@@ -3,9 +3,10 @@
 Each ``diffcam`` command is a fresh process, and XLA compiles its programs again in
 each one: a second ``diffcam predict`` of the same model recompiles the renderer
 (≈ 1.5 s on 2 cores) before it renders anything. The command line therefore keeps
-compiled programs on disk, in ``$XDG_CACHE_HOME/diffcam/jax`` (``~/.cache/diffcam/jax``
-when ``XDG_CACHE_HOME`` is unset), and a later run of the same program on the same
-machine and JAX version loads it instead of compiling.
+compiled programs on disk, in the ``jax`` folder of diffcam's cache folder
+(:func:`diffcam.core.fftw.cache_folder`: ``$DIFFCAM_CACHE``, else
+``$XDG_CACHE_HOME/diffcam``, else ``~/.cache/diffcam``), and a later run of the same
+program on the same machine and JAX version loads it instead of compiling.
 
 The user's settings come first: ``JAX_COMPILATION_CACHE_DIR`` (and JAX's other
 ``JAX_PERSISTENT_CACHE_*`` variables) are left to JAX, and ``DIFFCAM_NO_CACHE=1`` turns
@@ -21,7 +22,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ["NO_CACHE", "MIN_COMPILE_SECONDS", "cache_folder", "enable_compilation_cache"]
+from diffcam.core.fftw import cache_folder
+
+__all__ = ["NO_CACHE", "MIN_COMPILE_SECONDS", "enable_compilation_cache"]
 
 NO_CACHE = "DIFFCAM_NO_CACHE"
 """Environment variable: ``1`` (any value but empty or ``0``) turns the cache off."""
@@ -29,12 +32,6 @@ NO_CACHE = "DIFFCAM_NO_CACHE"
 MIN_COMPILE_SECONDS = 0.2
 """Programs that compile faster than this (s) are not written to the cache: reading a
 small program back costs about as much as compiling it (JAX's own default is 1 s)."""
-
-
-def cache_folder() -> Path:
-    """``$XDG_CACHE_HOME/diffcam/jax``, or ``~/.cache/diffcam/jax``."""
-    base = os.environ.get("XDG_CACHE_HOME", "").strip()
-    return (Path(base) if base else Path.home() / ".cache") / "diffcam" / "jax"
 
 
 def enable_compilation_cache() -> str | None:
@@ -45,7 +42,7 @@ def enable_compilation_cache() -> str | None:
         return None
     folder = os.environ.get("JAX_COMPILATION_CACHE_DIR")
     if not folder:
-        folder = str(cache_folder())
+        folder = str(cache_folder() / "jax")
         try:
             Path(folder).mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryFile(dir=folder):
