@@ -20,29 +20,8 @@ Units are SI everywhere (metres, radians); grids are centred (index N//2 is the 
 ``docs/design.md`` maps the paper's equations to functions.
 """
 
-
-from diffcam import calibrate, core, evaluate, model, optics, reconstruct
-from diffcam.calibrate import retrieve_phase
-from diffcam.core.errors import (ConvergenceWarning, DiffcamError, GeometryWarning,
-                                 SamplingError, ShapeError, UndersamplingWarning)
-from diffcam.evaluate import magnify_psf, pearson, psf_fidelity, psnr, ssim
-from diffcam.model import (Camera, HeightMap, Spectrum, load_stack, psf, psf_stack,
-                           random_diffuser, save_stack)
-from diffcam.optics import (angular_spectrum, apply_phase, circular_aperture, fourier_lens,
-                            fresnel_ir, fresnel_tf, plan_sampling, point_source_field,
-                            thin_lens)
-from diffcam.reconstruct import admm_tv, richardson_lucy, wiener
+from diffcam.core.lazy import attach_stub
 from diffcam.core.version import installed_version
 
-
+__getattr__, __dir__, __all__ = attach_stub(__name__, __file__)
 __version__ = installed_version()
-
-__all__ = [
-    "Camera", "HeightMap", "Spectrum", "psf", "random_diffuser", "psf_stack", "save_stack",
-    "load_stack", "magnify_psf", "retrieve_phase", "richardson_lucy", "admm_tv", "wiener",
-    "fresnel_tf", "fresnel_ir", "angular_spectrum", "fourier_lens",
-    "circular_aperture", "point_source_field", "thin_lens", "apply_phase", "plan_sampling",
-    "pearson", "ssim", "psnr", "psf_fidelity", "DiffcamError", "SamplingError", "ShapeError",
-    "UndersamplingWarning", "GeometryWarning", "ConvergenceWarning", "calibrate", "core",
-    "evaluate", "model", "optics", "reconstruct",
-]

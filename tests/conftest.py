@@ -1,12 +1,18 @@
 """Shared test fixtures: float64 mode, NaN checking, finite-difference gradient checks;
 crafted file headers for the hardening tests."""
 
+import os
 import struct
 import zlib
 
 import jax
 import numpy as np
 import pytest
+
+# the command line's compilation cache (diffcam.apps.compile_cache) is off in every test
+# and the commands they start: nothing is written to the user's cache folder
+# (tests/test_startup.py turns it on, in temporary folders)
+os.environ["DIFFCAM_NO_CACHE"] = "1"
 
 
 @pytest.fixture

@@ -167,3 +167,17 @@ def test_a_killed_process_ends_the_run_and_keeps_the_old_file(phase_file, tmp_pa
         not Path(f"/proc/{pid}").exists() for pid in children.values())
     assert out.read_bytes() == old
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stack.tif"]
+
+
+@pytest.mark.parametrize("status, runs_atexit", [(0, True), (2, True), (130, False)])
+def test_end_process_keeps_status_output_and_exit_functions(status, runs_atexit):
+    """end_process: the status is the process's, buffered output is written, and the
+    atexit functions run (after an interrupt, 130, they do not)."""
+    code = ("import atexit, sys; from diffcam.apps.processes import end_process; "
+            "atexit.register(lambda: print('atexit ran')); print('buffered', end=' '); "
+            f"sys.stderr.write('err'); end_process({status})")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == status
+    assert r.stdout.split() == ["buffered"] + (["atexit", "ran"] if runs_atexit else [])
+    assert r.stderr == "err"

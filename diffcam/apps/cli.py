@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diffcam.apps.compile_cache import enable_compilation_cache
 from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
                                  length_arg, lengths_arg, one_line_warnings, planes_arg,
                                  read_psfs, save_figure, save_image, save_open_figures,
@@ -21,15 +22,15 @@ from diffcam.core.errors import DiffcamError
 from diffcam.apps.demo import run_demo
 from diffcam.apps.fit_cli import add_fit, cmd_compare_stack, cmd_predict
 from diffcam.apps.paper import Settings
-from diffcam.apps.processes import (distributed_settings, ERRORS, in_distributed_run,
-                                    initialize_from_environment, report_error,
-                                    run_processes)
+from diffcam.apps.processes import (distributed_settings, end_process, ERRORS,
+                                    in_distributed_run, initialize_from_environment,
+                                    report_error, run_processes)
 from diffcam.apps.reconstruct_cli import add_reconstruct
+from diffcam import calibrate   # retrieve_phase, resolve_twin: optimistix loads with them
 from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane,
-                               resolve_twin, retrieve_projections)
+                               retrieve_projections)
 from diffcam.calibrate.model_file import model_kind, not_a_model
 from diffcam.calibrate.phase_io import load_phase, PhaseFile, save_phase
-from diffcam.calibrate.pipeline import retrieve_phase
 from diffcam.calibrate.stack_result import MAX_PLANES
 from diffcam.core import memory
 from diffcam.core.backend import fft_backend, fft_size, fft_status
@@ -175,9 +176,10 @@ def _cmd_calibrate(args) -> int:
           f"{args.iterations} iterations{', PSF as a third plane' if planes else ''} ...",
           flush=True)
     if args.solver == "default":
-        result = retrieve_phase(prepared.near, prepared.far, geometry, aperture,
-                           iterations=args.iterations, planes=planes, key=key,
-                           restarts=args.restarts, masks=(prepared.near_mask, prepared.far_mask))
+        result = calibrate.retrieve_phase(
+            prepared.near, prepared.far, geometry, aperture, iterations=args.iterations,
+            planes=planes, key=key, restarts=args.restarts,
+            masks=(prepared.near_mask, prepared.far_mask))
     else:
         result = retrieve_projections(prepared.near, prepared.far, geometry,
                                       method=args.solver, iterations=args.iterations,
@@ -190,7 +192,7 @@ def _cmd_calibrate(args) -> int:
             "twin_resolved": False, "near": str(args.near), "far": str(args.far)}
     if reference is not None:
         psf_ref, camera = reference
-        phase, info["twin_chosen"] = resolve_twin(phase, psf_ref, camera, args.psf_z1)
+        phase, info["twin_chosen"] = calibrate.resolve_twin(phase, psf_ref, camera, args.psf_z1)
         info.update(twin_resolved=True, psf=str(args.psf))
     save_phase(args.out, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
     twin = "twin resolved by the PSF" if info["twin_resolved"] else \
@@ -465,7 +467,10 @@ def _add_compare(sub) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="diffcam",
-        description="Differentiable wave optics for lensless diffuser cameras.")
+        description="Differentiable wave optics for lensless diffuser cameras.",
+        epilog="Compiled programs are kept in $DIFFCAM_CACHE/jax (default ~/.cache/diffcam/"
+               "jax), so a repeated command starts faster; JAX_COMPILATION_CACHE_DIR "
+               "chooses another folder, DIFFCAM_NO_CACHE=1 turns the cache off.")
     parser.add_argument("--version", action="version",
                         version=f"diffcam {installed_version()}")
     talk = parser.add_mutually_exclusive_group()
@@ -538,7 +543,8 @@ def _verbosity(args):
 
 
     print(f"diffcam {args.command}: JAX {jax.__version__} on {jax.devices()[0]}; "
-          f"{fft_status()}; {memory.status()}", file=sys.stderr)
+          f"{fft_status()}; {memory.status()}; compilation cache "
+          f"{jax.config.jax_compilation_cache_dir or 'off'}", file=sys.stderr)
     start = time.perf_counter()
     try:
         yield
@@ -568,22 +574,18 @@ def main(argv=None) -> int:
 
 
 def run() -> None:
-    """The ``diffcam`` command: :func:`main`, then exit with its status.
-
-    After an interrupt (status 130) the process ends without the interpreter's
-    teardown: XLA's threads may still be running the interrupted computation, and
-    tearing the interpreter down under them crashed with SIGSEGV in about one run of
-    five (an interrupted ``diffcam psf``). A failed process of a ``jax.distributed``
-    run ends the same way: the interpreter's teardown would wait in JAX's shutdown
-    barrier for peers blocked in a collective, until the heartbeat timeout aborts it.
-    Outputs are already in place or cleaned up by then
-    (:func:`diffcam.io.atomic_output`)."""
-    status = main()
-    if status == 130 or (status and in_distributed_run()):
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(status)
-    sys.exit(status)
+    """The ``diffcam`` command: :func:`main` with compiled programs cached on disk
+    (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), then the process
+    ends with its status (:func:`~diffcam.apps.processes.end_process`), also after
+    ``--help``, ``--version`` and usage errors (argparse's ``SystemExit``)."""
+    enable_compilation_cache()
+    try:
+        status = main()
+    except SystemExit as done:
+        if not isinstance(done.code, (int, type(None))):
+            raise
+        status = done.code or 0
+    end_process(status)
 
 
 if __name__ == "__main__":

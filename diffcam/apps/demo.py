@@ -30,7 +30,8 @@ import numpy as np
 
 from diffcam.apps import paper
 from diffcam.apps.common import save_figure
-from diffcam.calibrate import cameraman_phase, resolve_twin
+from diffcam import calibrate   # calibrate.resolve_twin: optimistix loads with it
+from diffcam.calibrate.simulation import cameraman_phase
 from diffcam.core.backend import fft_status
 from diffcam.evaluate.metrics import phase_offset, wrap_phase
 
@@ -180,7 +181,7 @@ def _fig3(s, out, say) -> dict:
     say(f"[2/{_STEPS}] resolving the twin with a captured PSF at z1 = 22 mm ...")
     cam = paper.camera(s)
     fig3["reference"] = paper.captured_reference(fig3["truth"], cam, paper.DEPTHS[0])
-    fig3["resolved"], fig3["twin_chosen"] = resolve_twin(fig3["calibrated"], fig3["reference"],
+    fig3["resolved"], fig3["twin_chosen"] = calibrate.resolve_twin(fig3["calibrated"], fig3["reference"],
                                                          cam, paper.DEPTHS[0])
     fig3["resolved_scores"] = paper._scores(fig3["resolved"], fig3["truth"], s.grid)
     _plot_phases(out / "fig3_phase.png", fig3)
@@ -195,7 +196,7 @@ def _fig5(s, fig3, out, say) -> list[dict]:
     for it in (10, 50):
         early = paper.paper_phase(fig3["near"], fig3["far"], iterations=it,
                                   refine_iterations=0, restarts=1).phase
-        stages[f"calibration {it} it"] = resolve_twin(early, fig3["reference"], cam,
+        stages[f"calibration {it} it"] = calibrate.resolve_twin(early, fig3["reference"], cam,
                                                       paper.DEPTHS[0])[0]
     stages[f"calibration {s.calibration_iterations} it"] = fig3["resolved"]
     fig5 = paper.fig5_psf_and_reconstruction(fig3["truth"], stages, paper.letter_f(), s)
@@ -209,7 +210,7 @@ def _fig6(s, out, say) -> tuple[dict, list[dict]]:
     cam = paper.camera(s)
     rnd = paper.fig3_phase_retrieval(paper.random_phase(), s, psf_z1=paper.DEPTHS[0])
     reference = paper.captured_reference(rnd["truth"], cam, paper.DEPTHS[0])
-    rnd["resolved"] = resolve_twin(rnd["calibrated"], reference, cam, paper.DEPTHS[0])[0]
+    rnd["resolved"] = calibrate.resolve_twin(rnd["calibrated"], reference, cam, paper.DEPTHS[0])[0]
     fig6 = paper.fig5_psf_and_reconstruction(
         rnd["truth"], {"true phase": None, f"GS {s.gs_iterations} it": rnd["gs"],
                        f"calibration {s.calibration_iterations} it": rnd["resolved"],

@@ -24,7 +24,8 @@ import numpy as np
 from diffcam.core.errors import DiffcamError
 from diffcam.apps.common import (iterations_count, length_arg, planes_arg, save_figure,
                                  save_image)
-from diffcam.calibrate import fit_stack, prepare_planes
+from diffcam import calibrate   # calibrate.fit_stack: optax and optimistix load with it
+from diffcam.calibrate.stack_inputs import prepare_planes
 from diffcam.calibrate.model_file import load_stack_model
 from diffcam.calibrate.stack_result import MAX_PLANES
 from diffcam.evaluate.metrics import pearson
@@ -104,7 +105,7 @@ def _cmd_fit(args) -> int:
         overrides["frozen"] = True
     print(f"diffcam fit: {stack.shape[0]} planes of {stack.shape[1]}×{stack.shape[2]}, "
           f"fitting planes {args.planes} ...", flush=True)
-    fit = fit_stack(stack, args.planes, saturation=level, progress=not args.no_progress,
+    fit = calibrate.fit_stack(stack, args.planes, saturation=level, progress=not args.no_progress,
                     pixel_pitch=args.pixel, wavelength=args.wavelength, z2=args.z2,
                     **overrides)
     fit.save(args.out)

@@ -40,8 +40,7 @@ from diffcam.calibrate import CalibrationGeometry, gerchberg_saxton, paper_simul
 from diffcam.calibrate.simulation import (PAPER_APERTURE_RADIUS, PAPER_DX, PAPER_FOCAL_LENGTH,
                                           PAPER_WAVELENGTH, high_fidelity_captures,
                                           high_fidelity_psfs)
-from diffcam.calibrate import FitOptions, retrieve_phase
-from diffcam.calibrate.pipeline import POLISH
+from diffcam import calibrate   # calibrate.retrieve_phase: optimistix loads with it
 from diffcam.evaluate.baseline import magnify_psf
 from diffcam.model.stack import psf_stack
 
@@ -124,9 +123,11 @@ def paper_phase(near, far, *, iterations: int, refine_iterations: int = 50, rest
     :func:`diffcam.calibrate.psf_plane`) it starts flat, once."""
     n = np.shape(near)[-1]
     aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
-    refine = FitOptions.of(POLISH, iterations=refine_iterations) if refine_iterations else None
-    return retrieve_phase(near, far, geometry(), aperture, iterations=iterations,
-                          refine=refine, planes=planes, restarts=None if planes else restarts)
+    refine = None if not refine_iterations else calibrate.FitOptions.of(
+        calibrate.pipeline.POLISH, iterations=refine_iterations)
+    return calibrate.retrieve_phase(near, far, geometry(), aperture, iterations=iterations,
+                                    refine=refine, planes=planes,
+                                    restarts=None if planes else restarts)
 
 
 def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0,

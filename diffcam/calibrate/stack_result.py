@@ -26,11 +26,10 @@ from pathlib import Path
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-import scipy.ndimage as ndi
 
 from diffcam.core.errors import DiffcamError
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
-                                           relative_magnification_at)
+                                           relative_magnification_at, spline_coefficients)
 from diffcam.io import atomic_output, check_output_path, read_npz
 from diffcam.calibrate.stack_model import StackModel, coefficient_shape, render_planes
 
@@ -52,6 +51,14 @@ def _check_count(n: int) -> None:
         raise DiffcamError(f"{n} planes asked for; one call predicts at most {MAX_PLANES} "
                            f"(diffcam.calibrate.stack_result.MAX_PLANES): ask for fewer, or "
                            f"raise the limit.")
+
+
+def _magnifications(model: StackModel, planes) -> np.ndarray:
+    """s(t) = M(t)/M(reference) of ``planes`` in float64 on the host (the law of
+    :meth:`StackModel.magnification`, without a JAX dispatch per plane)."""
+    return relative_magnification_at(np.asarray(planes, np.float64),
+                                     float(np.exp(float(model.log_s))), model.reference,
+                                     model.anchor)
 
 
 def _plane_index(t) -> int:
@@ -165,7 +172,7 @@ class StackFit:
         else:
             ts = [_plane_index(t) for t in np.asarray(planes, dtype=object).reshape(-1)]
             _check_count(len(ts))
-        bad = [t for t in ts if not float(self.model.magnification(t)) > 0]
+        bad = [t for t, s in zip(ts, _magnifications(self.model, ts)) if not s > 0]
         if bad:
             raise DiffcamError(f"plane(s) {bad[:5]} lie beyond where the fitted "
                                f"magnification law reaches zero (it is linear in the plane "
@@ -176,21 +183,19 @@ class StackFit:
 
     def _with_residuals(self, model: StackModel, ts: list[int]) -> np.ndarray:
         """(Σ w_k a_k)·render(t) + Σ w_k T_{k→t}(R_k) for every t (module docstring)."""
-        rendered = render_planes(model, list(self.planes) + ts)
-        given, rendered = rendered[:len(self.planes)], rendered[len(self.planes):]
+        planes = sorted(set(self.planes) | set(ts))    # each plane rendered once
+        rendered = dict(zip(planes, render_planes(model, planes)))
+        s = dict(zip(planes, _magnifications(model, planes)))
         gain, coef = {}, {}
-        for k, y, p in zip(self.planes, self.measured.astype(np.float64), given):
-            a, b = np.polyfit(p.ravel(), y.ravel(), 1)
+        for k, y in zip(self.planes, self.measured.astype(np.float64)):
+            a, b = np.polyfit(rendered[k].ravel(), y.ravel(), 1)
             gain[k] = a
-            coef[k] = ndi.spline_filter(y - a * p - b, order=3)
-        s = {t: float(relative_magnification_at(t, np.exp(float(model.log_s)),
-                                                model.reference, model.anchor))
-             for t in set(ts) | set(self.planes)}
+            coef[k] = spline_coefficients(y - a * rendered[k] - b)
         centre = tuple(float(c) for c in np.asarray(model.centre))
-        out = np.empty_like(rendered)
+        out = np.empty((len(ts),) + rendered[ts[0]].shape)
         for n, t in enumerate(ts):
             weights = bracket_weights(t, self.planes)
-            out[n] = sum(w * gain[k] for k, w in weights.items()) * rendered[n]
+            out[n] = sum(w * gain[k] for k, w in weights.items()) * rendered[t]
             for k, w in weights.items():
                 out[n] += w * magnify_about(coef[k], s[t] / s[k], centre, prefiltered=True)
         return out

@@ -7,8 +7,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from scipy.linalg import toeplitz
-from scipy.optimize import minimize_scalar, nnls
 
 from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_finite
 from diffcam.io.reading import Capture
@@ -188,6 +186,8 @@ def envelope_widths(image: np.ndarray, psfs: np.ndarray, samples: int = 5) -> np
         gauss = np.exp(-0.5 * ((binned_rows[None] - centres[fitted, None]) / sigma) ** 2)
         return _nnls_misfit(profile, kernels * gauss)
 
+    from scipy.optimize import minimize_scalar  # SciPy on first use: fast package import
+
     height = planes.shape[1]
     best = minimize_scalar(misfit, bounds=(np.log(0.1 * height), np.log(10 * height)),
                            method="bounded", options={"xatol": 0.01})
@@ -246,6 +246,9 @@ def _profiles(image, psfs):
 def _nnls_misfit(profile, kernels) -> float:
     """``min ||Σ_k valid(kernel_k * s_k) - profile||`` over ``s_k >= 0``: the part of a
     1-D profile that non-negative signals blurred by the ``kernels`` cannot explain."""
+    from scipy.linalg import toeplitz
+    from scipy.optimize import nnls
+
     n = len(profile)
     matrix = np.hstack([toeplitz(np.r_[k[-1], np.zeros(n - 1)],
                                  np.concatenate([k[::-1], np.zeros(n - 1)]))
