@@ -55,6 +55,14 @@ SECTIONS = {
                           ["pair", "transform", "model_mean", "baseline_mean",
                            "rendered_mean", "above_baseline", "steps", "fit_s",
                            "predict_s", "load"]),
+    "stack_light": ("Measured PSF stack: the magnification from two planes' light "
+                    "(inverse-square law)",
+                    "python -m benchmarks.bench_stack_light",
+                    ["pair", "transform", "M_first", "M_last", "z1_first_z2", "z1_last_z2",
+                     "law_mean_err", "law_max_err", "linear_mean_err", "linear_max_err"]),
+    "startup": ("Start-up: a fresh `diffcam` process, with the compilation cache off, "
+                "empty and warm",
+                "python -m benchmarks.bench_startup --rounds 5", None),
     "stack_volume": ("3-D reconstruction of the real capture with a predicted stack",
                      "python -m benchmarks.bench_stack_volume",
                      ["stack", "volume_pearson", "plane_pearson_mean",

@@ -118,8 +118,24 @@ def _cmd_fit(args) -> int:
           f"{_zeta_start(fit)}, κ "
           f"{float(fit.model.kappa):.3f}, magnification {fit.registration.magnification:.5f}"
           f" about ({fit.registration.centre[0]:.1f}, {fit.registration.centre[1]:.1f}) px\n"
+          f"{_depths_from_light(fit)}"
           f"  {fit.seconds:.1f} s → {args.out}")
     return 0
+
+
+def _depths_from_light(fit) -> str:
+    """The line on M(t) and z1(t) that the planes' light fixes (inverse-square law)."""
+    m = fit.identifiable.get("magnification_range_from_light")
+    if m is None:
+        return "  the planes' light does not follow the inverse-square law: no depths from it\n"
+    z = fit.identifiable["z1_over_z2_range_from_light"]
+    z1 = fit.identifiable.get("z1_range_from_light_m")
+    mm = "" if z1 is None else f" = {1e3 * z1[0]:.3g}–{1e3 * z1[1]:.3g} mm"
+    ends = (0, fit.n_planes - 1) if fit.n_planes else sorted({fit.planes[0],
+                                                               fit.model.anchor})
+    return (f"  the planes' light (inverse-square law): M = 1 + z2/z1 from {m[0]:.3f} to "
+            f"{m[1]:.3f} over planes {ends[0]}–{ends[1]}, z1 = {z[0]:.3g}–{z[1]:.3g} z2"
+            f"{mm}\n")
 
 
 def _z2m(fit) -> str:

@@ -56,9 +56,10 @@ from diffcam.calibrate import stack_result
 from diffcam.calibrate.stack_result import StackFit
 from diffcam.core.deprecation import renamed
 from diffcam.evaluate.metrics import pearson
-from diffcam.evaluate.registration import (Registration, magnify_about,
-                                           register_magnification,
+from diffcam.evaluate.registration import (Registration, magnification_from_light,
+                                           magnify_about, register_magnification,
                                            relative_magnification_at)
+from diffcam.io.preprocessing import border_dark_level
 
 __all__ = ["StackFitOptions", "StackFitWarning", "fit_stack"]
 
@@ -409,7 +410,8 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     run = _descend(model, data, opts, t0)
     render_planes(run.model, planes[:1])      # compiles the predictor inside the fit
     base = _baseline_validation(imgs, planes, registration, val, ref, anchor)
-    ident = identifiable(phys, run.model, n_planes)
+    ident = identifiable(phys, run.model, n_planes,
+                         _light_magnification(frames, planes, anchor, run.model, opts))
     fit = StackFit(model=run.model, planes=tuple(planes), n_planes=n_planes,
                    registration=registration, history=np.asarray(run.train),
                    validation=np.asarray(run.validation), stop_reason=run.reason,
@@ -491,6 +493,19 @@ def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -
                 reason = f"time budget ({opts.time_budget:g} s)"
                 break
     return _Run(best_model, best_step, float(best_val), train_hist, val_hist, reason)
+
+
+def _light_magnification(frames, planes, anchor, model: StackModel,
+                         opts: StackFitOptions) -> float | None:
+    """M(reference) from the reference's and the anchor's light (inverse-square law,
+    :func:`magnification_from_light`), or None where the light does not follow it."""
+    ring = opts.dark_ring
+    light = [float((f - (border_dark_level(f, ring) if ring else 0.0)).sum())
+             for f in (frames[0], frames[planes.index(anchor)])]
+    try:
+        return magnification_from_light(*light, float(model.magnification(anchor)))
+    except DiffcamError:
+        return None
 
 
 def _baseline_validation(imgs, planes, reg, val, ref, anchor) -> float:

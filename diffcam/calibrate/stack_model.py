@@ -234,21 +234,36 @@ def render_planes(model: StackModel, planes) -> np.ndarray:
     return np.concatenate(out)[:len(ts)]
 
 
-def identifiable(phys: dict, model: StackModel, n_planes: int | None) -> dict:
+def identifiable(phys: dict, model: StackModel, n_planes: int | None,
+                 light_magnification: float | None = None) -> dict:
     """What the planes fix, in physical units as far as ``phys`` allows.
 
     ζ_ref = λ·z_eff/d² with d the diffuser-side sample pitch, (pitch/o)/M_virtual; with
     z_eff = z2/M this is λ·z2·M(ref)·m0²/(pitch/o)²: the planes fix z2·M(t) =
     z2 + z2²/z1(t), not z2 and z1 apart (module docstring). Given z2 too,
     M(t) = z2·M(t)/z2 and z1(t) = z2/(M(t) − 1).
+
+    ``light_magnification``, M(reference) from the given planes' light
+    (:func:`~diffcam.evaluate.registration.magnification_from_light`), fixes M(t) and
+    z1(t)/z2 = 1/(M(t) − 1) over the stack without any physical input; with z2, z1(t).
     """
     zeta_px = model.zeta_pixels
     ident = {"zeta_reference_px2": zeta_px,
              "note": "the planes can fix at most ζ = λ·z2·M/pixel², i.e. z2·M(t) = z2 + "
                      "z2²/z1(t) given the pixel pitch and wavelength; z1 needs z2 as well. "
                      "Where the planes change little with the distance the fit ends near "
-                     "its start (docs/stack_fit.md)."}
+                     "its start (docs/stack_fit.md). The planes' light (inverse-square "
+                     "law) fixes M(t) and z1(t)/z2 when one source power and exposure "
+                     "served every plane."}
     pitch, lam, z2 = phys["pixel_pitch"], phys["wavelength"], phys["z2"]
+    ends = [0, n_planes - 1] if n_planes else sorted({model.reference, model.anchor})
+    s = [float(model.magnification(t)) for t in ends]
+    if light_magnification is not None:
+        m = [light_magnification * v for v in s]
+        ident["magnification_range_from_light"] = m
+        ident["z1_over_z2_range_from_light"] = [1.0 / (v - 1.0) for v in m]
+        if z2 is not None:
+            ident["z1_range_from_light_m"] = [z2 / (v - 1.0) for v in m]
     if pitch is None:
         return ident
     m0 = model.grid_magnification
@@ -257,8 +272,6 @@ def identifiable(phys: dict, model: StackModel, n_planes: int | None) -> dict:
         return ident
     z2m_ref = ident["lambda_z2_M_reference_m2"] / lam
     ident["z2_M_reference_m"] = z2m_ref
-    ends = [0, n_planes - 1] if n_planes else sorted({model.reference, model.anchor})
-    s = [float(model.magnification(t)) for t in ends]
     ident["z2_M_range_m"] = [z2m_ref * v for v in s]
     if z2 is not None:
         m = [z2m_ref * v / z2 for v in s]

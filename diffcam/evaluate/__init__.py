@@ -11,9 +11,10 @@
 from diffcam.evaluate.baseline import magnify_psf, relative_magnification
 from diffcam.evaluate.metrics import (mse, pearson, phase_scores, psf_fidelity, psnr,
                                       ssim)
-from diffcam.evaluate.registration import (Registration, magnify_about,
-                                           register_magnification, scaling_baseline)
+from diffcam.evaluate.registration import (Registration, magnification_from_light,
+                                           magnify_about, register_magnification,
+                                           scaling_baseline)
 
 __all__ = ["magnify_psf", "relative_magnification", "mse", "pearson", "phase_scores",
            "psf_fidelity", "psnr", "ssim", "Registration", "register_magnification",
-           "scaling_baseline", "magnify_about"]
+           "scaling_baseline", "magnify_about", "magnification_from_light"]

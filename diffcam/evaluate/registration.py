@@ -30,8 +30,8 @@ import numpy as np
 from diffcam.core.errors import DiffcamError, ShapeError
 
 __all__ = ["Registration", "register_magnification", "magnify_about", "spline_coefficients",
-           "magnification_slope", "relative_magnification_at", "scaling_baseline",
-           "bracket_weights"]
+           "magnification_slope", "relative_magnification_at", "magnification_from_light",
+           "scaling_baseline", "bracket_weights"]
 
 _POLE = np.sqrt(3.0) - 2.0
 """The pole of the cubic B-spline's interpolation filter (Unser 1993)."""
@@ -222,6 +222,39 @@ def relative_magnification_at(t, magnification, plane_a: int, plane_b: int):
     (dimensionless; ``t`` a plane index or an array of them; NumPy or JAX)."""
     c = (magnification - 1.0) / (plane_b - magnification * plane_a)
     return (1.0 + c * t) / (1.0 + c * plane_a)
+
+
+def magnification_from_light(light_a: float, light_b: float, magnification: float) -> float:
+    """The absolute magnification M(a) = 1 + z2/z1(a) of plane a, from the light two
+    planes collect and their relative magnification M(b)/M(a) = ``magnification``.
+
+    The aperture collects a point source's light in proportion to the solid angle it
+    subtends, 1/z1² = ((M − 1)/z2)² (inverse-square law), so with r = √(light_a/light_b)
+    and M(b) = m·M(a): r = (M(a) − 1)/(m·M(a) − 1), i.e. M(a) = (r − 1)/(r·m − 1). It
+    needs one source power and exposure for both captures, the light summed over the
+    whole caustic (dark level subtracted) and planes far enough apart that r differs
+    from 1/m (a source at infinity).
+
+    Args:
+        light_a, light_b: total light of the two planes, any common unit (> 0).
+        magnification: M(b)/M(a), from :func:`register_magnification`.
+
+    Raises:
+        DiffcamError: when the light does not follow the law for a source in front of
+            the aperture (M(a) not finite or not above 1, or below 1/m).
+    """
+    if not (light_a > 0 and light_b > 0 and magnification > 0):
+        raise DiffcamError(f"magnification_from_light needs positive light and "
+                           f"magnification, got {light_a!r}, {light_b!r}, {magnification!r}.")
+    r = np.sqrt(light_a / light_b)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m_a = (r - 1.0) / (r * magnification - 1.0)
+    if not (np.isfinite(m_a) and m_a > 1.0 and m_a * magnification > 1.0):
+        raise DiffcamError(f"the planes' light (ratio {light_a / light_b:.4g}) does not follow "
+                           f"the inverse-square law of a point source with relative "
+                           f"magnification {magnification:.4g} (M = {m_a:.4g}): were they "
+                           f"captured with one source power and exposure?")
+    return float(m_a)
 
 
 def _plane_list(planes, name="planes") -> list[int]:
