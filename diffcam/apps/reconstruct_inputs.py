@@ -60,8 +60,11 @@ def read_model(path, planes) -> PsfSource:
     planes = model_planes(fit, planes, path)
     if min(planes) < 0:
         raise DiffcamError(f"--planes {planes}: plane numbers start at 0.")
-    # unit mean per plane, dark-free; the carried residuals can dip below 0: clip them
-    return PsfSource(np.clip(fit.predict(planes), 0, None), None, list(planes), None)
+    # dark-free, each plane with its light (inverse-square law) where the fit knows it,
+    # else at unit mean; the carried residuals can dip below 0: clip them
+    light = fit.identifiable.get("magnification_reference_from_light") is not None
+    return PsfSource(np.clip(fit.predict(planes, light=light), 0, None), None, list(planes),
+                     None)
 
 
 def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:

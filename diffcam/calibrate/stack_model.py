@@ -259,6 +259,7 @@ def identifiable(phys: dict, model: StackModel, n_planes: int | None,
     ends = [0, n_planes - 1] if n_planes else sorted({model.reference, model.anchor})
     s = [float(model.magnification(t)) for t in ends]
     if light_magnification is not None:
+        ident["magnification_reference_from_light"] = light_magnification
         m = [light_magnification * v for v in s]
         ident["magnification_range_from_light"] = m
         ident["z1_over_z2_range_from_light"] = [1.0 / (v - 1.0) for v in m]

@@ -122,9 +122,10 @@ class StackFit:
     def steps(self) -> int:
         return int(len(self.history))
 
-    def predict(self, planes=None, *, kappa: float | None = None, residual: bool = True
-                ) -> np.ndarray:
-        """Predicted planes, each normalised to unit mean (like :func:`prepare_planes`).
+    def predict(self, planes=None, *, kappa: float | None = None, residual: bool = True,
+                light: bool = False) -> np.ndarray:
+        """Predicted planes, each normalised to unit mean (like :func:`prepare_planes`),
+        or carrying its light.
 
         Args:
             planes: plane indices (any ints, also outside the measured range), a count
@@ -133,11 +134,21 @@ class StackFit:
                 (``kappa=0``: the frozen-distance ablation of the same field).
             residual: carry the measured planes' residuals (the module docstring);
                 ``False`` renders the model alone.
+            light: plane t's mean is instead its light relative to the reference
+                plane's, ((M(t) − 1)/(M(ref) − 1))² (inverse-square law, M from the
+                given planes' light: ``identifiable``), as a measured stack's planes
+                keep their relative brightness.
 
         Returns:
             float32 array (k, H, W).
+
+        Raises:
+            DiffcamError: ``light=True`` for a fit whose planes' light did not follow
+                the law (or a file saved without it).
         """
         ts = self._plane_list(planes)
+        if light:
+            gain = self._light(ts)
         model = self.model
         if kappa is not None and not (isinstance(kappa, (int, float, np.number))
                                       and not isinstance(kappa, bool)
@@ -153,7 +164,18 @@ class StackFit:
         else:
             out = render_planes(model, ts)
         out /= out.mean(axis=(-2, -1), keepdims=True)
+        if light:
+            out *= gain[:, None, None]
         return out.astype(np.float32)
+
+    def _light(self, ts) -> np.ndarray:
+        """Each plane's light relative to the reference plane's (inverse-square law)."""
+        m_ref = self.identifiable.get("magnification_reference_from_light")
+        if m_ref is None:
+            raise DiffcamError("this fit has no light law (its planes' light did not follow "
+                               "the inverse-square law, or it was saved without it): predict "
+                               "without light=True, or fit the stack again.")
+        return ((_magnifications(self.model, ts) * m_ref - 1.0) / (m_ref - 1.0)) ** 2
 
     def _plane_list(self, planes) -> list[int]:
         """The planes to predict, checked: whole numbers, at most :data:`MAX_PLANES`,
