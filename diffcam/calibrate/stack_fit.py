@@ -91,8 +91,9 @@ class StackFitOptions(Options):
         zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²).
             ``None``: the far-source value o²·λ·z2/pitch² when ``pixel_pitch``,
             ``wavelength`` and ``z2`` are given to :func:`fit_stack`, else
-            o²·:data:`ZETA_START` (4 pixel², the shipped stack's scale). With several, each start descends ``scan_steps``
-            steps and the best validation Pearson is kept.
+            o²·:data:`ZETA_START` (4 pixel², the shipped stack's scale). With several,
+            each start descends ``scan_steps`` steps and the best validation Pearson is
+            kept.
         scan_steps: steps each candidate of a ζ scan descends before one is chosen
             (the ranking of the starts themselves can differ from the ranking after
             descent: docs/stack_fit.md).
