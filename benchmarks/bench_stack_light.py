@@ -36,7 +36,7 @@ from diffcam.calibrate import prepare_planes
 from diffcam.data import load_psf_stack_3d
 from diffcam.evaluate.registration import (magnification_from_light, register_magnification,
                                            relative_magnification_at)
-from diffcam.io.preprocessing import border_dark_level
+from diffcam.io.preprocessing import plane_light
 
 COLUMNS = ["pair", "transform", "M_first", "M_last", "z1_first_z2", "z1_last_z2",
            "law_mean_err", "law_max_err", "linear_mean_err", "linear_max_err"]
@@ -46,7 +46,7 @@ def run_case(stack: np.ndarray, planes: list[int], label: str) -> dict:
     """Magnification and z1/z2 from the light of the reference and anchor planes, and
     the other planes' light by the law and by linear interpolation: one JSON row."""
     n = stack.shape[0]
-    light = (stack - border_dark_level(stack)[:, None, None]).sum(axis=(1, 2))
+    light = plane_light(stack)
     ref = planes[0]
     anchor = max(planes[1:], key=lambda t: abs(t - ref))
     prepared = prepare_planes(stack[[ref, anchor]])

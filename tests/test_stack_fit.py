@@ -295,9 +295,9 @@ def test_light_fixes_the_magnification_on_the_shipped_stack():
     built-in stack and their registered relative magnification fix M(10) = 1 + z2/z1;
     with it every other plane's light, ∝ (M(t) − 1)², is predicted to 2.5 % (mean 1 %)."""
     from diffcam.data import load_psf_stack_3d
-    from diffcam.io.preprocessing import border_dark_level
+    from diffcam.io.preprocessing import plane_light
     stack = np.asarray(load_psf_stack_3d(), np.float64)
-    light = (stack - border_dark_level(stack)[:, None, None]).sum(axis=(1, 2))
+    light = plane_light(stack)
     prepared = prepare_planes(stack[[10, 39]])
     reg = register_magnification(prepared[0], prepared[1])
     m10 = magnification_from_light(light[10], light[39], reg.magnification)
@@ -313,10 +313,10 @@ def test_predicted_planes_carry_the_light_of_the_measured_ones():
     held-out plane's light relative to plane 10 is its measured light's to 2.5 %, where
     unit-mean planes are off by up to 20 %."""
     from diffcam.data import load_psf_stack_3d
-    from diffcam.io.preprocessing import border_dark_level
+    from diffcam.io.preprocessing import plane_light
     stack = np.asarray(load_psf_stack_3d(), np.float64)
     fit = fit_stack(stack, [10, 39], progress=False, max_steps=1)
-    light = (stack - border_dark_level(stack)[:, None, None]).sum(axis=(1, 2))
+    light = plane_light(stack)
     predicted = fit.predict(light=True).astype(np.float64).sum(axis=(1, 2))
     ratio = (predicted / predicted[10]) / (light / light[10])
     assert np.abs(ratio - 1).max() < 0.025

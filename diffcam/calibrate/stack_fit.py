@@ -59,7 +59,7 @@ from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import (Registration, magnification_from_light,
                                            magnify_about, register_magnification,
                                            relative_magnification_at)
-from diffcam.io.preprocessing import border_dark_level
+from diffcam.io.preprocessing import plane_light
 
 __all__ = ["StackFitOptions", "StackFitWarning", "fit_stack"]
 
@@ -500,9 +500,7 @@ def _light_magnification(frames, planes, anchor, model: StackModel,
                          opts: StackFitOptions) -> float | None:
     """M(reference) from the reference's and the anchor's light (inverse-square law,
     :func:`magnification_from_light`), or None where the light does not follow it."""
-    ring = opts.dark_ring
-    light = [float((f - (border_dark_level(f, ring) if ring else 0.0)).sum())
-             for f in (frames[0], frames[planes.index(anchor)])]
+    light = plane_light(np.stack([frames[0], frames[planes.index(anchor)]]), opts.dark_ring)
     try:
         return magnification_from_light(*light, float(model.magnification(anchor)))
     except DiffcamError:

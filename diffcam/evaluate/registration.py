@@ -28,6 +28,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.model.spline import bspline
 
 __all__ = ["Registration", "register_magnification", "magnify_about", "spline_coefficients",
            "magnification_slope", "relative_magnification_at", "magnification_from_light",
@@ -116,9 +117,7 @@ def _spline_taps(q: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     index, weight = [], []
     for k in range(-1, 3):
         j = base + k
-        d = np.abs(q - j)
-        weight.append(np.where(d < 1, 2 / 3 - d * d + d ** 3 / 2,
-                               np.where(d < 2, (2 - d) ** 3 / 6, 0.0)) * inside)
+        weight.append(bspline(q - j) * inside)
         j = np.abs(j)
         index.append(np.clip(np.where(j > n - 1, 2 * (n - 1) - j, j), 0, n - 1))
     return np.stack(index), np.stack(weight)

@@ -30,8 +30,8 @@ from __future__ import annotations
 
 from diffcam.io.preprocessing import (BackgroundWarning, apply_envelope,
                                       border_dark_level, dark_level, downsample,
-                                      envelope_widths, normalise_l2, saturation_mask,
-                                      subtract_background)
+                                      envelope_widths, normalise_l2, plane_light,
+                                      saturation_mask, subtract_background)
 from diffcam.io.reading import (IMAGE_SUFFIXES, Capture, as_rgb, check_read_size,
                                 file_kind, image_files, natural_key, npz_keys, read_image,
                                 read_mat_stack, read_npz, read_psf_stack, read_rgb)
@@ -40,7 +40,7 @@ from diffcam.io.writing import (Terminated, atomic_output, check_output_path,
 
 __all__ = [
     "Capture", "read_image", "read_rgb", "as_rgb", "read_psf_stack", "image_files",
-    "natural_key", "IMAGE_SUFFIXES", "border_dark_level", "read_mat_stack", "dark_level",
+    "natural_key", "IMAGE_SUFFIXES", "border_dark_level", "plane_light", "read_mat_stack", "dark_level",
     "subtract_background", "saturation_mask", "downsample", "normalise_l2",
     "envelope_widths", "apply_envelope", "BackgroundWarning", "read_npz", "npz_keys",
     "file_kind", "check_read_size",

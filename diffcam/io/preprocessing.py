@@ -40,6 +40,16 @@ def border_dark_level(images, ring: int = 6) -> np.ndarray:
     return np.median(a[..., band], axis=-1)
 
 
+def plane_light(images, ring: int = 6) -> np.ndarray:
+    """The light of each frame: its sum after the :func:`border_dark_level` (input
+    units, shape ``images.shape[:-2]``; ``ring`` 0: no dark level), the quantity the
+    inverse-square law relates across a PSF stack's planes
+    (:func:`diffcam.evaluate.registration.magnification_from_light`)."""
+    a = np.asarray(images, np.float64)
+    dark = border_dark_level(a, ring)[..., None, None] if ring else 0.0
+    return (a - dark).sum(axis=(-2, -1))
+
+
 def dark_level(image: np.ndarray, region: tuple[slice, slice]) -> np.ndarray:
     """Mean of ``image[..., region]`` over space: a background level per channel.
 

@@ -62,20 +62,22 @@ _OUTER = np.array([4 / 3, -2, 1, -1 / 6])
 
 def bspline(x, order: int = 0):
     """The cubic B-spline β₃ (its ``order``-th derivative) at ``x``; zero for |x| ≥ 2.
+    A NumPy array in gives a NumPy array out (host-side resampling), anything else JAX.
 
     The piece is chosen by |x|, and β₃ is continuous with two derivatives: two roundings
     of one ``x`` give two nearby values (see :func:`_taps`)."""
-    a = jnp.abs(x)
+    xp = np if isinstance(x, np.ndarray) else jnp
+    a = xp.abs(x)
 
     def piece(c):
         for _ in range(order):
             c = c[1:] * np.arange(1, c.size)
-        out = jnp.zeros_like(a)
+        out = xp.zeros_like(a)
         for coef in reversed(c):       # Horner
             out = out * a + coef
         return out
-    value = jnp.where(a < 1, piece(_INNER), jnp.where(a < 2, piece(_OUTER), 0))
-    return value * jnp.sign(x) if order % 2 else value
+    value = xp.where(a < 1, piece(_INNER), xp.where(a < 2, piece(_OUTER), 0))
+    return value * xp.sign(x) if order % 2 else value
 
 
 def _taps(t, n, order, dtype):
