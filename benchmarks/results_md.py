@@ -60,6 +60,12 @@ SECTIONS = {
                     "python -m benchmarks.bench_stack_light",
                     ["pair", "transform", "M_first", "M_last", "z1_first_z2", "z1_last_z2",
                      "law_mean_err", "law_max_err", "linear_mean_err", "linear_max_err"]),
+    "stack_limits": ("Measured PSF stack: the rendering alone next to a given plane, "
+                     "and the most a sensor-side correction recovers",
+                     "python -m benchmarks.bench_stack_limits",
+                     ["case", "plane", "given", "rendered", "baseline", "envelope", "blur",
+                      "blur_scale", "response", "gamma", "r0_30", "r30_60", "r60_90",
+                      "r90_120"]),
     "startup": ("Start-up: a fresh `diffcam` process, with the compilation cache off, "
                 "empty and warm",
                 "python -m benchmarks.bench_startup --rounds 5", None),
@@ -83,8 +89,9 @@ SECTIONS = {
                  "tilted target's depth ridge, beside a reference and the peers",
                  "python -m benchmarks.bench_3d --peer-iterations 5",
                  ["run", "s_per_it", "fft_s_per_it", "s_per_it_vs_scico", "slope", "rms",
-                  "axial_width", "outside", "wall_s", "peak_mb", "printed_residual",
-                  "recomputed_residual", "slope_diff", "within_1_plane"]),
+                  "lit_rms", "axial_width", "outside", "wall_s", "peak_mb",
+                  "printed_residual", "recomputed_residual", "slope_diff", "within_1_plane",
+                  "within_2_planes"]),
     "bench_3d_convergence": ("3-D from one capture: the solve's convergence by iteration "
                              "count, over-relaxation and the penalties' start",
                              "python -m benchmarks.bench_3d_convergence",

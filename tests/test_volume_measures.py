@@ -46,6 +46,7 @@ def test_stray_light_share_and_a_haze_column():
     v[-1, BOX.top:BOX.bottom, BOX.left + 3] = 2.0          # far-plane haze in one column
     hazy = ridge_measures(v, BOX)
     assert hazy.peaks[3] == v.shape[0] - 1 and hazy.rms > clean + 1
+    assert hazy.brightness[3] == 1.0 and np.allclose(np.delete(hazy.brightness, 3), 0.5)
 
 
 def test_target_box_finds_the_target():

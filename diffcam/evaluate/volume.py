@@ -48,6 +48,9 @@ class Ridge(NamedTuple):
             above half the column's peak in the x–z projection.
         outside: share of the max projection's light outside the target box.
         peaks: the peak plane of each column of the box (``left`` … ``right - 1``).
+        brightness: each column's x–z peak over the brightest column's (0–1); a dark
+            column (the box's margin, a gap between bars) peaks wherever its faint
+            light happens to be brightest.
     """
 
     slope: float
@@ -55,6 +58,7 @@ class Ridge(NamedTuple):
     axial_width: float
     outside: float
     peaks: np.ndarray
+    brightness: np.ndarray
 
     def summary(self) -> dict:
         """The scalar measures as a dict (for JSON)."""
@@ -127,7 +131,8 @@ def ridge_measures(volume, box: Box | None = None) -> Ridge:
     rms = float(np.sqrt(np.mean((peaks - (offset + slope * cols)) ** 2)))
     width = float(np.median(np.sum(xz >= 0.5 * xz.max(axis=0), axis=0)))
     outside = float(mip[~box.mask(mip.shape)].sum() / mip.sum())
-    return Ridge(float(slope), rms, width, outside, peaks)
+    brightness = xz.max(axis=0) / xz.max()
+    return Ridge(float(slope), rms, width, outside, peaks, brightness)
 
 
 def depth_map(volume, fraction: float = 0.2) -> np.ma.MaskedArray:
