@@ -90,8 +90,8 @@ SECTIONS = {
                  "python -m benchmarks.bench_3d --peer-iterations 5",
                  ["run", "s_per_it", "fft_s_per_it", "s_per_it_vs_scico", "slope", "rms",
                   "lit_rms", "axial_width", "outside", "wall_s", "peak_mb",
-                  "printed_residual", "recomputed_residual", "slope_diff", "within_1_plane",
-                  "within_2_planes"]),
+                  "printed_residual", "recomputed_residual", "stack_pearson", "slope_diff",
+                  "within_1_plane", "within_2_planes"]),
     "bench_3d_convergence": ("3-D from one capture: the solve's convergence by iteration "
                              "count, over-relaxation and the penalties' start",
                              "python -m benchmarks.bench_3d_convergence",
