@@ -116,22 +116,33 @@ def _cmd_psf(args) -> int:
 def _several_processes(args) -> bool:
     """Whether ``diffcam psf`` starts ``--processes`` copies of itself
     (:func:`~diffcam.apps.processes.run_processes`). A copy it started, or one task of
-    a cluster's launcher, joins the run (``jax.distributed.initialize()``) instead."""
+    a cluster's launcher, has joined the run instead (:func:`_join_run`)."""
 
     cpus = os.cpu_count() or 1
     if not 1 <= args.processes <= cpus:
         raise DiffcamError(f"--processes must be at least 1 and at most the {cpus} CPUs "
                            f"of this machine, got {args.processes}.")
-    settings = distributed_settings()
-    if settings is None:
-        if args.processes > 1:
-            check_output_path(args.out)  # before any process starts
-        return args.processes > 1
+    if distributed_settings() is not None:
+        return False
+    if args.processes > 1:
+        check_output_path(args.out)  # before any process starts
+    return args.processes > 1
+
+
+def _join_run(args) -> None:
+    """``diffcam psf`` of a phase file in a process that the environment makes one of
+    several (a copy ``--processes`` started, or one task of a cluster's launcher):
+    ``jax.distributed.initialize()``, before anything touches JAX's backend (``-v``
+    lists its devices, ``DIFFCAM_FFT=fftw`` asks for its platform)."""
+
+    if args.command != "psf" or distributed_settings() is None:
+        return
+    if model_kind(args.phase) == "stack-fit":
+        return  # one process computes its planes: _cmd_psf refuses --processes
     if args.processes > 1 and ERRORS not in os.environ:
         raise DiffcamError("this process is already one of several (JAX_PROCESS_ID or a "
                            "SLURM step of several tasks); leave out --processes.")
     initialize_from_environment()
-    return False
 
 
 def _psf_from_stack_fit(args) -> int:
@@ -557,9 +568,11 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        with interrupts_as_keyboard_interrupt(), _verbosity(args), one_line_warnings(args.command):
-            check_environment()
-            return args.func(args)
+        with interrupts_as_keyboard_interrupt():
+            _join_run(args)
+            with _verbosity(args), one_line_warnings(args.command):
+                check_environment()
+                return args.func(args)
     except DiffcamError as e:
         report_error(args.command, str(e))
         return 2
