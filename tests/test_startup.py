@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -145,3 +146,32 @@ def test_the_users_cache_settings_come_first(phase_file, tmp_path):
     warning = [line for line in r.stderr.splitlines() if "compilation cache" in line]
     assert len(warning) == 1 and "DIFFCAM_NO_CACHE=1" in warning[0]
     assert (tmp_path / "c.tif").read_bytes() == (tmp_path / "a.tif").read_bytes()
+
+
+def test_a_cache_over_its_cap_loses_its_least_recently_used_programs(phase_file, tmp_path):
+    """A 1 MB cap (DIFFCAM_CACHE_MAX_MB=1) on a folder holding 1.2 MB: the run's new
+    programs evict the least recently used one first, a program written without a cap
+    (no -atime file: dated by its modification time) included, and the folder ends
+    under the cap; a cap that is not a whole number is one line and exit status 2."""
+    home = tmp_path / "xdg"
+    folder = home / "diffcam" / "jax"
+    folder.mkdir(parents=True)
+    now = time.time_ns()
+    for age, name in ((300, "undated"), (200, "older"), (100, "newer")):
+        program = folder / f"{name}-cache"
+        program.write_bytes(bytes(400_000))
+        stamp = now - age * 10**9
+        if name == "undated":
+            os.utime(program, ns=(stamp, stamp))
+        else:
+            (folder / f"{name}-atime").write_bytes(stamp.to_bytes(8, "little"))
+    r = _psf(phase_file, tmp_path / "a.tif", XDG_CACHE_HOME=str(home),
+             DIFFCAM_CACHE_MAX_MB="1")
+    assert r.returncode == 0 and "warning" not in r.stderr, r.stderr
+    programs = {p.name: p.stat().st_size for p in folder.glob("*-cache")}
+    assert "undated-cache" not in programs and {"older-cache", "newer-cache"} < set(programs)
+    assert len(programs) > 2 and sum(programs.values()) <= 10**6
+    bad = _psf(phase_file, tmp_path / "b.tif", XDG_CACHE_HOME=str(home),
+               DIFFCAM_CACHE_MAX_MB="1.5")
+    assert bad.returncode == 2 and not (tmp_path / "b.tif").exists()
+    assert bad.stderr.count("\n") == 1 and "DIFFCAM_CACHE_MAX_MB" in bad.stderr, bad.stderr

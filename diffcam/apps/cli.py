@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcam.apps.compile_cache import enable_compilation_cache
+from diffcam.apps.compile_cache import DEFAULT_MAX_MB, enable_compilation_cache
 from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
                                  length_arg, lengths_arg, one_line_warnings, planes_arg,
                                  read_psfs, save_figure, save_image, save_open_figures,
@@ -480,8 +480,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.",
         epilog="Compiled programs are kept in $DIFFCAM_CACHE/jax (default ~/.cache/diffcam/"
-               "jax), so a repeated command starts faster; JAX_COMPILATION_CACHE_DIR "
-               "chooses another folder, DIFFCAM_NO_CACHE=1 turns the cache off.")
+               "jax, at most DIFFCAM_CACHE_MAX_MB megabytes, default "
+               f"{DEFAULT_MAX_MB}), so a repeated command starts faster; "
+               "JAX_COMPILATION_CACHE_DIR chooses another folder, DIFFCAM_NO_CACHE=1 turns "
+               "the cache off.")
     parser.add_argument("--version", action="version",
                         version=f"diffcam {installed_version()}")
     talk = parser.add_mutually_exclusive_group()
@@ -563,13 +565,19 @@ def _verbosity(args):
         print(f"diffcam {args.command}: {time.perf_counter() - start:.1f} s", file=sys.stderr)
 
 
-def main(argv=None) -> int:
+def main(argv=None, *, compilation_cache: bool = False) -> int:
+    """The ``diffcam`` command line ``argv`` (default: ``sys.argv``); returns the exit
+    status. ``compilation_cache``: keep compiled programs on disk
+    (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), once the command line
+    is read (``--help`` loads no JAX)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
         with interrupts_as_keyboard_interrupt():
             _join_run(args)
+            if compilation_cache:
+                enable_compilation_cache()
             with _verbosity(args), one_line_warnings(args.command):
                 check_environment()
                 return args.func(args)
@@ -591,9 +599,8 @@ def run() -> None:
     (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), then the process
     ends with its status (:func:`~diffcam.apps.processes.end_process`), also after
     ``--help``, ``--version`` and usage errors (argparse's ``SystemExit``)."""
-    enable_compilation_cache()
     try:
-        status = main()
+        status = main(compilation_cache=True)
     except SystemExit as done:
         if not isinstance(done.code, (int, type(None))):
             raise
