@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.harness import markdown_table, run_probed, write_json
-from diffcam.apps.reconstruct_cli import ITERATIONS_3D
+from diffcam.apps.reconstruct_args import ITERATIONS_3D
 
 README_COMMAND = ["reconstruct", "captures/usaf_raw.png", "--psf", "captures/psfs", "--3d",
                   "-o", "usaf.tif"]

@@ -16,6 +16,9 @@ import pytest
 
 import diffcam
 import diffcam.calibrate
+import diffcam.evaluate
+import diffcam.model
+import diffcam.optics
 from diffcam.core.lazy import attach_stub, stub_names
 
 HEAVY = ("scipy", "optax", "optimistix", "lineax", "matplotlib", "skimage")
@@ -45,7 +48,36 @@ def test_the_command_line_and_predict_path_load_no_scipy_or_optimisers():
         _loaded_after("import diffcam.apps.cli; diffcam.calibrate.fit_stack"))
 
 
-@pytest.mark.parametrize("package", [diffcam, diffcam.calibrate])
+def test_help_loads_no_jax():
+    """The parser of ``diffcam`` and the help of every subcommand (what ``--help``
+    runs) import no JAX: the commands import their numerical modules when they run,
+    and the limits the helps name are read from source."""
+    helps = ("from diffcam.apps.cli import build_parser; p = build_parser(); "
+             "[p.format_help()] + [c.format_help() for c in p._actions[-1].choices.values()]")
+    assert _loaded_after(helps) == []
+
+
+def test_module_constant_reads_the_source_until_the_module_is_imported(monkeypatch):
+    """``module_constant`` evaluates ``2 ** 28`` from diffcam.core.grid's source without
+    importing it, and reads the attribute (an assigned value too) once it is imported."""
+    from diffcam.core import grid
+    from diffcam.core.lazy import module_constant
+
+    code = ("import sys; from diffcam.core.lazy import module_constant as m; "
+            "print(m('diffcam.core.grid.MAX_GRID_SAMPLES'), "
+            "m('diffcam.reconstruct.checks.MAX_ITERATIONS'), "
+            "sorted(n for n in sys.modules if n.startswith(('jax', 'diffcam.core.grid'))))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300, check=True)
+    assert r.stdout.split() == [str(2**28), "100000", "[]"]
+    monkeypatch.setattr(grid, "MAX_GRID_SAMPLES", 400)
+    assert module_constant("diffcam.core.grid.MAX_GRID_SAMPLES") == 400
+    with pytest.raises(AttributeError, match="NOT_THERE"):
+        module_constant("diffcam.core.grid.NOT_THERE")
+
+
+@pytest.mark.parametrize("package", [diffcam, diffcam.calibrate, diffcam.model, diffcam.optics,
+                                     diffcam.evaluate])
 def test_every_public_name_resolves_to_its_modules_object(package):
     """Each name of the stub is the object its module defines, is listed by dir(), and
     stays in the package after first use; unknown names are AttributeErrors."""

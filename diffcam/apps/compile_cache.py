@@ -30,8 +30,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from diffcam import core  # lazy: diffcam.core.fftw loads JAX on use
 from diffcam.core.errors import DiffcamError
-from diffcam.core.fftw import cache_folder
 
 __all__ = ["NO_CACHE", "MAX_MB", "DEFAULT_MAX_MB", "MIN_COMPILE_SECONDS",
            "enable_compilation_cache", "cache_cap"]
@@ -66,7 +66,7 @@ def enable_compilation_cache() -> str | None:
     settings = {"jax_persistent_cache_min_compile_time_secs": MIN_COMPILE_SECONDS}
     if not folder:
         cap = cache_cap()
-        folder = str(cache_folder() / "jax")
+        folder = str(core.fftw.cache_folder() / "jax")  # loads JAX: the command needs it
         try:
             Path(folder).mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryFile(dir=folder):
