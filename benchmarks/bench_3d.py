@@ -58,7 +58,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.harness import markdown_table, run_probed, write_json
-from diffcam.apps.reconstruct_cli import ITERATIONS_3D
+from diffcam.apps.reconstruct_args import ITERATIONS_3D
 
 LIT = 0.2
 """A column is lit when its x–z peak is at least this share of the brightest column's:

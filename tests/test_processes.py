@@ -106,6 +106,31 @@ def test_two_processes_write_the_single_process_file(phase_file, tmp_path):
                                                            "p2.tif"]
 
 
+@pytest.mark.slow  # two runs of diffcam psf as two processes: 20 s
+def test_verbose_two_processes_write_what_quiet_ones_write(phase_file, tmp_path):
+    """``diffcam -v psf … --processes 2``: the processes join their run before ``-v``
+    lists JAX's devices (``jax.distributed.initialize()`` refuses to run after that), and
+    the file and the summary are those of the run without ``-v``; the device line and
+    the wall time go to stderr."""
+    runs = {}
+    for flags in ((), ("-v",)):
+        folder = tmp_path / f"run{len(flags)}"
+        folder.mkdir()
+        out = folder / "stack.tif"  # the same name: the summaries can be compared
+        proc = subprocess.Popen([sys.executable, "-m", "diffcam", *flags, "psf",
+                                 str(phase_file), "--z1", "20mm:26mm:1mm", "--z2", "1mm",
+                                 "--crop", "80", "--processes", "2", "-o", "stack.tif"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                cwd=folder)
+        stdout, stderr = proc.communicate(timeout=300)
+        assert proc.returncode == 0, stderr
+        runs[flags] = out.read_bytes(), stdout, stderr
+    (quiet, said, _), (loud, said_loud, told) = runs[()], runs[("-v",)]
+    assert loud == quiet and said_loud == said and said.count("diffcam psf: 7 PSFs") == 1
+    assert "error" not in told and "diffcam psf: JAX " in told, told
+    assert told.rstrip().endswith(" s"), told
+
+
 def _children(pid):
     """{JAX_PROCESS_ID: pid} of the processes ``pid`` started (Linux /proc)."""
     found = {}

@@ -9,12 +9,16 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
 import diffcam
 import diffcam.calibrate
+import diffcam.evaluate
+import diffcam.model
+import diffcam.optics
 from diffcam.core.lazy import attach_stub, stub_names
 
 HEAVY = ("scipy", "optax", "optimistix", "lineax", "matplotlib", "skimage")
@@ -44,7 +48,36 @@ def test_the_command_line_and_predict_path_load_no_scipy_or_optimisers():
         _loaded_after("import diffcam.apps.cli; diffcam.calibrate.fit_stack"))
 
 
-@pytest.mark.parametrize("package", [diffcam, diffcam.calibrate])
+def test_help_loads_no_jax():
+    """The parser of ``diffcam`` and the help of every subcommand (what ``--help``
+    runs) import no JAX: the commands import their numerical modules when they run,
+    and the limits the helps name are read from source."""
+    helps = ("from diffcam.apps.cli import build_parser; p = build_parser(); "
+             "[p.format_help()] + [c.format_help() for c in p._actions[-1].choices.values()]")
+    assert _loaded_after(helps) == []
+
+
+def test_module_constant_reads_the_source_until_the_module_is_imported(monkeypatch):
+    """``module_constant`` evaluates ``2 ** 28`` from diffcam.core.grid's source without
+    importing it, and reads the attribute (an assigned value too) once it is imported."""
+    from diffcam.core import grid
+    from diffcam.core.lazy import module_constant
+
+    code = ("import sys; from diffcam.core.lazy import module_constant as m; "
+            "print(m('diffcam.core.grid.MAX_GRID_SAMPLES'), "
+            "m('diffcam.reconstruct.checks.MAX_ITERATIONS'), "
+            "sorted(n for n in sys.modules if n.startswith(('jax', 'diffcam.core.grid'))))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300, check=True)
+    assert r.stdout.split() == [str(2**28), "100000", "[]"]
+    monkeypatch.setattr(grid, "MAX_GRID_SAMPLES", 400)
+    assert module_constant("diffcam.core.grid.MAX_GRID_SAMPLES") == 400
+    with pytest.raises(AttributeError, match="NOT_THERE"):
+        module_constant("diffcam.core.grid.NOT_THERE")
+
+
+@pytest.mark.parametrize("package", [diffcam, diffcam.calibrate, diffcam.model, diffcam.optics,
+                                     diffcam.evaluate])
 def test_every_public_name_resolves_to_its_modules_object(package):
     """Each name of the stub is the object its module defines, is listed by dir(), and
     stays in the package after first use; unknown names are AttributeErrors."""
@@ -145,3 +178,32 @@ def test_the_users_cache_settings_come_first(phase_file, tmp_path):
     warning = [line for line in r.stderr.splitlines() if "compilation cache" in line]
     assert len(warning) == 1 and "DIFFCAM_NO_CACHE=1" in warning[0]
     assert (tmp_path / "c.tif").read_bytes() == (tmp_path / "a.tif").read_bytes()
+
+
+def test_a_cache_over_its_cap_loses_its_least_recently_used_programs(phase_file, tmp_path):
+    """A 1 MB cap (DIFFCAM_CACHE_MAX_MB=1) on a folder holding 1.2 MB: the run's new
+    programs evict the least recently used one first, a program written without a cap
+    (no -atime file: dated by its modification time) included, and the folder ends
+    under the cap; a cap that is not a whole number is one line and exit status 2."""
+    home = tmp_path / "xdg"
+    folder = home / "diffcam" / "jax"
+    folder.mkdir(parents=True)
+    now = time.time_ns()
+    for age, name in ((300, "undated"), (200, "older"), (100, "newer")):
+        program = folder / f"{name}-cache"
+        program.write_bytes(bytes(400_000))
+        stamp = now - age * 10**9
+        if name == "undated":
+            os.utime(program, ns=(stamp, stamp))
+        else:
+            (folder / f"{name}-atime").write_bytes(stamp.to_bytes(8, "little"))
+    r = _psf(phase_file, tmp_path / "a.tif", XDG_CACHE_HOME=str(home),
+             DIFFCAM_CACHE_MAX_MB="1")
+    assert r.returncode == 0 and "warning" not in r.stderr, r.stderr
+    programs = {p.name: p.stat().st_size for p in folder.glob("*-cache")}
+    assert "undated-cache" not in programs and {"older-cache", "newer-cache"} < set(programs)
+    assert len(programs) > 2 and sum(programs.values()) <= 10**6
+    bad = _psf(phase_file, tmp_path / "b.tif", XDG_CACHE_HOME=str(home),
+               DIFFCAM_CACHE_MAX_MB="1.5")
+    assert bad.returncode == 2 and not (tmp_path / "b.tif").exists()
+    assert bad.stderr.count("\n") == 1 and "DIFFCAM_CACHE_MAX_MB" in bad.stderr, bad.stderr

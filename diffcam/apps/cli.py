@@ -12,42 +12,25 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcam.apps.compile_cache import enable_compilation_cache
+from diffcam.apps.compile_cache import DEFAULT_MAX_MB, enable_compilation_cache
 from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
-                                 length_arg, lengths_arg, one_line_warnings, planes_arg,
-                                 read_psfs, save_figure, save_image, save_open_figures,
-                                 save_rgb)
+                                 length_arg, lengths_arg, limits, one_line_warnings,
+                                 planes_arg, read_psfs, save_figure, save_image,
+                                 save_open_figures, save_rgb)
 from diffcam.apps.scene_psf_cli import add_calibrate_psf
 from diffcam.core.errors import DiffcamError
-from diffcam.apps.demo import run_demo
 from diffcam.apps.fit_cli import add_fit, cmd_compare_stack, cmd_predict
-from diffcam.apps.paper import Settings
 from diffcam.apps.processes import (distributed_settings, end_process, ERRORS,
                                     in_distributed_run, initialize_from_environment,
                                     report_error, run_processes)
-from diffcam.apps.reconstruct_cli import add_reconstruct
-from diffcam import calibrate   # retrieve_phase, resolve_twin: optimistix loads with them
-from diffcam.calibrate import (CalibrationGeometry, prepare_captures, psf_plane,
-                               retrieve_projections)
-from diffcam.calibrate.model_file import model_kind, not_a_model
-from diffcam.calibrate.phase_io import load_phase, PhaseFile, save_phase
-from diffcam.calibrate.stack_result import MAX_PLANES
+from diffcam.apps.reconstruct_args import add_reconstruct
+from diffcam import apps, calibrate, core, evaluate, model, optics  # lazy: loaded on use
 from diffcam.core import memory
-from diffcam.core.backend import fft_backend, fft_size, fft_status
 from diffcam.core.version import installed_version
-from diffcam.core.grid import crop_to, MAX_GRID_SAMPLES
 from diffcam.data import CAPTURES, export_captures
-from diffcam.evaluate.baseline import magnify_psf
-from diffcam.evaluate.metrics import psf_fidelity
-from diffcam.io import (check_output_path, interrupts_as_keyboard_interrupt,
-                        MAX_READ_BYTES, read_image)
-from diffcam.model.camera import Camera
-from diffcam.model.sensor import bin_pixels
-from diffcam.model.stack import psf_stack
-from diffcam.optics.elements import circular_aperture
-from diffcam.optics.sampling import plan_sampling
-from diffcam.reconstruct.checks import MAX_ITERATIONS
+from diffcam.io import check_output_path, interrupts_as_keyboard_interrupt, read_image
 
+# --help loads no JAX: the numerical modules load when a command first uses them
 __all__ = ["main", "run", "build_parser", "save_image", "save_rgb", "save_figure",
            "save_open_figures"]
 
@@ -71,14 +54,14 @@ def _camera_for(phase_file, z2, crop):
     shape = tuple(np.shape(phase_file.phase))
     if crop is not None and (crop > shape[0] or crop > shape[1]):
         raise DiffcamError(f"--crop {crop} is larger than the phase grid {shape}.")
-    return Camera(wavelength=phase_file.wavelength, z2=z2, dx=phase_file.dx,
-                  aperture_radius=phase_file.aperture_radius, shape=shape,
-                  crop=None if crop is None else (crop, crop))
+    return model.Camera(wavelength=phase_file.wavelength, z2=z2, dx=phase_file.dx,
+                        aperture_radius=phase_file.aperture_radius, shape=shape,
+                        crop=None if crop is None else (crop, crop))
 
 
 def _cmd_psf(args) -> int:
 
-    kind = model_kind(args.phase)
+    kind = calibrate.model_kind(args.phase)
     if kind == "stack-fit":
         if args.processes != 1:
             raise DiffcamError("--processes is for a phase file; a stack-fit model's "
@@ -99,15 +82,15 @@ def _cmd_psf(args) -> int:
         raise DiffcamError(f"{args.out}: write the stack as .npz or .tif, not {suffix!r}.")
     several = _several_processes(args)
     if kind is None:
-        raise not_a_model(args.phase)
+        raise calibrate.model_file.not_a_model(args.phase)
     if several:
         return run_processes("psf", args.argv, args.processes, outputs=[args.out])
-    phase_file = load_phase(args.phase)
+    phase_file = calibrate.load_phase(args.phase)
     camera = _camera_for(phase_file, args.z2, args.crop)
     depths = args.z1
     # streamed to the file chunk by chunk: memory does not grow with the number of depths
-    stack = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 1,
-                      out=args.out)
+    stack = model.psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 1,
+                            out=args.out)
     print(f"diffcam psf: {len(depths)} PSFs of {stack.shape[-2]}×{stack.shape[-1]} "
           f"(z1 {depths[0] * 1e3:g}–{depths[-1] * 1e3:g} mm, z2 {args.z2 * 1e3:g} mm) → {args.out}")
     return 0
@@ -116,22 +99,33 @@ def _cmd_psf(args) -> int:
 def _several_processes(args) -> bool:
     """Whether ``diffcam psf`` starts ``--processes`` copies of itself
     (:func:`~diffcam.apps.processes.run_processes`). A copy it started, or one task of
-    a cluster's launcher, joins the run (``jax.distributed.initialize()``) instead."""
+    a cluster's launcher, has joined the run instead (:func:`_join_run`)."""
 
     cpus = os.cpu_count() or 1
     if not 1 <= args.processes <= cpus:
         raise DiffcamError(f"--processes must be at least 1 and at most the {cpus} CPUs "
                            f"of this machine, got {args.processes}.")
-    settings = distributed_settings()
-    if settings is None:
-        if args.processes > 1:
-            check_output_path(args.out)  # before any process starts
-        return args.processes > 1
+    if distributed_settings() is not None:
+        return False
+    if args.processes > 1:
+        check_output_path(args.out)  # before any process starts
+    return args.processes > 1
+
+
+def _join_run(args) -> None:
+    """``diffcam psf`` of a phase file in a process that the environment makes one of
+    several (a copy ``--processes`` started, or one task of a cluster's launcher):
+    ``jax.distributed.initialize()``, before anything touches JAX's backend (``-v``
+    lists its devices, ``DIFFCAM_FFT=fftw`` asks for its platform)."""
+
+    if args.command != "psf" or distributed_settings() is None:
+        return
+    if calibrate.model_kind(args.phase) == "stack-fit":
+        return  # one process computes its planes: _cmd_psf refuses --processes
     if args.processes > 1 and ERRORS not in os.environ:
         raise DiffcamError("this process is already one of several (JAX_PROCESS_ID or a "
                            "SLURM step of several tasks); leave out --processes.")
     initialize_from_environment()
-    return False
 
 
 def _psf_from_stack_fit(args) -> int:
@@ -151,7 +145,7 @@ def _psf_from_stack_fit(args) -> int:
 def _grid_for(aperture_radius, dx):
     """Calibration grid: twice the aperture diameter (a Nyquist-sampled far field)."""
 
-    return fft_size(int(np.ceil(4 * aperture_radius / dx)))
+    return core.backend.fft_size(int(np.ceil(4 * aperture_radius / dx)))
 
 
 def _cmd_calibrate(args) -> int:
@@ -161,17 +155,19 @@ def _cmd_calibrate(args) -> int:
     check_output_path(args.out, suffixes=(".npz",))
     dx = args.dx or args.pixel
     n = args.grid or _grid_for(args.aperture_radius, dx)
-    geometry = CalibrationGeometry(dx=dx, wavelength=args.wavelength,
-                                   focal_length=args.focal_length,
-                                   near_distance=args.near_distance)
+    geometry = calibrate.CalibrationGeometry(dx=dx, wavelength=args.wavelength,
+                                             focal_length=args.focal_length,
+                                             near_distance=args.near_distance)
     near, far = read_image(args.near).image, read_image(args.far).image
-    prepared = prepare_captures(near, far, geometry, (n, n), sensor_pitch=args.pixel,
-                                background=(args.background, args.background),
-                                saturation=args.saturation)
-    aperture = circular_aperture((n, n), dx, args.aperture_radius)
+    prepared = calibrate.prepare_captures(near, far, geometry, (n, n),
+                                          sensor_pitch=args.pixel,
+                                          background=(args.background, args.background),
+                                          saturation=args.saturation)
+    aperture = optics.circular_aperture((n, n), dx, args.aperture_radius)
     key = jax.random.key(args.seed)
     reference = None if args.psf is None else _reference_psf(dx, (n, n), args)
-    planes = () if reference is None else [psf_plane(reference[0], reference[1], args.psf_z1)]
+    planes = () if reference is None else [
+        calibrate.psf_plane(reference[0], reference[1], args.psf_z1)]
     print(f"diffcam calibrate: {n}×{n} grid at {dx * 1e6:g} µm, solver {args.solver}, "
           f"{args.iterations} iterations{', PSF as a third plane' if planes else ''} ...",
           flush=True)
@@ -181,10 +177,10 @@ def _cmd_calibrate(args) -> int:
             planes=planes, key=key, restarts=args.restarts,
             masks=(prepared.near_mask, prepared.far_mask))
     else:
-        result = retrieve_projections(prepared.near, prepared.far, geometry,
-                                      method=args.solver, iterations=args.iterations,
-                                      planes=planes, key=key,
-                                      restarts=args.restarts or (1 if planes else 4))
+        result = calibrate.retrieve_projections(
+            prepared.near, prepared.far, geometry, method=args.solver,
+            iterations=args.iterations, planes=planes, key=key,
+            restarts=args.restarts or (1 if planes else 4))
     phase = np.asarray(result.phase)
     info = {"solver": result.stats.get("method", args.solver), "iterations": args.iterations,
             "focal_length": args.focal_length, "near_distance": args.near_distance,
@@ -194,7 +190,8 @@ def _cmd_calibrate(args) -> int:
         psf_ref, camera = reference
         phase, info["twin_chosen"] = calibrate.resolve_twin(phase, psf_ref, camera, args.psf_z1)
         info.update(twin_resolved=True, psf=str(args.psf))
-    save_phase(args.out, PhaseFile(phase, dx, args.wavelength, args.aperture_radius, info))
+    calibrate.save_phase(args.out, calibrate.PhaseFile(phase, dx, args.wavelength,
+                                                       args.aperture_radius, info))
     twin = "twin resolved by the PSF" if info["twin_resolved"] else \
         "phase known up to piston and the conjugate twin: pass --psf to resolve it"
     print(f"diffcam calibrate: final error {info['final_error']:.3g} → {args.out} ({twin})")
@@ -212,9 +209,9 @@ def _reference_psf(dx, shape, args):
     if captured.ndim != 2:
         raise DiffcamError(f"{args.psf}: expected one PSF image, got shape {captured.shape}.")
     crop = tuple(min(a, b) for a, b in zip(captured.shape, shape))
-    camera = Camera(wavelength=args.wavelength, z2=args.psf_z2, dx=dx,
-                    aperture_radius=args.aperture_radius, shape=shape, crop=crop)
-    return crop_to(captured, crop), camera
+    camera = model.Camera(wavelength=args.wavelength, z2=args.psf_z2, dx=dx,
+                          aperture_radius=args.aperture_radius, shape=shape, crop=crop)
+    return core.grid.crop_to(captured, crop), camera
 
 
 def _cmd_compare(args) -> int:
@@ -224,9 +221,9 @@ def _cmd_compare(args) -> int:
                            "calibrate`, with --z2, or a stack fit from `diffcam fit`); "
                            "--phase is the same option.")
     path = args.model or args.phase
-    kind = model_kind(path)
+    kind = calibrate.model_kind(path)
     if kind is None:
-        raise not_a_model(path)
+        raise calibrate.model_file.not_a_model(path)
     if kind == "stack-fit":
         return _compare_stack_fit(args, path)
     if args.z2 is None:
@@ -243,16 +240,17 @@ def _cmd_compare(args) -> int:
         depths = args.z1
     if depths is None or len(depths) != len(captured):
         raise DiffcamError(f"give --z1 with one depth per captured PSF ({len(captured)}).")
-    phase_file = load_phase(path)
+    phase_file = calibrate.load_phase(path)
     pitch = args.pixel or phase_file.dx
     camera = _camera_for(phase_file, args.z2, None)
-    model = psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 8)
-    model = np.asarray(bin_pixels(model, phase_file.dx, pitch, captured.shape[-2:]))
+    stack = model.psf_stack(phase_file.phase, camera, depths, progress=len(depths) > 8)
+    stack = np.asarray(model.sensor.bin_pixels(stack, phase_file.dx, pitch,
+                                               captured.shape[-2:]))
     anchor = int(np.argmin(np.abs(np.asarray(depths) - (args.anchor or depths[0]))))
-    scaled = np.asarray(magnify_psf(captured[anchor], pitch, depths[anchor], depths, args.z2,
-                                  kind="area"))
-    f_model = np.asarray(psf_fidelity(model, captured)["pearson"])
-    f_scaled = np.asarray(psf_fidelity(scaled, captured)["pearson"])
+    scaled = np.asarray(evaluate.magnify_psf(captured[anchor], pitch, depths[anchor], depths,
+                                             args.z2, kind="area"))
+    f_model = np.asarray(evaluate.psf_fidelity(stack, captured)["pearson"])
+    f_scaled = np.asarray(evaluate.psf_fidelity(scaled, captured)["pearson"])
     rows = ["| z1 (mm) | model Pearson | scaling Pearson |", "|---|---|---|"]
     rows += [f"| {z * 1e3:.3f} | {a:.4f} | {b:.4f} |" for z, a, b in
              zip(depths, f_model, f_scaled)]
@@ -276,18 +274,19 @@ def _cmd_compare(args) -> int:
 
 def _cmd_demo(args) -> int:
 
-    base = Settings(grid=4000) if args.full else Settings()
+    settings = apps.paper.Settings
+    base = settings(grid=4000) if args.full else settings()
     changes = {k: v for k, v in (("grid", args.grid), ("gs_iterations", args.gs_iterations),
                                  ("calibration_iterations", args.calibration_iterations))
                if v is not None}
-    run_demo(args.out, settings=Settings(**{**base.__dict__, **changes}))
+    apps.demo.run_demo(args.out, settings=settings(**{**base.__dict__, **changes}))
     return 0
 
 
 def _cmd_plan(args) -> int:
 
-    print(plan_sampling(args.wavelength, args.pixel, args.n, args.z1, args.z2,
-                        args.aperture_radius, max_offset=args.max_offset))
+    print(optics.plan_sampling(args.wavelength, args.pixel, args.n, args.z1, args.z2,
+                               args.aperture_radius, max_offset=args.max_offset))
     return 0
 
 
@@ -469,8 +468,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="diffcam",
         description="Differentiable wave optics for lensless diffuser cameras.",
         epilog="Compiled programs are kept in $DIFFCAM_CACHE/jax (default ~/.cache/diffcam/"
-               "jax), so a repeated command starts faster; JAX_COMPILATION_CACHE_DIR "
-               "chooses another folder, DIFFCAM_NO_CACHE=1 turns the cache off.")
+               "jax, at most DIFFCAM_CACHE_MAX_MB megabytes, default "
+               f"{DEFAULT_MAX_MB}), so a repeated command starts faster; "
+               "JAX_COMPILATION_CACHE_DIR chooses another folder, DIFFCAM_NO_CACHE=1 turns "
+               "the cache off.")
     parser.add_argument("--version", action="version",
                         version=f"diffcam {installed_version()}")
     talk = parser.add_mutually_exclusive_group()
@@ -489,31 +490,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def limits(command: str) -> str:
-    """The resource caps a subcommand enforces before any work, for its ``--help``."""
-
-    caps = [] if command in ("data", "demo", "plan") else [
-        f"each array read at most {MAX_READ_BYTES / 2**30:g} GiB (diffcam.io.MAX_READ_BYTES)"]
-    if command in ("reconstruct", "predict", "psf", "fit", "compare", "compare-stack"):
-        caps.append(f"at most {MAX_PLANES} planes (diffcam.calibrate.stack_result.MAX_PLANES)")
-    if command == "reconstruct":
-        caps.append(f"at most {MAX_ITERATIONS} iterations "
-                    f"(diffcam.reconstruct.checks.MAX_ITERATIONS)")
-    if command in ("demo", "plan", "calibrate", "psf", "compare"):
-        caps.append(f"a propagation grid of at most {MAX_GRID_SAMPLES} samples, padding "
-                    f"included (diffcam.core.grid.MAX_GRID_SAMPLES)")
-    said = ("Limits, checked before any work (raise them from Python by assigning to "
-            "the constants named): " + "; ".join(caps) + ". ") if caps else ""
-    return said + ("Errors are one line on stderr with exit status 2; an existing output "
-                   "is replaced whole or not at all.")
-
-
 def check_environment() -> None:
     """The environment's settings, checked before any work: ``DIFFCAM_FFT`` (a backend,
     :func:`diffcam.core.backend.fft_backend`) and ``DIFFCAM_FFT_THREADS`` (a positive
     integer when set, whichever backend runs)."""
 
-    fft_backend()
+    core.backend.fft_backend()
     threads = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
     if threads and not (threads.isdigit() and int(threads) > 0):
         raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
@@ -543,7 +525,7 @@ def _verbosity(args):
 
 
     print(f"diffcam {args.command}: JAX {jax.__version__} on {jax.devices()[0]}; "
-          f"{fft_status()}; {memory.status()}; compilation cache "
+          f"{core.backend.fft_status()}; {memory.status()}; compilation cache "
           f"{jax.config.jax_compilation_cache_dir or 'off'}", file=sys.stderr)
     start = time.perf_counter()
     try:
@@ -552,14 +534,22 @@ def _verbosity(args):
         print(f"diffcam {args.command}: {time.perf_counter() - start:.1f} s", file=sys.stderr)
 
 
-def main(argv=None) -> int:
+def main(argv=None, *, compilation_cache: bool = False) -> int:
+    """The ``diffcam`` command line ``argv`` (default: ``sys.argv``); returns the exit
+    status. ``compilation_cache``: keep compiled programs on disk
+    (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), once the command line
+    is read (``--help`` loads no JAX)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        with interrupts_as_keyboard_interrupt(), _verbosity(args), one_line_warnings(args.command):
-            check_environment()
-            return args.func(args)
+        with interrupts_as_keyboard_interrupt():
+            _join_run(args)
+            if compilation_cache:
+                enable_compilation_cache()
+            with _verbosity(args), one_line_warnings(args.command):
+                check_environment()
+                return args.func(args)
     except DiffcamError as e:
         report_error(args.command, str(e))
         return 2
@@ -578,9 +568,8 @@ def run() -> None:
     (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), then the process
     ends with its status (:func:`~diffcam.apps.processes.end_process`), also after
     ``--help``, ``--version`` and usage errors (argparse's ``SystemExit``)."""
-    enable_compilation_cache()
     try:
-        status = main()
+        status = main(compilation_cache=True)
     except SystemExit as done:
         if not isinstance(done.code, (int, type(None))):
             raise

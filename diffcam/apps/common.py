@@ -1,8 +1,9 @@
 """What the ``diffcam`` subcommands share: argparse types (lengths with units, checked
-counts, plane lists), the ``--help`` formatter, image and figure writers, and the PSF
-readers. The command modules (:mod:`~diffcam.apps.cli`, :mod:`~diffcam.apps.fit_cli`,
-:mod:`~diffcam.apps.reconstruct_cli`, :mod:`~diffcam.apps.scene_psf_cli`,
-:mod:`~diffcam.apps.demo`) import from here, never from each other's private names."""
+counts, plane lists), the ``--help`` formatter and the limits each help states, image
+and figure writers, and the PSF readers. The command modules (:mod:`~diffcam.apps.cli`,
+:mod:`~diffcam.apps.fit_cli`, :mod:`~diffcam.apps.reconstruct_cli`,
+:mod:`~diffcam.apps.scene_psf_cli`, :mod:`~diffcam.apps.demo`) import from here, never
+from each other's private names."""
 
 from __future__ import annotations
 
@@ -17,11 +18,9 @@ import numpy as np
 
 from diffcam.core.errors import DiffcamError
 from diffcam.core.units import parse_length, parse_length_range
-from diffcam.calibrate.stack_result import MAX_PLANES
-from diffcam.core.grid import MAX_GRID_SAMPLES
-from diffcam.io import atomic_output, read_image, read_mat_stack
-from diffcam.model.stack import load_stack
-from diffcam.reconstruct.checks import MAX_ITERATIONS
+from diffcam import model  # lazy: loaded on use
+from diffcam.core.lazy import module_constant
+from diffcam.io import MAX_READ_BYTES, atomic_output, read_image, read_mat_stack
 
 def _units(parse, name):
     """An argparse type that reads lengths with units; errors become usage errors."""
@@ -67,14 +66,16 @@ def iterations_count():
     """:func:`count` for an iteration count: 1 to
     :data:`diffcam.reconstruct.checks.MAX_ITERATIONS`."""
 
-    return count(1, MAX_ITERATIONS, "diffcam.reconstruct.checks.MAX_ITERATIONS")
+    name = "diffcam.reconstruct.checks.MAX_ITERATIONS"
+    return count(1, module_constant(name), name)
 
 
 def grid_count(low: int = 2):
     """:func:`count` for samples per side of a square grid: ``low`` to the side of
     :data:`diffcam.core.grid.MAX_GRID_SAMPLES`."""
 
-    return count(low, math.isqrt(MAX_GRID_SAMPLES), "diffcam.core.grid.MAX_GRID_SAMPLES")
+    name = "diffcam.core.grid.MAX_GRID_SAMPLES"
+    return count(low, math.isqrt(module_constant(name)), name)
 
 
 def save_image(path, image, *, bits: int = 16) -> None:
@@ -182,7 +183,7 @@ def read_psfs(path):
         return read_mat_stack(path), None
     if suffix == ".npz" or (suffix == ".npy" and Path(str(path) + ".json").exists()) or (
             suffix in (".tif", ".tiff") and has_stack_meta(path)):
-        stack, meta = load_stack(path)
+        stack, meta = model.load_stack(path)
         return np.asarray(stack), np.asarray(meta.depths)
     return read_image(path).image, None
 
@@ -203,10 +204,10 @@ def parse_planes(text: str) -> list[int]:
     (a step) and mixes of both."""
 
     items = [_plane_items(item, text) for item in str(text).split(",") if item.strip()]
-    n = sum(len(r) for r in items)
-    if n > MAX_PLANES:
-        raise DiffcamError(f"planes {text!r}: {n} planes, more than the {MAX_PLANES} "
-                           f"one run takes (diffcam.calibrate.stack_result.MAX_PLANES).")
+    n, limit = sum(len(r) for r in items), "diffcam.calibrate.stack_result.MAX_PLANES"
+    if n > module_constant(limit):
+        raise DiffcamError(f"planes {text!r}: {n} planes, more than the "
+                           f"{module_constant(limit)} one run takes ({limit}).")
     out = [t for r in items for t in r]
     if not out:
         raise DiffcamError(f"planes {text!r}: no plane index given.")
@@ -246,3 +247,27 @@ def one_line_warnings(command: str):
         yield
     finally:
         warnings.formatwarning = shown
+
+
+def limits(command: str) -> str:
+    """The resource caps a subcommand enforces before any work, for its ``--help``."""
+
+    caps = [] if command in ("data", "demo", "plan") else [
+        f"each array read at most {MAX_READ_BYTES / 2**30:g} GiB (diffcam.io.MAX_READ_BYTES)"]
+    if command in ("reconstruct", "predict", "psf", "fit", "compare", "compare-stack"):
+        caps.append(_cap("at most {} planes", "diffcam.calibrate.stack_result.MAX_PLANES"))
+    if command == "reconstruct":
+        caps.append(_cap("at most {} iterations",
+                         "diffcam.reconstruct.checks.MAX_ITERATIONS"))
+    if command in ("demo", "plan", "calibrate", "psf", "compare"):
+        caps.append(_cap("a propagation grid of at most {} samples, padding included",
+                         "diffcam.core.grid.MAX_GRID_SAMPLES"))
+    said = ("Limits, checked before any work (raise them from Python by assigning to "
+            "the constants named): " + "; ".join(caps) + ". ") if caps else ""
+    return said + ("Errors are one line on stderr with exit status 2; an existing output "
+                   "is replaced whole or not at all.")
+
+
+def _cap(text: str, limit: str) -> str:
+    """``text`` with the value of the constant ``limit`` (dotted), and its name."""
+    return f"{text.format(module_constant(limit))} ({limit})"

@@ -22,14 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from diffcam.core.errors import DiffcamError
+from diffcam import calibrate, evaluate  # lazy: loaded on use (fit_stack: optax, optimistix)
 from diffcam.apps.common import (iterations_count, length_arg, planes_arg, save_figure,
                                  save_image)
-from diffcam import calibrate   # calibrate.fit_stack: optax and optimistix load with it
-from diffcam.calibrate.stack_inputs import prepare_planes
-from diffcam.calibrate.model_file import load_stack_model
-from diffcam.calibrate.stack_result import MAX_PLANES
-from diffcam.evaluate.metrics import pearson
-from diffcam.evaluate.registration import scaling_baseline
 from diffcam.io import (atomic_output, check_output_path, image_files, npz_keys,
                         read_image, read_mat_stack, read_npz, read_psf_stack)
 
@@ -158,7 +153,7 @@ def _zeta_start(fit) -> str:
 def cmd_predict(args) -> int:
 
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
-    fit = load_stack_model(args.model)
+    fit = calibrate.model_file.load_stack_model(args.model)
     t0 = time.perf_counter()
     planes = model_planes(fit, args.planes, args.model)
     pred = fit.predict(planes, kappa=args.kappa, residual=not args.rendered_only)
@@ -178,9 +173,10 @@ def model_planes(fit, planes: list[int] | None, path) -> list[int]:
     if n is None:
         raise DiffcamError(f"{path}: the model does not record its stack's plane count; "
                            f"choose planes with --planes (e.g. 0:43).")
-    if not 1 <= n <= MAX_PLANES:
-        raise DiffcamError(f"{path}: the model declares {n} planes, outside 1 … "
-                           f"{MAX_PLANES} (diffcam.calibrate.stack_result.MAX_PLANES): the file "
+    most = calibrate.stack_result.MAX_PLANES
+    if not 1 <= n <= most:
+        raise DiffcamError(f"{path}: the model declares {n} planes, outside 1 … {most} "
+                           f"(diffcam.calibrate.stack_result.MAX_PLANES): the file "
                            f"is damaged; choose planes with --planes.")
     return list(range(n))
 
@@ -199,14 +195,14 @@ def compare_stack(stack, fit) -> dict:
         raise DiffcamError(f"the model was fitted to plane(s) {bad}, beyond this stack's "
                            f"{stack.shape[0]} planes.")
     ring = int(fit.options.get("dark_ring", 6))
-    measured = prepare_planes(stack, ring)
+    measured = calibrate.prepare_planes(stack, ring)
     n = stack.shape[0]
     model = fit.predict(n)
     frozen = fit.predict(n, kappa=0.0)
     rendered = fit.predict(n, residual=False)
-    base = scaling_baseline({t: measured[t] for t in fit.planes}, n,
-                            registration=fit.registration)
-    scores = {k: np.asarray(pearson(v, measured))
+    base = evaluate.scaling_baseline({t: measured[t] for t in fit.planes}, n,
+                                     registration=fit.registration)
+    scores = {k: np.asarray(evaluate.pearson(v, measured))
               for k, v in (("model", model), ("baseline", base), ("frozen", frozen),
                            ("rendered", rendered))}
     rows = [{"plane": t, "given": t in fit.planes,
@@ -226,7 +222,7 @@ def cmd_compare_stack(args) -> int:
     if args.json:
         check_output_path(args.json, suffixes=(".json",))
     stack, _ = read_stack(args.stack, args.key)
-    fit = load_stack_model(args.model)
+    fit = calibrate.model_file.load_stack_model(args.model)
     result = compare_stack(stack, fit)
     lines = ["| plane | model | scaling baseline | frozen distance (κ=0) | rendering alone |",
              "|---|---|---|---|---|"]

@@ -22,31 +22,19 @@ from typing import NamedTuple
 
 import numpy as np
 
-from diffcam.apps.common import (DefaultsFormatter, count, iterations_count, length_arg,
-                                 planes_arg, save_figure, save_image, save_rgb)
-from diffcam.apps.reconstruct_inputs import (DARK_RING, WORKING_SIZE, PsfSource, dark_arg,
-                                             gains_arg, match_envelope, read_inputs,
+from diffcam.apps.common import save_figure, save_image, save_rgb
+from diffcam.apps.reconstruct_args import ITERATIONS, ITERATIONS_3D
+from diffcam.apps.reconstruct_inputs import (PsfSource, match_envelope, read_inputs,
                                              white_balance)
 from diffcam.apps.volume_views import depth_map_figure, montage_figure, projections_figure
-from diffcam.calibrate.stack_result import MAX_PLANES
 from diffcam.core.errors import DiffcamError
 from diffcam.core.grid import crop_to
 from diffcam.io import atomic_output, check_output_path
 from diffcam.reconstruct import (admm_tv, admm_tv_3d, focus_sweep, richardson_lucy,
                                  richardson_lucy_3d, wiener)
-from diffcam.reconstruct.admm import MAX_BACKGROUND_DEGREE, VOLUME, legendre_terms
-from diffcam.reconstruct.checks import MAX_ITERATIONS
+from diffcam.reconstruct.admm import VOLUME, legendre_terms
 
 SWEEP_ITERATIONS = 60  # ADMM iterations per plane of the 2-D focus sweep
-ITERATIONS = {"admm": 100, "rl": 1000}
-"""Default iterations per method in 2-D, measured on the shipped hand (docs/real_data.md):
-ADMM-TV has converged by 100 (correlation 0.998 with a 200-step FISTA reference, the
-same at 300); Richardson–Lucy needs about 1000 (0.996; at 150 the fingers are not
-resolved, 0.959)."""
-ITERATIONS_3D = {"admm": 60, "rl": 300}
-"""The same for ``--3d``: ADMM-TV with :data:`diffcam.reconstruct.admm.VOLUME` 60 (the
-shipped USAF capture, 44 planes of 270 × 320: the measurements behind the choice are in
-docs/volume.md); Richardson–Lucy 300."""
 
 
 def _reporter(quiet: bool):
@@ -251,7 +239,9 @@ def _background_summary(background, degree) -> dict | None:
             "min": float(b.min()), "max": float(b.max())}
 
 
-def _cmd_reconstruct(args) -> int:
+def cmd_reconstruct(args) -> int:
+    """``diffcam reconstruct``, its command line read
+    (:mod:`diffcam.apps.reconstruct_args`)."""
     say = _reporter(args.quiet)
     return _run_3d(args, say) if args.three_d else _run_2d(args, say)
 
@@ -290,92 +280,3 @@ def write_volume(paths: VolumePaths, volume, source: PsfSource, info: dict) -> N
     finally:
         for fig in figures:
             plt.close(fig)
-
-
-def add_reconstruct(sub) -> None:
-    """Add ``reconstruct`` to the ``diffcam`` subcommands."""
-
-    rec = sub.add_parser(
-        "reconstruct", help="deconvolve a sensor image with a PSF (or a volume with --3d)",
-        formatter_class=DefaultsFormatter,
-        description="Reconstruct a scene from a raw capture and the PSF of its depth. With "
-                    "a PSF stack, pick the plane by --depth, --plane, or else the plane "
-                    "whose PSF explains the capture best (least data misfit); with --3d, "
-                    "reconstruct every plane as a volume "
-                    "(OUT.tif, OUT_max.png, OUT_depth.png, OUT_projections.png, "
-                    "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm; "
-                    "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5, "
-                    "residual-balanced penalties and over-relaxation 1.85 "
-                    "(diffcam.reconstruct.admm.VOLUME), "
-                    "each PSF plane's vertical envelope matched to the capture first "
-                    "(--psf-envelope), all recorded in OUT.tif's metadata. See "
-                    "docs/cli_reconstruct.md and docs/volume.md.")
-    rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
-    rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
-                     help="channel order of colour files, RGB or BGR (OpenCV .npy arrays); "
-                          "needed for colour .npy, PNG/TIFF are RGB by default")
-    rec.add_argument("--white-balance", type=gains_arg, metavar="auto|R,G,B",
-                     help="colour: gains per channel, or 'auto' (grey world); default none "
-                          "(a PSF per channel from calibrate-psf already balances them)")
-    rec.add_argument("--psf", required=True, metavar="SOURCE",
-                     help="PSF image or stack (.png/.tif/.npy, multi-page TIFF, .npz or .tif "
-                          "from `diffcam psf`, .mat), a folder or a quoted glob "
-                          "('psfs/*.png') of single-plane images (natural name order), or "
-                          "a model .npz from `diffcam fit`")
-    rec.add_argument("--planes", type=planes_arg, metavar="PLANES",
-                     help="planes of the stack or model to use, e.g. 0:43 (ends included), "
-                          f"0:43:2 or 3,7,12 (default: all; at most {MAX_PLANES})")
-    rec.add_argument("--3d", dest="three_d", action="store_true",
-                     help="reconstruct a volume over all the (selected) planes; -o OUT.tif")
-    rec.add_argument("--depth", type=length_arg("depth"), metavar="Z1",
-                     help="2-D: source depth z1 to use, with a unit (25mm)")
-    rec.add_argument("--plane", type=count(0, MAX_PLANES - 1), metavar="INDEX",
-                     help="2-D: index of the PSF plane to use")
-    rec.add_argument("--method", choices=["admm", "rl", "wiener"], default="admm",
-                     help="ADMM-TV, Richardson–Lucy, or Wiener (2-D only)")
-    rec.add_argument("--iterations", type=iterations_count(), metavar="N",
-                     help="solver iterations (default: " + ", ".join(
-                         f"{n} for {m}" for m, n in ITERATIONS.items()) + "; with --3d "
-                          + ", ".join(f"{n} for {m}" for m, n in ITERATIONS_3D.items())
-                          + f"; at most {MAX_ITERATIONS})")
-    _add_input_arguments(rec)
-    rec.set_defaults(func=_cmd_reconstruct)
-
-
-def _add_input_arguments(rec) -> None:
-    """The options of ``reconstruct`` that prepare its inputs and shape its output."""
-    rec.add_argument("--bias", type=float, metavar="COUNTS",
-                     help="sensor bias, counts: the same level subtracted from both the raw "
-                          "and the PSFs (not with --dark-raw/--dark-psf)")
-    rec.add_argument("--dark-raw", type=dark_arg, metavar="COUNTS|auto",
-                     help="dark level of the raw, counts (R,G,B: one per colour channel), "
-                          f"or 'auto': the median of a {DARK_RING}-pixel ring at the frame "
-                          "border, per channel")
-    rec.add_argument("--dark-psf", type=dark_arg, metavar="COUNTS|auto",
-                     help="dark level of the PSFs, counts, or 'auto': per plane, the "
-                          f"median of a {DARK_RING}-pixel ring at the frame border")
-    rec.add_argument("--psf-envelope", choices=["auto", "none"],
-                     help="--3d: 'auto' (default) multiplies each PSF plane by the vertical "
-                          "Gaussian whose footprint explains the capture's row profile best "
-                          "(diffcam.io.envelope_widths; the widths go to OUT.tif's "
-                          "metadata), 'none' uses the PSFs as measured")
-    rec.add_argument("--background", type=count(0, MAX_BACKGROUND_DEGREE,
-                                                 "MAX_BACKGROUND_DEGREE"),
-                     metavar="DEGREE",
-                     help="--3d with admm: solve jointly for a smooth background on the "
-                          "sensor, a 2-D polynomial of this degree (ambient or scattered "
-                          "light, a dark-level gradient; summary in OUT.tif's metadata); "
-                          "default: none (docs/volume.md measures it)")
-    rec.add_argument("--downsample", type=int, metavar="FACTOR",
-                     help="box-average factor, pixels per side (raw and PSFs alike); "
-                          f"default: 1 up to {WORKING_SIZE} pixels per side, else the least "
-                          f"factor that brings the capture there")
-    rec.add_argument("--full-field", action="store_true",
-                     help="keep the solver's object grid (per side: sensor + PSF − 1 pixels, "
-                          "rounded up to a fast FFT length; the scene the sensor partly "
-                          "sees) instead of cropping the result to the sensor's frame")
-    rec.add_argument("--quiet", action="store_true",
-                     help="no progress lines or bars on stderr")
-    rec.add_argument("-o", "--out", required=True,
-                     help="output .png, .tif or .npy (2-D; colour: 8-bit PNG, 16-bit TIFF "
-                          "or float32 (ny, nx, 3) .npy); .tif volume (--3d)")

@@ -13,8 +13,8 @@ import numpy as np
 
 from diffcam.apps.common import has_stack_meta, read_psfs
 from diffcam.apps.fit_cli import model_planes
-from diffcam.calibrate.model_file import load_stack_model, model_kind
 from diffcam.core.errors import DiffcamError
+from diffcam import calibrate  # lazy: loaded on use
 from diffcam.io import (BackgroundWarning, IMAGE_SUFFIXES, apply_envelope, as_rgb,
                         border_dark_level, downsample, envelope_widths, image_files,
                         read_image, read_psf_stack,
@@ -56,7 +56,7 @@ class PsfSource(NamedTuple):
 def read_model(path, planes) -> PsfSource:
     """The planes (default all) a stack-fit model renders, clipped at 0."""
 
-    fit = load_stack_model(path)
+    fit = calibrate.model_file.load_stack_model(path)
     planes = model_planes(fit, planes, path)
     if min(planes) < 0:
         raise DiffcamError(f"--planes {planes}: plane numbers start at 0.")
@@ -72,7 +72,7 @@ def read_psf_source(source: str, planes: list[int] | None = None) -> PsfSource:
     selects planes of the stack (default all; for a model, the planes to render)."""
 
     files = image_files(source)
-    kind = None if files is not None else model_kind(source)
+    kind = None if files is not None else calibrate.model_kind(source)
     if kind == "stack-fit":
         return read_model(source, planes)
     if kind == "phase":

@@ -20,10 +20,8 @@ import sys
 import numpy as np
 
 from diffcam.core.errors import DiffcamError
+from diffcam import calibrate, evaluate  # lazy: loaded on use
 from diffcam.apps.common import iterations_count
-from diffcam.calibrate.scene_psf import (check_scene_pairs, fit_psf_from_scenes,
-                                         predict_raw, ScenePsfOptions)
-from diffcam.evaluate.metrics import pearson
 from diffcam.io import as_rgb, atomic_output, check_output_path, read_image
 
 CHANNEL_ORDERS = ("RGB", "BGR")
@@ -47,7 +45,8 @@ def read_pairs(raws, truths, channel_order: str) -> tuple[np.ndarray, np.ndarray
         return as_rgb(capture)
 
     try:
-        return check_scene_pairs([read(p) for p in raws], [read(p) for p in truths])
+        return calibrate.scene_psf.check_scene_pairs([read(p) for p in raws],
+                                                     [read(p) for p in truths])
     except DiffcamError as err:
         raise DiffcamError(f"{err} (raws {raws[0]} …, truths {truths[0]} …)") from None
 
@@ -56,9 +55,9 @@ def holdout_scores(raws, truths, options) -> np.ndarray:
     """Pearson correlation per channel of the last pair's raw with its prediction by a
     PSF fitted to the other pairs."""
 
-    cal = fit_psf_from_scenes(raws[:-1], truths[:-1], options)
-    predicted = predict_raw(cal, truths[-1])
-    return np.asarray(pearson(predicted, raws[-1]))
+    cal = calibrate.fit_psf_from_scenes(raws[:-1], truths[:-1], options)
+    predicted = calibrate.predict_raw(cal, truths[-1])
+    return np.asarray(evaluate.pearson(predicted, raws[-1]))
 
 
 def write_psf(path, psf: np.ndarray) -> None:
@@ -79,17 +78,18 @@ def _cmd_calibrate_psf(args) -> int:
     out = check_output_path(args.out, suffixes=(".tif", ".tiff"))
     if args.json:
         check_output_path(args.json, suffixes=(".json",))
-    options = ScenePsfOptions(iterations=args.iterations, flip=args.flip)
+    options = calibrate.ScenePsfOptions(iterations=args.iterations, flip=args.flip)
     raws, truths = read_pairs(args.raws, args.truth, args.channel_order)
     k, c, ny, nx = raws.shape
     print(f"diffcam calibrate-psf: {k} pair(s), {c} channel(s), {ny}×{nx}; FISTA, "
           f"{args.iterations} iterations", file=sys.stderr)
-    cal = fit_psf_from_scenes(raws, truths, options, progress=not args.quiet)
+    cal = calibrate.fit_psf_from_scenes(raws, truths, options, progress=not args.quiet)
     summary = {"pairs": k, "channels": c, "flip": cal.flip,
                "flip_residuals": cal.flip_residuals, "offset": cal.offset.tolist(),
                "residual": float(cal.residual[-1]), "iterations": args.iterations}
     if k >= 2 and not args.no_check:
-        scores = holdout_scores(raws, truths, ScenePsfOptions.of(options, flip=cal.flip))
+        again = calibrate.ScenePsfOptions.of(options, flip=cal.flip)
+        scores = holdout_scores(raws, truths, again)
         summary["holdout_pearson"] = scores.tolist()
     write_psf(out, cal.psf)
     if args.json:

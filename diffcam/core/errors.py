@@ -4,15 +4,20 @@ Every public numerical function validates its *concrete* arguments (shapes, sign
 NaN/Inf, sampling) before it calls its jitted core. When an argument is a JAX tracer
 (the caller has wrapped diffcam in their own ``jit``/``grad``/``vmap``) the value check
 is skipped: the caller has taken responsibility for it, and shapes are still checked.
+
+This module does not import JAX (the command line's ``--help`` loads it without JAX): a
+value can only be a JAX array or tracer once something has imported JAX, so the checks
+look for JAX's types only then.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+import sys
 import warnings
 from typing import Any
 
-import jax
 import numpy as np
 
 __all__ = [
@@ -60,11 +65,23 @@ class ConvergenceWarning(UserWarning):
 _PLAIN = (int, float, complex, bool, str, np.ndarray, np.generic, type(None))
 
 
+class _NoJax:
+    """Stands for JAX's array and tracer types while JAX is not loaded: nothing is one."""
+
+
+def _jax_types() -> tuple[type, type]:
+    """``(jax.Array, jax.core.Tracer)``, or :class:`_NoJax` twice before JAX is loaded."""
+    jax = sys.modules.get("jax")
+    return (_NoJax, _NoJax) if jax is None else (jax.Array, jax.core.Tracer)
+
+
 def is_concrete(*values: Any) -> bool:
     """True if none of ``values`` is a JAX tracer (so their values can be inspected)."""
     if all(isinstance(v, _PLAIN) for v in values):  # the common case, without a tree walk
         return True
-    return not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values))
+    jax = sys.modules.get("jax")
+    return jax is None or not any(isinstance(v, jax.core.Tracer)
+                                  for v in jax.tree_util.tree_leaves(values))
 
 
 def plain_numbers(*values: Any) -> bool:
@@ -104,12 +121,17 @@ def check_positive(name: str, value: Any, unit: str, *, allow_zero: bool = False
 
 def _show(value: Any) -> str:
     """``value`` for a message: a NumPy or JAX scalar as the plain number it holds."""
-    if np.ndim(value) == 0 and isinstance(value, (np.generic, np.ndarray, jax.Array)):
+    if np.ndim(value) == 0 and isinstance(value, (np.generic, np.ndarray, _jax_types()[0])):
         return repr(value.item())
     return repr(value)
 
 
-_all_finite = jax.jit(lambda a: jax.numpy.isfinite(a).all())
+@functools.cache
+def _all_finite():
+    """A jitted ``isfinite(a).all()`` (made on first use: JAX is loaded by then)."""
+    import jax
+
+    return jax.jit(lambda a: jax.numpy.isfinite(a).all())
 
 
 def found_false(flag: Any) -> bool:
@@ -117,16 +139,18 @@ def found_false(flag: Any) -> bool:
     a tracer, which cannot be read. Read with ``np.asarray``: 4 µs per fresh flag here,
     where ``is_concrete`` and ``bool()`` took 20 (about a fifth of the Python around an
     eager 128² propagation)."""
-    return not isinstance(flag, jax.core.Tracer) and not np.asarray(flag)
+    return not isinstance(flag, _jax_types()[1]) and not np.asarray(flag)
 
 
 def check_finite(name: str, arr: Any) -> None:
     """Raise ``DiffcamError`` if a concrete array holds NaN or Inf."""
     if not is_concrete(arr):
         return
-    if isinstance(arr, jax.Array):  # one fused pass on the device, no copy to the host
+    if isinstance(arr, _jax_types()[0]):  # one fused pass on the device, no copy to the host
+        import jax
+
         with jax.ensure_compile_time_eval():  # concrete even inside someone's jit trace
-            ok = bool(np.asarray(_all_finite(arr)))
+            ok = bool(np.asarray(_all_finite()(arr)))
             n_bad = 0 if ok else int(arr.size - jax.numpy.isfinite(arr).sum())
     else:
         finite = np.isfinite(_as_real(name, arr, "numeric", complex_ok=True))
@@ -166,7 +190,7 @@ def check_field(field: Any, name: str = "field", *, finite: bool | str = True) -
         )
     if 0 in shape:
         raise ShapeError(f"{name} has an empty axis: shape {shape}.")
-    if finite is True or (finite == "host" and not isinstance(field, jax.Array)):
+    if finite is True or (finite == "host" and not isinstance(field, _jax_types()[0])):
         check_finite(name, field)
 
 

@@ -1,8 +1,10 @@
 """Package namespaces that import their modules on first use (PEP 562).
 
-``import diffcam`` and ``import diffcam.calibrate`` import nothing heavy: each public
-name is imported from its module the first time it is used, so a command that needs
-only a few modules (``diffcam predict``) does not pay for SciPy, optax or optimistix.
+``import diffcam`` and ``import diffcam.calibrate`` (``.model``, ``.optics``,
+``.evaluate``) import nothing heavy: each public name is imported from its module the
+first time it is used, so a command that needs only a few modules (``diffcam
+predict``) does not pay for SciPy, optax or optimistix, and ``diffcam --help`` loads no
+JAX.
 
 A lazy package keeps its public names, and where each comes from, as ordinary
 ``from … import …`` lines and an ``__all__`` in the stub ``__init__.pyi`` beside its
@@ -16,6 +18,9 @@ A lazy package keeps its public names, and where each comes from, as ordinary
 A submodule that no stub line names (``diffcam.calibrate.pipeline``) is imported on
 first attribute access as well; a package without a stub (``diffcam.core``) gets only
 that, so ``diffcam.core.grid.MAX_GRID_SAMPLES`` works after a bare ``import diffcam``.
+
+:func:`module_constant` reads such a limit without importing its module (the command
+line's ``--help`` shows the limits, and loads no JAX).
 """
 
 from __future__ import annotations
@@ -23,10 +28,11 @@ from __future__ import annotations
 import ast
 import importlib
 import importlib.util
+import operator
 import sys
 from pathlib import Path
 
-__all__ = ["attach_stub", "stub_names"]
+__all__ = ["attach_stub", "stub_names", "module_constant"]
 
 
 def stub_names(stub: str | Path) -> tuple[dict[str, tuple[str, str]], list[str]]:
@@ -70,3 +76,44 @@ def attach_stub(package: str, init_file: str):
         return sorted(set(vars(sys.modules[package])) | set(origin))
 
     return __getattr__, __dir__, exported
+
+
+_ARITHMETIC = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul,
+               ast.Pow: operator.pow, ast.FloorDiv: operator.floordiv}
+
+
+def module_constant(dotted: str) -> int | float:
+    """The number ``MODULE.NAME`` (``"diffcam.core.grid.MAX_GRID_SAMPLES"``), without
+    importing ``MODULE`` while nothing has: then the value its source assigns (a number,
+    or ``+ - * ** //`` of numbers, e.g. ``2 ** 28``) is the value it has. Once
+    ``MODULE`` is imported, its attribute (a value the user assigned included).
+
+    Raises:
+        AttributeError: the source assigns ``NAME`` no such number.
+    """
+    module, name = dotted.rsplit(".", 1)
+    if module in sys.modules:
+        return getattr(sys.modules[module], name)
+    for node in ast.parse(_source(module)).body:
+        if isinstance(node, ast.Assign) and any(
+                isinstance(t, ast.Name) and t.id == name for t in node.targets):
+            return _number(node.value, dotted)
+    raise AttributeError(f"{module} assigns no number to {name}")
+
+
+def _source(module: str) -> str:
+    """The source of ``module`` of an installed package, found without importing its
+    parent packages (``diffcam.reconstruct`` imports its solvers)."""
+    top, *parts = module.split(".")
+    path = Path(importlib.util.find_spec(top).submodule_search_locations[0], *parts)
+    file = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    return file.read_text(encoding="utf-8")
+
+
+def _number(node: ast.expr, what: str) -> int | float:
+    """The value of a number, or of arithmetic on numbers, in a module's source."""
+    if isinstance(node, ast.Constant) and type(node.value) in (int, float):
+        return node.value
+    if isinstance(node, ast.BinOp) and type(node.op) in _ARITHMETIC:
+        return _ARITHMETIC[type(node.op)](_number(node.left, what), _number(node.right, what))
+    raise AttributeError(f"{what} is not a number or arithmetic on numbers")

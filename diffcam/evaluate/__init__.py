@@ -8,13 +8,6 @@
   scatter, axial width, light outside the target) and its depth map.
 """
 
-from diffcam.evaluate.baseline import magnify_psf, relative_magnification
-from diffcam.evaluate.metrics import (mse, pearson, phase_scores, psf_fidelity, psnr,
-                                      ssim)
-from diffcam.evaluate.registration import (Registration, magnification_from_light,
-                                           magnify_about, register_magnification,
-                                           scaling_baseline)
+from diffcam.core.lazy import attach_stub
 
-__all__ = ["magnify_psf", "relative_magnification", "mse", "pearson", "phase_scores",
-           "psf_fidelity", "psnr", "ssim", "Registration", "register_magnification",
-           "scaling_baseline", "magnify_about", "magnification_from_light"]
+__getattr__, __dir__, __all__ = attach_stub(__name__, __file__)

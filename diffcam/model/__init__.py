@@ -8,10 +8,6 @@
 - :mod:`.sensor` — pixel integration, resampling, noise, saturation, quantisation.
 """
 
-from diffcam.model.camera import Camera, HeightMap, Spectrum, random_diffuser, with_method
-from diffcam.model.point_spread import psf
-from diffcam.model.stack import (PsfStackOptions, iter_psf_stack, load_stack, psf_stack,
-                                 save_stack)
+from diffcam.core.lazy import attach_stub
 
-__all__ = ["Camera", "HeightMap", "Spectrum", "random_diffuser", "psf", "psf_stack",
-           "iter_psf_stack", "PsfStackOptions", "save_stack", "load_stack", "with_method"]
+__getattr__, __dir__, __all__ = attach_stub(__name__, __file__)

@@ -10,12 +10,6 @@
   planner.
 """
 
-from diffcam.optics.elements import (apply_phase, circular_aperture, point_source_field,
-                                     rectangular_aperture, thin_lens)
-from diffcam.optics.lens import fourier_lens, inverse_fourier_lens
-from diffcam.optics.propagation import angular_spectrum, fresnel_ir, fresnel_tf, propagate
-from diffcam.optics.sampling import plan_sampling
+from diffcam.core.lazy import attach_stub
 
-__all__ = ["apply_phase", "circular_aperture", "point_source_field", "rectangular_aperture",
-           "thin_lens", "angular_spectrum", "fourier_lens", "fresnel_ir", "fresnel_tf",
-           "inverse_fourier_lens", "propagate", "plan_sampling"]
+__getattr__, __dir__, __all__ = attach_stub(__name__, __file__)
