@@ -344,7 +344,7 @@ def test_plane_ranges(files, tmp_path, first, length, step):
 # ------------------------------------------------------------ the environment
 
 @pytest.mark.parametrize("env", [{"DIFFCAM_FFT": "bogus"}, {"DIFFCAM_FFT_THREADS": "abc"},
-                                 {"DIFFCAM_FFT_THREADS": "0"},
+                                 {"DIFFCAM_FFT_THREADS": "0"}, {"DIFFCAM_FFT_THREADS": "²"},
                                  {"DIFFCAM_FFT": "auto", "DIFFCAM_FFT_THREADS": "abc"},
                                  {"DIFFCAM_FFT": "fftw", "DIFFCAM_FFT_THREADS": "-2"}])
 @pytest.mark.parametrize("command", _commands())

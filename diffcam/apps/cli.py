@@ -496,10 +496,7 @@ def check_environment() -> None:
     integer when set, whichever backend runs)."""
 
     core.backend.fft_backend()
-    threads = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
-    if threads and not (threads.isdigit() and int(threads) > 0):
-        raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
-                           f"{threads!r:.40}; unset it to use every CPU.")
+    core.fftw.environment_threads()
 
 
 @contextlib.contextmanager

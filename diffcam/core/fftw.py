@@ -58,7 +58,8 @@ from jax.interpreters import ad, batching, mlir
 
 from diffcam.core.errors import DiffcamError
 
-__all__ = ["c2c", "r2c", "c2r", "load", "configure", "threads", "save_wisdom", "cache_folder"]
+__all__ = ["c2c", "r2c", "c2r", "load", "configure", "threads", "environment_threads",
+           "save_wisdom", "cache_folder"]
 
 _SOURCE = Path(__file__).with_name("fftw_ffi.cc")
 _FUNCTIONS = ("plan_many_dft", "plan_many_dft_r2c", "plan_many_dft_c2r", "execute_dft",
@@ -257,22 +258,23 @@ def configure(threads: int | None = None, planning: str = "measure") -> None:
     _configure(load(), threads, planning)
 
 
+def environment_threads() -> int | None:
+    """``$DIFFCAM_FFT_THREADS`` as a positive integer, or None when it is unset."""
+    text = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
+    if not text:
+        return None
+    if not (text.isascii() and text.isdigit() and int(text) > 0):
+        raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
+                           f"{text!r:.40}; unset it to use every CPU.")
+    return int(text)
+
+
 def _threads(threads: int | None) -> int:
     """``threads`` checked (a positive int, not a bool), or ``$DIFFCAM_FFT_THREADS``
-    read as one, or the CPUs this process may use."""
+    (:func:`environment_threads`), or the CPUs this process may use."""
     if threads is None:
-        text = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
-        if not text:
-            return _cpus()
-        try:
-            threads = int(text)
-        except ValueError:
-            raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
-                               f"{text!r:.40}; unset it to use every CPU.") from None
-        if threads < 1:
-            raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
-                               f"{text!r:.40}; unset it to use every CPU.")
-        return threads
+        threads = environment_threads()
+        return _cpus() if threads is None else threads
     if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
         raise DiffcamError(f"threads must be a positive integer (FFTW's threads), not "
                            f"{threads!r:.40}; None uses every CPU.")
