@@ -31,7 +31,7 @@ import tempfile
 from pathlib import Path
 
 from diffcam import core  # lazy: diffcam.core.fftw loads JAX on use
-from diffcam.core.errors import DiffcamError
+from diffcam.core.errors import environment_count
 
 __all__ = ["NO_CACHE", "MAX_MB", "DEFAULT_MAX_MB", "MIN_COMPILE_SECONDS",
            "enable_compilation_cache", "cache_cap"]
@@ -93,13 +93,8 @@ def cache_cap() -> int:
     Raises:
         DiffcamError: the variable is set to anything but a whole number ≥ 1.
     """
-    text = os.environ.get(MAX_MB, "").strip()
-    if not text:
-        return DEFAULT_MAX_MB * 10**6
-    if not (text.isascii() and text.isdigit() and int(text) > 0):
-        raise DiffcamError(f"{MAX_MB} must be a whole number of megabytes, at least 1, "
-                           f"not {text!r:.40}; unset it for {DEFAULT_MAX_MB} MB.")
-    return int(text) * 10**6
+    megabytes = environment_count(MAX_MB, f"for {DEFAULT_MAX_MB} MB")
+    return (megabytes or DEFAULT_MAX_MB) * 10**6
 
 
 def _date_undated(folder: Path) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import sys
 import warnings
 from typing import Any
@@ -31,6 +32,7 @@ __all__ = [
     "found_false",
     "check_positive",
     "check_finite",
+    "environment_count",
     "check_field",
     "sampling_problem",
 ]
@@ -117,6 +119,23 @@ def check_positive(name: str, value: Any, unit: str, *, allow_zero: bool = False
         f"{name} must be {need} (SI units: {unit}), got {_show(value)}. "
         f"diffcam takes metres and radians everywhere: 25 mm is 25e-3."
     )
+
+
+def environment_count(name: str, when_unset: str) -> int | None:
+    """The environment variable ``name`` as a whole number ≥ 1, or None when it is unset
+    or blank.
+
+    Raises:
+        DiffcamError: it holds anything else; the message ends with ``when_unset``, what
+            unsetting it does (``"to use every CPU"``).
+    """
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return None
+    if not (text.isascii() and text.isdigit() and int(text) > 0):
+        raise DiffcamError(f"{name} must be a whole number, at least 1, not {text!r:.40}; "
+                           f"unset it {when_unset}.")
+    return int(text)
 
 
 def _show(value: Any) -> str:

@@ -56,7 +56,7 @@ import numpy as np
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
-from diffcam.core.errors import DiffcamError
+from diffcam.core.errors import DiffcamError, environment_count
 
 __all__ = ["c2c", "r2c", "c2r", "load", "configure", "threads", "environment_threads",
            "save_wisdom", "cache_folder"]
@@ -259,14 +259,8 @@ def configure(threads: int | None = None, planning: str = "measure") -> None:
 
 
 def environment_threads() -> int | None:
-    """``$DIFFCAM_FFT_THREADS`` as a positive integer, or None when it is unset."""
-    text = os.environ.get("DIFFCAM_FFT_THREADS", "").strip()
-    if not text:
-        return None
-    if not (text.isascii() and text.isdigit() and int(text) > 0):
-        raise DiffcamError(f"DIFFCAM_FFT_THREADS must be a positive integer, not "
-                           f"{text!r:.40}; unset it to use every CPU.")
-    return int(text)
+    """``$DIFFCAM_FFT_THREADS`` as a whole number ≥ 1, or None when it is unset."""
+    return environment_count("DIFFCAM_FFT_THREADS", "to use every CPU")
 
 
 def _threads(threads: int | None) -> int:
