@@ -43,7 +43,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import Array, lax
+from jax import Array, custom_batching, custom_derivatives, lax
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
@@ -52,8 +52,9 @@ from diffcam.core.deprecation import renamed
 from diffcam.core.errors import DiffcamError
 
 __all__ = ["fft2", "ifft2", "rfft2", "irfft2", "fft_size", "transfer_step",
-           "transfer_step_with_spectrum", "separable_factor", "staged", "on_cpu",
-           "set_fft", "fft_backend", "fft_status"]
+           "transfer_step_with_spectrum", "separable_factor", "separable_product", "staged",
+           "on_cpu",
+           "set_fft", "fft_backend", "fft_status", "in_chunks"]
 
 _AXES = (-2, -1)
 BACKENDS = ("auto", "fftw", "xla")
@@ -321,6 +322,31 @@ def separable_factor(f: Callable[[Array], Array], n: int, block: int = 512) -> A
 vector = renamed(separable_factor, "diffcam.core.backend.vector")
 
 
+def separable_product(u: Array, cy: Array, cx: Array) -> Array:
+    """``u · (cy · cx)``: a field times a separable factor (``cy`` (…, ny, 1), ``cx``
+    (…, 1, nx)), such as a point source's chirp on the diffuser.
+
+    With XLA's FFT on CPU the product is written over ``u`` row block by row block in
+    a loop, which XLA does not split over threads, so that an FFT after it in the same
+    program runs on all of them (the FFT rule; module docstring). In a ``vmap`` of the
+    direct-path PSF the split product had left the next FFT on one core: 32 PSFs at
+    1024² took 1.7× ``psf_stack``'s time, which runs the two in separate calls.
+    """
+    if not _xla_fft_on_cpu():
+        return u * (cy * cx)
+    ny = u.shape[-2]
+    blocks = next(b for b in (4, 2, 1) if ny % b == 0)
+    size = ny // blocks
+    u = jnp.broadcast_to(u, jnp.broadcast_shapes(u.shape, cy.shape, cx.shape))
+    u = u.astype(jnp.result_type(u, cy, cx))
+
+    def block(k, out):
+        rows = lax.dynamic_slice_in_dim(out, k * size, size, axis=-2)
+        factor = lax.dynamic_slice_in_dim(cy, k * size, size, axis=-2) * cx
+        return lax.dynamic_update_slice_in_dim(out, rows * factor, k * size, axis=-2)
+    return lax.fori_loop(0, blocks, block, u)
+
+
 STAGED_FROM = 192 * 192  # samples of the first argument from which staged() splits
 
 
@@ -344,4 +370,69 @@ def staged(first: Callable, second: Callable, static_argnames=()) -> Callable:
                                      default=0) >= STAGED_FROM:
             return second_j(first_j(*a), *a, **k)
         return fused(*a, **k)
+    return call
+
+
+def in_chunks(fn: Callable, items_per_chunk: Callable[..., int | None]) -> Callable:
+    """``fn`` (a function of arrays and pytrees of arrays) whose ``jax.vmap`` computes
+    the batch a chunk at a time, one chunk after another (``lax.map``), not all at once.
+
+    A vmapped PSF or propagation otherwise holds every item's fields at once and runs
+    one batched FFT over them: 32 PSFs at 1024² took 3.7× the time and 2.8× the memory
+    of the same PSFs one after another (``python -m benchmarks.bench_peers``). Here a
+    ``vmap`` — a user's ``jax.jit(jax.vmap(psf))`` — becomes the loop
+    :func:`diffcam.model.stack.psf_stack` runs: working memory is one chunk's.
+
+    ``items_per_chunk(in_batched, *args)`` gives the chunk (items computed together,
+    vmapped inside the loop), or ``None`` for JAX's own batching of ``fn`` where that
+    is cheaper; ``in_batched`` is a tuple of one pytree of bools per argument, and
+    ``args`` carry the batch axis first where batched.
+
+    Derivatives are ``fn``'s own (forward and reverse mode, JAX's batching of them:
+    a ``lax.map`` cannot be linearised): the primal alone runs in chunks. Tangents
+    that are symbolically zero (the camera's fields when only the phase is
+    differentiated) are left out of ``fn``'s JVP, so no work is spent on them.
+    """
+    @custom_batching.custom_vmap
+    def chunked(*args):
+        return fn(*args)
+
+    @chunked.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        size = items_per_chunk(tuple(in_batched), *args)
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        flags = jax.tree_util.tree_leaves(tuple(in_batched))
+        mapped = [i for i, b in enumerate(flags) if b]
+
+        def items(*batched):
+            full = list(leaves)
+            for i, leaf in zip(mapped, batched):
+                full[i] = leaf
+            return fn(*jax.tree_util.tree_unflatten(tree, full))
+        batched = [leaves[i] for i in mapped]
+        if size is None:
+            out = jax.vmap(items)(*batched)
+        else:
+            out = lax.map(lambda xs: items(*xs), batched,
+                          batch_size=min(int(size), axis_size))
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    @jax.custom_jvp
+    def call(*args):
+        return chunked(*args)
+
+    def _jvp(primals, tangents):
+        leaves, tree = jax.tree_util.tree_flatten(primals)
+        dots = jax.tree_util.tree_leaves(
+            tangents, is_leaf=lambda t: isinstance(t, custom_derivatives.SymbolicZero))
+        live = [i for i, t in enumerate(dots)
+                if not isinstance(t, custom_derivatives.SymbolicZero)]
+
+        def of_live(*values):
+            full = list(leaves)
+            for i, v in zip(live, values):
+                full[i] = v
+            return fn(*jax.tree_util.tree_unflatten(tree, full))
+        return jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])
+    call.defjvp(_jvp, symbolic_zeros=True)
     return call

@@ -42,14 +42,17 @@ fields the FFTs start from (:func:`fields_for_fft`) and what the FFTs make of th
 from __future__ import annotations
 
 import weakref
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 from jaxtyping import Float
 from jax import Array
 
-from diffcam.core.backend import fft2, ifft2, staged, transfer_step_with_spectrum
+from diffcam.core.backend import (fft2, ifft2, in_chunks, separable_product, staged,
+                                  transfer_step_with_spectrum)
 from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, check_positive,
                                  fmt_length, found_false, is_concrete, plain_numbers,
                                  sampling_problem)
@@ -64,7 +67,7 @@ from diffcam.optics.propagation import (critical_distance, effective_distance,
                                         transfer_function)
 from diffcam.optics.sampling import check_point_source_sampling
 
-__all__ = ["psf", "diffuser_fields", "fields_for_fft", "irradiance", "zeff_factors",
+__all__ = ["psf", "psf_map", "diffuser_fields", "fields_for_fft", "irradiance", "zeff_factors",
            "sample_points", "check_inputs"]
 
 
@@ -88,7 +91,7 @@ def _source_fields(diffuser, camera, wavelength, z1, positions):
     def one(offset):
         cy, cx = spherical_wave(diffuser.shape, camera.dx, wavelength, z1, y1=offset[0],
                                 x1=offset[1])
-        return diffuser * (cy * cx)
+        return separable_product(diffuser, cy, cx)
     return jax.vmap(one)(positions)
 
 
@@ -232,6 +235,50 @@ def _irradiance_of_fields(first, phase, camera, wavelengths, weights, z1, positi
 _psf = staged(_fields_of_phase, _irradiance_of_fields, static_argnames=("normalise",))
 
 
+FIELD_SAMPLES_PER_CHUNK = 2 ** 20
+"""Field samples computed together when PSFs are computed many at a time (a chunk of
+:func:`diffcam.model.stack.psf_stack`, a ``vmap`` of :func:`psf`): one depth at 1024²."""
+
+
+def items_per_chunk(camera: Camera, fields_per_item: int) -> int:
+    """PSFs (depths, or any batched item) per chunk when each needs ``fields_per_item``
+    fields on the padded grid: about :data:`FIELD_SAMPLES_PER_CHUNK` samples, at least 1."""
+    ny, nx = camera.padded_shape
+    return max(1, FIELD_SAMPLES_PER_CHUNK // (ny * nx * max(1, fields_per_item)))
+
+
+def _one_source(prepared, camera, wavelengths, weights, z1, positions, normalise):
+    """PSFs of one source depth from :func:`diffuser_fields`' output: (npos, ny, nx)."""
+    return irradiance(fields_for_fft(prepared, camera, wavelengths, z1, positions), camera,
+                      wavelengths, weights, z1, positions, normalise)
+
+
+def _chunk_rule(in_batched, prepared, camera, wavelengths, weights, z1, positions):
+    """Chunks for a ``vmap`` of :func:`psf`: a batch of lateral positions alone on the
+    scaling path is JAX's own batching (the z_eff field is shared, each position is a
+    resampling of it); anything else (depths, wavelengths, diffusers, cameras) is
+    computed a chunk at a time, each item its own fields."""
+    shared = [b for i, b in enumerate(in_batched) if i != 5]
+    if camera.method == "scaling" and not any(jax.tree_util.tree_leaves(shared)):
+        return None
+    npos = positions.shape[-2] if camera.method == "direct" else 1
+    return items_per_chunk(camera, prepared.shape[-3] * npos)
+
+
+_depth_psfs = {normalise: in_chunks(lambda p, c, w, g, z, x, n=normalise:
+                                    _one_source(p, c, w, g, z, x, n), _chunk_rule)
+               for normalise in (True, False)}
+
+
+def _traced_psf(phase, camera, wavelengths, weights, z1, positions, normalise):
+    """:func:`psf` under a JAX transformation: the depth-independent diffuser fields,
+    then the source's PSFs, which a ``vmap`` computes a chunk at a time
+    (:func:`diffcam.core.backend.in_chunks`)."""
+    wavelengths, weights = _spectrum_or_camera(camera, wavelengths, weights)
+    prepared = diffuser_fields(phase, camera, wavelengths)
+    return _depth_psfs[normalise](prepared, camera, wavelengths, weights, z1, positions)[0]
+
+
 # ------------------------------------------------------------------------- validation
 
 def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling,
@@ -366,12 +413,80 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
             transfer function that aliases, or (``"scaling"``) a source so close that
             the frame spans fewer than :data:`MIN_SAMPLES_ACROSS` diffuser samples.
     """
-    out, finite = _psf(phase, camera, *_arguments(phase, camera, z1, y1, x1, spectrum,
-                                                  accept_undersampling),
-                       normalise=normalise)
+    arguments = _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling)
+    if _traced(phase, camera, arguments):
+        return _traced_psf(phase, camera, *arguments, normalise)
+    out, finite = _psf(phase, camera, *arguments, normalise=normalise)
     if found_false(finite):
         check_finite("diffuser phase", phase.height if isinstance(phase, HeightMap) else phase)
     return out
+
+
+def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, y1=0.0, x1=0.0,
+            spectrum=None, normalise: bool = True, batch_size: int | None = None,
+            accept_undersampling: bool = False):
+    """``fn(PSF(z), x)`` for every depth ``z`` of ``z1`` (and ``x`` of ``xs``), a chunk of
+    depths at a time: the differentiable PSF stack.
+
+    Pure and traceable (``jax.jit``, ``jax.grad``, ``jax.vmap``), unlike
+    :func:`diffcam.model.stack.psf_stack`, which runs on the host. The depths go
+    through a ``lax.map`` of ``batch_size`` depths a step, the diffuser's field (its
+    FFT on the scaling path) computed once for all of them; in reverse mode each chunk's
+    PSFs are recomputed (``jax.checkpoint``) rather than kept, so a gradient's working
+    memory is one chunk's whatever the number of depths (``python -m
+    benchmarks.bench_peers``: 32 and 256 depths at 1024²). Reduce inside ``fn`` (a
+    per-depth loss, a correlation with a measured plane): what ``fn`` returns is kept
+    for every depth.
+
+    Args:
+        fn: ``fn(psf)`` (``xs`` is ``None``) or ``fn(psf, x)``; ``psf`` is the
+            ``camera.out_shape`` PSF of one depth; returns a pytree of arrays.
+        phase, camera, y1, x1, spectrum, normalise, accept_undersampling: as in
+            :func:`psf`.
+        z1: depths, metres, shape (nz,) (> 0).
+        xs: a pytree of arrays with leading axis nz (a measured plane per depth, a
+            weight), or ``None``.
+        batch_size: depths per chunk; default about 2**20 field samples (one depth at
+            1024²), as :func:`~diffcam.model.stack.psf_stack`.
+
+    Returns:
+        ``fn``'s outputs stacked over depth (leading axis nz).
+    """
+    z1 = jnp.asarray(z1) if not is_concrete(z1) else np.asarray(z1, np.float64)
+    if z1.ndim != 1 or z1.shape[0] == 0:
+        raise ShapeError(f"z1 must be a non-empty 1-D array of depths in metres, got shape "
+                         f"{z1.shape}.")
+    if not callable(fn):
+        raise DiffcamError(f"fn must be a function of a PSF (and an x of xs), got {fn!r:.60}.")
+    wavelengths, weights, z1, positions = _arguments(phase, camera, z1, y1, x1, spectrum,
+                                                     accept_undersampling)
+    _check_phase(phase, camera, finite=True)
+    wavelengths, weights = _spectrum_or_camera(camera, wavelengths, weights)
+    if batch_size is None:
+        batch_size = items_per_chunk(camera, wavelengths.shape[0])
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
+            or batch_size < 1:
+        raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
+    prepared = diffuser_fields(phase, camera, wavelengths)
+    one_depth = _depth_psfs[normalise]
+
+    @jax.checkpoint
+    def step(item):
+        z, x = item
+        h = one_depth(prepared, camera, wavelengths, weights, z, positions)[0]
+        return fn(h) if xs is None else fn(h, x)
+    return lax.map(step, (z1, xs), batch_size=min(int(batch_size), z1.shape[0]))
+
+
+def _traced(phase, camera, arguments) -> bool:
+    """Whether :func:`psf` runs under a JAX transformation: a tracer among the diffuser,
+    the camera's fields or the source. The fields are read from the camera's
+    ``__dict__`` past equinox's attribute hook (2.5 µs an attribute; a tree walk cost
+    an eager PSF 30 µs)."""
+    if isinstance(phase, HeightMap):
+        return not is_concrete(phase, camera, arguments)
+    fields = object.__getattribute__(camera, "__dict__").values()
+    return any(isinstance(v, jax.core.Tracer) for v in (phase, *fields, *arguments))
 
 
 def _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling):

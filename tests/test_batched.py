@@ -1,0 +1,114 @@
+"""PSFs many at a time inside JAX (diffcam.model.point_spread): ``jax.vmap`` of ``psf``,
+which runs a chunk at a time (diffcam.core.backend.in_chunks), and ``psf_map``, the
+differentiable stack. The reference is one ``psf`` call per depth; memory is XLA's own
+figure for the compiled program (``memory_analysis``), which does not depend on load."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.model import Camera, point_spread, psf, psf_map, random_diffuser
+
+LAM = 532e-9
+N = 64
+DEPTHS = np.array([20e-3, 31e-3, 60e-3])
+
+
+def _camera(method="scaling"):
+    return Camera(wavelength=LAM, z2=1e-3, dx=5e-6, aperture_radius=0.1e-3, shape=(N, N),
+                  crop=(56, 48), method=method)
+
+
+PHASE = random_diffuser(jax.random.key(0), (N, N), 5e-6, LAM, 40e-6)
+WEIGHTS = jax.random.normal(jax.random.key(1), (DEPTHS.size, 56, 48))
+
+
+@pytest.mark.usefixtures("debug_nans")
+@pytest.mark.parametrize("method", ["scaling", "direct"])
+def test_vmap_and_psf_map_equal_one_psf_per_depth(method):
+    """``jit(vmap(psf))`` over depths equals psf at each depth (float32 round-off), and
+    the gradient of Σ w·PSF through psf_map (chunks of 2 of 3 depths: a remainder,
+    recomputed in reverse mode) equals that of one psf call per depth."""
+    cam = _camera(method)
+    stacked = jax.jit(jax.vmap(lambda z: psf(PHASE, cam, z)))(jnp.asarray(DEPTHS))
+    for z, got in zip(DEPTHS, stacked):
+        want = psf(PHASE, cam, z)
+        np.testing.assert_allclose(got, want, atol=1e-5 * want.max())
+
+    def one_by_one(p):
+        return sum(jnp.sum(psf(p, cam, z) * w) for z, w in zip(DEPTHS, WEIGHTS))
+    reference = jax.jit(jax.grad(one_by_one))(PHASE)
+    grad = jax.jit(jax.grad(lambda p: psf_map(lambda h, w: jnp.sum(h * w), p, cam, DEPTHS,
+                                              WEIGHTS, batch_size=2).sum()))(PHASE)
+    np.testing.assert_allclose(grad, reference, atol=1e-4 * np.abs(reference).max())
+
+
+def test_vmap_over_positions_wavelengths_and_cameras():
+    """A batch of lateral positions, of wavelengths or of z2 gives each item's PSF; the
+    jvp of a vmap over depths is each depth's jvp."""
+    cam = _camera()
+    ys = jnp.array([-40e-6, 30e-6])
+    batched = jax.vmap(lambda y: psf(PHASE, cam, 30e-3, y1=y, x1=-y / 2))(ys)
+    want = psf(PHASE, cam, 30e-3, y1=30e-6, x1=-15e-6)
+    np.testing.assert_allclose(batched[1], want, atol=1e-5 * want.max())
+    z2s = jnp.array([0.9e-3, 1.1e-3])
+    batched = jax.vmap(lambda z2: psf(PHASE, dataclasses.replace(cam, z2=z2), 30e-3))(z2s)
+    want = psf(PHASE, dataclasses.replace(cam, z2=1.1e-3), 30e-3)
+    np.testing.assert_allclose(batched[1], want, atol=1e-5 * want.max())
+    lams = jnp.array([500e-9, 600e-9])
+    batched = jax.vmap(lambda lam: psf(PHASE, cam, 30e-3, spectrum=(lam[None],
+                                                                    jnp.ones(1))))(lams)
+    want = psf(PHASE, cam, 30e-3, spectrum=([600e-9], [1.0]))
+    np.testing.assert_allclose(batched[1], want, atol=1e-5 * want.max())
+    tangent = jax.random.normal(jax.random.key(2), PHASE.shape)
+    jvp = jax.jvp(lambda p: jax.vmap(lambda z: psf(p, cam, z))(jnp.asarray(DEPTHS)),
+                  (PHASE,), (tangent,))[1]
+    one = jax.jvp(lambda p: psf(p, cam, DEPTHS[1]), (PHASE,), (tangent,))[1]
+    np.testing.assert_allclose(jvp[1], one, atol=1e-4 * np.abs(one).max())
+
+
+def test_psf_map_gradient_in_depth_matches_finite_differences(x64):
+    """d/dz of Σ w·PSF through psf_map against a central difference (float64)."""
+    cam = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), _camera())
+    phase, w = jnp.asarray(PHASE, jnp.float64), jnp.asarray(WEIGHTS[0], jnp.float64)
+    loss = jax.jit(lambda z: psf_map(lambda h: jnp.sum(h * w), phase, cam,
+                                     jnp.stack([z, z + 5e-3]))[0])
+    z, h = 30e-3, 1e-7
+    fd = (loss(z + h) - loss(z - h)) / (2 * h)
+    np.testing.assert_allclose(jax.grad(loss)(z), fd, rtol=1e-5)
+
+
+def _temporaries(fn, *args):
+    return jax.jit(fn).lower(*args).compile().memory_analysis().temp_size_in_bytes
+
+
+def test_working_memory_is_flat_in_the_number_of_depths(monkeypatch):
+    """XLA's temporaries of ``jit(vmap(psf))`` (both paths) and of psf_map's gradient
+    are those of a chunk (here one depth): 4 and 32 depths need the same (within 10 %),
+    where a vmap of every depth at once adds each depth's fields."""
+    monkeypatch.setattr(point_spread, "FIELD_SAMPLES_PER_CHUNK", N * N)
+    few, many = jnp.linspace(20e-3, 60e-3, 4), jnp.linspace(20e-3, 60e-3, 32)
+    for method in ("scaling", "direct"):
+        cam = _camera(method)
+        stack = lambda zs: jax.vmap(lambda z: psf(PHASE, cam, z))(zs)  # noqa: E731
+        assert _temporaries(stack, many) < 1.1 * _temporaries(stack, few)
+
+    def gradient(zs):
+        return jax.grad(lambda p: psf_map(lambda h: jnp.sum(h ** 2), p, cam, zs).sum())(PHASE)
+    assert _temporaries(gradient, many) < 1.1 * _temporaries(gradient, few)
+
+
+def test_psf_map_refuses_bad_input():
+    cam = _camera()
+    with pytest.raises(ShapeError, match="1-D"):
+        psf_map(lambda h: h, PHASE, cam, np.ones((2, 2)) * 0.03)
+    with pytest.raises(DiffcamError, match="batch_size"):
+        psf_map(lambda h: h, PHASE, cam, DEPTHS, batch_size=0)
+    with pytest.raises(DiffcamError, match="fn must be"):
+        psf_map("sum", PHASE, cam, DEPTHS)
+    with pytest.raises(DiffcamError, match="z1"):
+        psf_map(lambda h: h, PHASE, cam, -DEPTHS)
