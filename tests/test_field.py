@@ -165,18 +165,15 @@ SOLVERS_3D = [(fista, {}), (richardson_lucy_3d, {}), (admm_tv_3d, {"tau": 1e-6})
 @pytest.mark.parametrize("volume", [False, True])
 def test_every_solver_takes_the_model(volume):
     """FISTA, Richardson–Lucy and ADMM-TV, 2-D and 3-D, take the model in place of the
-    PSF: the estimate is on the model's object grid, the data misfit falls well below
-    its start, and a batch of two images gives each its own solution."""
+    PSF, with leading image axes as a batch: the estimates are on the model's object
+    grid and each image's data misfit falls well below its start."""
     model, x, b = _problem(volume)
+    other = 0.5 * b + 0.1 * np.asarray(model(x[..., ::-1, :]))
     for solver, kw in SOLVERS_3D if volume else SOLVERS_2D:
-        out = solver(b, model, 150, progress=False, **kw)
-        assert out.image.shape == x.shape, solver.__name__
-        assert float(out.residual[-1]) < 0.05 * float(out.residual[0]), solver.__name__
-        pair = solver(np.stack([b, 0.5 * b + 0.1 * np.asarray(model(x[..., ::-1, :]))]),
-                      model, 3, progress=False, **kw)
-        alone = solver(b, model, 3, progress=False, **kw)
-        np.testing.assert_allclose(pair.image[0], alone.image, rtol=1e-4,
-                                   atol=1e-5 * float(alone.image.max()))
+        out = solver(np.stack([b, other]), model, 150, progress=False, **kw)
+        assert out.image.shape == (2,) + x.shape, solver.__name__
+        assert np.all(np.asarray(out.residual[:, -1]) < 0.05 * np.asarray(out.residual[:, 0])), \
+            solver.__name__
 
 
 def test_solvers_with_a_rank_one_model_match_the_psf_path():
