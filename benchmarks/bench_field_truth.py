@@ -10,10 +10,11 @@ radius, a random diffuser of 40 µm features, the sensor the central 96 × 96 sa
 sources at z1 = 20 mm. Scene points sit on a grid of chief rays every ``spacing`` pixels
 within ``±half`` pixels of the axis (the defaults keep every PSF's light on the
 sensor: a PSF cut by the sensor's edge is no longer smooth across the field, and the
-model's own crop is where that edge belongs); point ``p`` at ``(y1, x1) = −c_p·dx·z1/z2`` has its own PSF
-from :func:`diffcam.psf_stack` (physical irradiance, scaled by the on-axis PSF's sum:
-what leaves the sensor is lost, as in a real camera), and the sensor image is
-``b = Σ_p x_p h_p`` (no low-rank model involved). The scene is a smooth random field
+model's own crop is where that edge belongs); point ``p`` at
+``(y1, x1) = −c_p·dx·z1/z2`` has its own PSF from :func:`diffcam.psf_stack` (physical
+irradiance, scaled by the on-axis PSF's sum: what leaves the sensor is lost, as in a
+real camera), and the sensor image is ``b = Σ_p x_p h_p`` (no low-rank model
+involved). The scene is a smooth random field
 on the points.
 
 Rows: the rank the *per-point* stack needs for 1 % and 0.1 % model error (after

@@ -202,7 +202,8 @@ def test_gradients_through_the_model_match_finite_differences(x64):
 
     def loss(psfs, positions):
         model = field_model(field_psf(psfs, positions, rank=2), SENSOR)
-        return jnp.sum(model(scene[0]) * model(scene[1])) + jnp.sum(model.adjoint(scene[0, :20, :24]))
+        return (jnp.sum(model(scene[0]) * model(scene[1]))
+                + jnp.sum(model.adjoint(scene[0, :20, :24])))
     check_grads(loss, (jnp.asarray(psfs), jnp.asarray(POSITIONS + 0.3)), order=1,
                 modes=("rev", "fwd"), eps=1e-5)
 
