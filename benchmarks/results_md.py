@@ -99,6 +99,17 @@ SECTIONS = {
                               "split_gap", "side_slope", "side_rms", "side_axial_width",
                               "side_outside", "diffcam_rms", "diffcam_outside", "own_rms",
                               "own_outside"]),
+    "field": ("A PSF that changes across the field: the low-rank model against a NumPy "
+              "reference, and its cost per rank in ADMM-TV",
+              "python -m benchmarks.bench_field",
+              ["part", "K", "model", "forward_rel_err", "adjoint_rel_err", "diffcam_s",
+               "numpy_s", "speedup", "admm_s_per_it", "cost_ratio", "fwd_adj_s",
+               "fwd_adj_ratio", "temp_mb", "argument_mb"]),
+    "field_truth": ("A PSF that changes across the field: a per-point known truth from "
+                    "the engine",
+                    "python -m benchmarks.bench_field_truth",
+                    ["what", "points", "rank_1pct", "rank_0p1pct", "rank1_error",
+                     "psnr_db", "final_residual", "model_error"]),
     "distributed": ("PSF stacks over two processes against one",
                     "python -m benchmarks.bench_distributed",
                     ["config", "N", "depths", "repeat", "psfs_per_s", "peak_mb_each",

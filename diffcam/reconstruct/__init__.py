@@ -9,7 +9,9 @@
   (axial TV weight, L1 weight, residual balancing) in :class:`AdmmOptions`.
 * :func:`fista` — non-negative least squares (FISTA), the unregularised floor.
 * :func:`wiener` — Tikhonov inverse filter, the fast linear baseline.
-* :func:`convolution_model` — the forward model ``A`` and its adjoint.
+* :func:`convolution_model` — the forward model ``A`` and its adjoint;
+  :func:`field_model` — the field-dependent (low-rank) one, which every solver takes in
+  place of a PSF.
 
 Every solver returns a :class:`Reconstruction`.
 """
@@ -18,7 +20,8 @@ from diffcam.reconstruct.admm import AdmmOptions, admm_tv, admm_tv_3d
 from diffcam.reconstruct.fista import fista, nonnegative_least_squares
 from diffcam.reconstruct.focus import FocusSweep, focus_sweep, sharpness
 from diffcam.reconstruct.loop import Reconstruction
-from diffcam.reconstruct.operators import ConvolutionModel, convolution_model
+from diffcam.reconstruct.operators import (ConvolutionModel, FieldModel, convolution_model,
+                                           field_model)
 from diffcam.reconstruct.richardson_lucy import (RichardsonLucyOptions, richardson_lucy,
                                                 richardson_lucy_3d)
 from diffcam.reconstruct.wiener import wiener
@@ -27,6 +30,8 @@ __all__ = [
     "Reconstruction",
     "ConvolutionModel",
     "convolution_model",
+    "FieldModel",
+    "field_model",
     "richardson_lucy",
     "richardson_lucy_3d",
     "RichardsonLucyOptions",

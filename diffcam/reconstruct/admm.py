@@ -25,6 +25,17 @@ with ``B`` smooth polynomials on the sensor and ``c`` free; the ``x = Hv`` updat
 minimises over ``x`` and ``c`` together, which leaves for ``c`` the least-squares fit of
 ``B`` to ``b - C(Hv + ξ/μ1)``.
 
+A field-dependent model (:class:`~diffcam.reconstruct.operators.FieldModel`) in place of
+the PSF has no ``HᵀH`` diagonal in any basis, so its ``v`` update is *linearised*
+(Yang & Yuan, Math. Comp. 82, 301, 2013): ``mu1 HᵀH`` is replaced by ``mu1 L`` with
+``L >= ||H||²`` plus the data term's gradient at the previous iterate,
+``(mu1 L + mu2 ΨᵀΨ + mu3) v = mu1 L v_k - Hᵀ(mu1 H v_k - mu1 x + ξ) + rest``, diagonal in
+the same basis. An iteration costs one application of ``H`` and one of ``Hᵀ`` (each
+``K + 1`` FFTs) and a real FFT pair of the volume. It converges to the same problem's
+solution, in more iterations than the exact update for a shift-invariant model. The
+model's scale is that of the PSF at the centre of its field (the whole stack's norm in
+3-D), and ``L`` is the power iteration's ``||H||²`` times 1.1.
+
 The solvers return the non-negative split variable ``w``; ``final_residual`` and
 ``final_objective`` are those of ``w`` itself, and ``split_gap`` is ``||v - w|| / ||w||``
 (the residual history is that of the iterates ``v``, which fit the data more closely
@@ -61,10 +72,11 @@ from diffcam.core.grid import crop_to, pad_to
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
-                                        check_iterations, check_psf, check_tol,
-                                        float_dtype)
+                                        check_iterations, check_operator, check_psf,
+                                        check_tol, float_dtype)
 from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
-from diffcam.reconstruct.operators import convolution_model, divergence, gradient
+from diffcam.reconstruct.operators import (FieldModel, convolution_model, divergence,
+                                           gradient, operator_norm)
 
 __all__ = ["AdmmOptions", "MAX_BACKGROUND_DEGREE", "TUTORIAL_2D", "VOLUME", "admm_tv",
            "admm_tv_3d", "legendre_terms"]
@@ -179,7 +191,9 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100,
         image: ``(..., ny, nx)`` sensor image (background subtracted; may hold small
             negatives).
         psf: ``(..., my, mx)`` PSF, non-negative, ``my <= ny``, ``mx <= nx``; leading axes
-            broadcast with the image's.
+            broadcast with the image's. Or a 2-D forward model
+            (:class:`~diffcam.reconstruct.operators.FieldModel`, boundary ``"crop"`` or
+            ``"circular"``) for the image's sensor (module docstring).
         iterations: iterations (static). The DiffuserCam tutorial shows 5; 50–200 converge
             much further.
         options: :class:`AdmmOptions`; default :data:`TUTORIAL_2D` (``tau = 1e-4`` is for
@@ -205,7 +219,8 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100,
     Args:
         image: ``(..., ny, nx)`` sensor image.
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale, or a
-            list of ``(my, mx)`` arrays.
+            list of ``(my, mx)`` arrays; or a 3-D forward model
+            (:class:`~diffcam.reconstruct.operators.FieldModel`).
         iterations: iterations (static).
         options: :class:`AdmmOptions`; default ``AdmmOptions()``: DiffuserCam's 3-D
             settings (μ = 1e-3, isotropic 3-D TV with ``tau = 6e-4`` for raw counts
@@ -226,26 +241,34 @@ def _admm(image, psf, iterations, options, *, volume, progress):
     iterations = check_iterations(iterations)
     check_image(image, nonnegative=False)
     core = 3 if volume else 2
-    psf = check_psf(psf, jnp.shape(image), min_ndim=core)
-    batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
-    dtype = float_dtype(image, psf)
-    if is_concrete(image) and is_concrete(psf):
-        _check_scale(image, psf, dtype)
+    model = check_operator(psf, jnp.shape(image), volume=volume, boundaries=_BOUNDARIES,
+                           solver="admm_tv" + ("_3d" if volume else ""))
+    if model:
+        batch, dtype = tuple(jnp.shape(image)[:-2]), float_dtype(image)
+        depth = psf.weights.shape[1] if volume else 1
+        boundary = psf.boundary
+    else:
+        psf = check_psf(psf, jnp.shape(image), min_ndim=core)
+        batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
+        dtype = float_dtype(image, psf)
+        if is_concrete(image) and is_concrete(psf):
+            _check_scale(image, psf, dtype)
+        psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
+        if not volume:
+            psf = psf[..., None, :, :]
+        depth, boundary = psf.shape[-3], options.boundary
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
-    psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
-    if not volume:
-        psf = psf[..., None, :, :]
     tau, tau_axial, sparsity = options.weights()
-    axial = psf.shape[-3] > 1 and not (is_concrete(tau_axial) and float(tau_axial) == 0)
+    axial = depth > 1 and not (is_concrete(tau_axial) and float(tau_axial) == 0)
     flat = lambda a, k: a.reshape((-1,) + a.shape[a.ndim - k:])  # noqa: E731
     settings = jnp.asarray([options.mu1, options.mu2, options.mu3, tau, tau_axial,
                             sparsity, options.relaxation], dtype)
     tol = None if options.tol is None else jnp.asarray(options.tol, dtype)
     with progress_bar(iterations, "ADMM-TV", progress):
         out = jax.block_until_ready(_admm_batched(
-            flat(image, 2), flat(psf, 3), settings, tol, iterations=iterations,
-            boundary=options.boundary, axial=axial, balance=bool(options.balance),
-            background=options.background))
+            flat(image, 2), psf if model else flat(psf, 3), settings, tol,
+            iterations=iterations, boundary=boundary, axial=axial,
+            balance=bool(options.balance), background=options.background))
     if not volume:
         out = out._replace(image=out.image[:, 0])
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
@@ -255,10 +278,11 @@ def _admm(image, psf, iterations, options, *, volume, progress):
                                    "background"))
 def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, balance,
                   background):
+    """One problem per image; ``psf`` is a batch of PSF stacks or one forward model."""
     def one(b, h):
         return _admm_solve(b, h, settings, tol, iterations=iterations, boundary=boundary,
                            axial=axial, balance=balance, background=background)
-    return jax.vmap(one)(image, psf)
+    return jax.vmap(one, in_axes=(0, None if isinstance(psf, FieldModel) else 0))(image, psf)
 
 
 def _check_scale(image, psf, dtype) -> None:
@@ -320,7 +344,7 @@ class _Basis(NamedTuple):
     DCT-II (with axial TV) or nothing. ``otf`` is the PSF stack's OTF in that basis;
     ``eig`` the eigenvalues of ΨᵀΨ."""
 
-    otf: jax.Array           # (nz, fy, fxr) complex
+    otf: jax.Array | None    # (nz, fy, fxr) complex; None for a linearised data term
     eig: jax.Array           # (nz or 1, fy, fxr) real
     dct: jax.Array | None    # (nz, nz) or None
     grid: tuple
@@ -340,19 +364,89 @@ class _Basis(NamedTuple):
         return irfft2(jnp.sum(self.otf * spectrum, axis=0), s=self.grid)
 
 
-def _basis(otf, grid, a, dtype) -> _Basis:
-    """The basis of a model with OTF stack ``otf`` and axial TV scale ``a`` (None: no
-    axial TV)."""
+def _basis(otf, grid, a, dtype, nz=None) -> _Basis:
+    """The basis of a model of ``nz`` planes (default: the OTF stack's) with OTF stack
+    ``otf`` (None: not needed) and axial TV scale ``a`` (None: no axial TV)."""
     ky = 2 * jnp.pi * jnp.fft.fftfreq(grid[0])[:, None]
     kx = 2 * jnp.pi * jnp.fft.rfftfreq(grid[1])[None, :]
     lateral = (4 - 2 * jnp.cos(ky) - 2 * jnp.cos(kx)).astype(dtype)[None]
     if a is None:
         return _Basis(otf, lateral, None, grid)
-    nz = otf.shape[0]
+    nz = otf.shape[0] if nz is None else nz
     dct = _dct_matrix(nz, dtype)
     axial_eig = (2 - 2 * jnp.cos(jnp.pi * jnp.arange(nz) / nz)).astype(dtype)
-    return _Basis(jnp.tensordot(dct, otf, 1), lateral + a ** 2 * axial_eig[:, None, None],
-                  dct, grid)
+    return _Basis(None if otf is None else jnp.tensordot(dct, otf, 1),
+                  lateral + a ** 2 * axial_eig[:, None, None], dct, grid)
+
+
+class _ExactData(NamedTuple):
+    """The data term of a shift-invariant model: ``v`` solved exactly (:func:`_v_update`)."""
+
+    basis: _Basis
+
+    def solve(self, d, rest, mu, v, hv):
+        """``v`` from ``(mu1 HᵀH + mu2 ΨᵀΨ + mu3) v = Hᵀ d + rest``, and ``H v``."""
+        return _v_update(self.basis, rfft2(d), rest, mu)
+
+    def blur(self, v):
+        """``H v`` on the FFT grid."""
+        return self.basis.image(self.basis.forward(v))
+
+
+class _LinearisedData(NamedTuple):
+    """The data term of a field-dependent model (module docstring): ``H`` and ``Hᵀ``
+    on the FFT grid, ``L >= ||H||²``."""
+
+    basis: _Basis
+    forward: object
+    adjoint: object
+    lipschitz: jax.Array
+
+    def solve(self, d, rest, mu, v, hv):
+        """``v`` from ``(mu1 L + mu2 ΨᵀΨ + mu3) v = mu1 L v_k - Hᵀ(mu1 H v_k - d) + rest``
+        and ``H v``."""
+        mu1, mu2, mu3 = mu
+        step = mu1 * self.lipschitz
+        rhs = step * v - self.adjoint(mu1 * hv - d) + rest
+        v = self.basis.inverse(self.basis.forward(rhs) / (step + mu2 * self.basis.eig + mu3))
+        return v, self.forward(v)
+
+    def blur(self, v):
+        return self.forward(v)
+
+
+def _linearised(model: FieldModel, a, dtype):
+    """The data term of ``model`` scaled by its centre PSF's norm (the volume's in
+    3-D): ``(data term, that norm)``."""
+    h_norm = _safe_norm(model.centre_psf())
+    if model.volume:
+        forward = lambda v: model.blur(v) / h_norm  # noqa: E731
+        adjoint = lambda y: model.blur_adjoint(y) / h_norm  # noqa: E731
+    else:
+        forward = lambda v: model.blur(v[0]) / h_norm  # noqa: E731
+        adjoint = lambda y: model.blur_adjoint(y)[None] / h_norm  # noqa: E731
+    nz = model.weights.shape[1] if model.volume else 1
+    start = jnp.ones((nz,) + model.object_shape, dtype)
+    lipschitz = 1.1 * operator_norm(forward, adjoint, start) ** 2
+    basis = _basis(None, model.fft_shape, a, dtype, nz)
+    return _LinearisedData(basis, forward, adjoint, lipschitz), h_norm
+
+
+def _planes(psf) -> int:
+    """Depth planes of a PSF stack ``(nz, my, mx)`` or of a forward model."""
+    if isinstance(psf, FieldModel):
+        return psf.weights.shape[1] if psf.volume else 1
+    return psf.shape[0]
+
+
+def _data_term(psf, b, boundary, a):
+    """The data term of one problem and the scale it divides the model by: the exact
+    one for a PSF stack ``(nz, my, mx)``, the linearised one for a forward model."""
+    if isinstance(psf, FieldModel):
+        return _linearised(psf, a, b.dtype)
+    h_norm = _safe_norm(psf)
+    model = convolution_model(psf / h_norm, b.shape, boundary, volume=True)
+    return _ExactData(_basis(model.otf, model.fft_shape, a, b.dtype)), h_norm
 
 
 def _v_update(basis, data_spectrum, rest, mu):
@@ -423,14 +517,13 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
     background)."""
     # solved for the image and the PSF at unit L2 norm (the weights scaled alike), so
     # that no square under- or overflows; the estimate is scaled back at the end
-    b_norm, h_norm = _safe_norm(b), _safe_norm(psf)
+    b_norm = _safe_norm(b)
     b = b / b_norm
     tau, tau_axial, sparsity = settings[3] / b_norm, settings[4] / b_norm, settings[5] / b_norm
     alpha = settings[6]
-    model = convolution_model(psf / h_norm, b.shape, boundary, volume=True)
-    grid = model.fft_shape
     a = (tau_axial / jnp.where(tau > 0, tau, 1)) if axial else None
-    basis = _basis(model.otf, grid, a, b.dtype)
+    data_term, h_norm = _data_term(psf, b, boundary, a)
+    grid, nz = data_term.basis.grid, _planes(psf)
     sensor = (lambda a: pad_to(a, grid)) if boundary == "crop" else (lambda a: a)
     crop_mask, data = sensor(jnp.ones_like(b)), sensor(b)
     smooth = _background(b.shape, background, b.dtype)
@@ -452,7 +545,7 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
         splits = (x, u, w)          # relaxed below; the primal residuals use them as is
         x, u, w = (alpha * s + (1 - alpha) * k for s, k in zip(splits, (hv, tv_v, v)))
         rest = _tv_adjoint(mu2 * u - eta, a) + mu3 * w - rho
-        v_new, hv_new = _v_update(basis, rfft2(mu1 * x - xi), rest, mu)
+        v_new, hv_new = data_term.solve(mu1 * x - xi, rest, mu, v, hv)
         tv_new = _tv(v_new, a)
         primal = jnp.stack([_norm(k - s) for k, s in zip((hv_new, tv_new, v_new), splits)])
         dual = mu * jnp.stack([_norm(hv_new - hv), _norm(tv_new - tv_v), _norm(v_new - v)])
@@ -463,7 +556,7 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
         best = smooth.fit(b - crop_to(hv, b.shape))
         return (v_new, hv_new, tv_new, xi, eta, rho, mu), fit(v, hv, tv_v, best)
 
-    v0 = jnp.zeros((psf.shape[0],) + grid, b.dtype)
+    v0 = jnp.zeros((nz,) + grid, b.dtype)
     plane = jnp.zeros(grid, b.dtype)
     tv0 = _tv(v0, a)
     state = (v0, plane, tv0, plane, tv0, v0, settings[:3])
@@ -471,7 +564,7 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
     v, hv, _, xi, _, rho, mu = state
     w = jnp.maximum(v + (rho - sparsity) / mu[2], 0)
     bg = smooth.fit(b - crop_to(hv + xi / mu[0], b.shape))      # the solve's background
-    final_residual, final_objective = fit(w, basis.image(basis.forward(w)), _tv(w, a), bg)
+    final_residual, final_objective = fit(w, data_term.blur(w), _tv(w, a), bg)
     fitted = None if background is None else bg * b_norm
     return Reconstruction(image=w * (b_norm / h_norm), residual=res,
                           objective=obj * b_norm ** 2, iterations=its,

@@ -12,6 +12,7 @@ import numpy as np
 
 from diffcam.core.errors import DiffcamError, ShapeError, check_field, is_concrete
 from diffcam.io import BackgroundWarning
+from diffcam.reconstruct.operators import FieldModel
 
 _ROUNDING = 1e-5  # negatives this small (relative to max|image|) are rounding, not data
 
@@ -21,7 +22,8 @@ MAX_ITERATIONS = 100_000
 two numbers per iteration and image, is allocated. Raise it for the session by
 assigning to ``diffcam.reconstruct.checks.MAX_ITERATIONS``."""
 
-__all__ = ["as_psf_stack", "check_psf", "check_image", "check_iterations", "check_tol",
+__all__ = ["as_psf_stack", "check_operator", "check_psf", "check_image", "check_iterations",
+           "check_tol",
            "batch_shape", "float_dtype", "MAX_ITERATIONS"]
 
 
@@ -37,6 +39,27 @@ def as_psf_stack(psfs: Any) -> Any:
                 f"crop or pad them to a common (my, mx) first (diffcam.core.grid.crop_to).")
         return jnp.stack([jnp.asarray(p) for p in psfs])
     return psfs
+
+
+def check_operator(model: Any, image_shape: Sequence[int], *, volume: bool | None = None,
+                   boundaries: Sequence[str] | None = None, solver: str = "the solver") -> bool:
+    """True if ``model`` is a forward model (:class:`~diffcam.reconstruct.operators.
+    FieldModel`) given in place of a PSF, after checking it against the sensor image
+    (and, if given, its dimensionality and boundary); False for a PSF array."""
+    if not isinstance(model, FieldModel):
+        return False
+    if tuple(image_shape[-2:]) != model.sensor_shape:
+        raise ShapeError(f"the image {tuple(image_shape[-2:])} is not the model's sensor "
+                         f"{model.sensor_shape}; build the model with "
+                         f"field_model(psf, image.shape[-2:]).")
+    if volume is not None and model.volume != volume:
+        raise DiffcamError(f"{solver} needs a {'3-D' if volume else '2-D'} model, got a "
+                           f"{'3-D' if model.volume else '2-D'} one; use the "
+                           f"{'2-D' if model.volume else '3-D'} solver.")
+    if boundaries is not None and model.boundary not in boundaries:
+        raise DiffcamError(f"{solver} supports models with boundary in {tuple(boundaries)}, "
+                           f"got {model.boundary!r}; build the model with one of them.")
+    return True
 
 
 def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Any:

@@ -20,10 +20,10 @@ from jaxtyping import ArrayLike
 
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (batch_shape, check_image, check_iterations,
-                                        check_psf, check_tol, float_dtype)
+                                        check_operator, check_psf, check_tol, float_dtype)
 from diffcam.core.errors import DiffcamError
 from diffcam.reconstruct.loop import Reconstruction, iterate
-from diffcam.reconstruct.operators import BOUNDARIES, convolution_model
+from diffcam.reconstruct.operators import BOUNDARIES, convolution_model, operator_norm
 
 __all__ = ["fista", "nonnegative_least_squares"]
 
@@ -71,7 +71,10 @@ def fista(image: ArrayLike, psf: ArrayLike, iterations: int = 200, *,
     Args:
         image: ``(..., ny, nx)`` sensor image (background subtracted).
         psf: ``(..., my, mx)`` PSF, non-negative, at most the image size; leading axes
-            broadcast with the image's (one PSF per colour channel, or one shared).
+            broadcast with the image's (one PSF per colour channel, or one shared). Or a
+            forward model (:class:`~diffcam.reconstruct.operators.FieldModel`, 2-D or
+            3-D) for the image's sensor: it brings its own boundary, and its step is
+            ``1 / (1.1 ||A||²)`` with ``||A||`` from 30 power iterations.
         iterations: iterations (static); the only regularisation.
         boundary: ``"crop"`` (DiffuserCam model; the estimate is on the larger object
             grid), ``"same"`` or ``"circular"`` (:mod:`diffcam.reconstruct.operators`).
@@ -87,6 +90,8 @@ def fista(image: ArrayLike, psf: ArrayLike, iterations: int = 200, *,
     iterations = check_iterations(iterations)
     check_tol(tol)
     check_image(image, nonnegative=False)
+    if check_operator(psf, jnp.shape(image), solver="fista"):
+        return _fista_model(image, psf, iterations, tol, progress)
     check_psf(psf, jnp.shape(image))
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), 2)
     dtype = float_dtype(image, psf)
@@ -98,6 +103,37 @@ def fista(image: ArrayLike, psf: ArrayLike, iterations: int = 200, *,
             flat(image), flat(psf), None if tol is None else jnp.asarray(tol, dtype),
             iterations=iterations, boundary=boundary))
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
+
+
+_POWER_ITERATIONS = 30
+_STEP_MARGIN = 1.1   # the power iteration's ||A||² approaches from below
+
+
+def _fista_model(image, model, iterations, tol, progress) -> Reconstruction:
+    """FISTA with a forward model in place of a PSF; leading image axes are a batch."""
+    dtype = float_dtype(image)
+    image = jnp.asarray(image, dtype)
+    flat = image.reshape((-1,) + image.shape[-2:])
+    with progress_bar(iterations, "FISTA", progress):
+        out = jax.block_until_ready(_fista_model_batched(
+            flat, model, None if tol is None else jnp.asarray(tol, dtype),
+            iterations=iterations))
+    return jax.tree.map(lambda a: a.reshape(image.shape[:-2] + a.shape[1:]), out)
+
+
+@partial(jax.jit, static_argnames=("iterations",))
+def _fista_model_batched(image, model, tol, *, iterations):
+    depth = model.weights.shape[1:2] if model.volume else ()
+    x0 = jnp.zeros(depth + model.object_shape, image.dtype)
+    lipschitz = _STEP_MARGIN * operator_norm(model, model.adjoint, x0 + 1,
+                                             _POWER_ITERATIONS) ** 2
+
+    def one(b):
+        x, res, obj, its, done = nonnegative_least_squares(
+            model, model.adjoint, b, x0, lipschitz, iterations, tol)
+        return Reconstruction(image=x, residual=res, objective=obj, iterations=its,
+                              converged=done)
+    return jax.vmap(one)(image)
 
 
 @partial(jax.jit, static_argnames=("iterations", "boundary"))

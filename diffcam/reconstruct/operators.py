@@ -24,6 +24,12 @@ A volume model (``volume=True``) takes a PSF stack ``(..., nz, my, mx)``, one PS
 depth, and an object ``(..., nz, oy, ox)``; the sensor image is the sum over depths,
 ``b = crop(sum_z h_z * x_z)``.
 
+A camera whose PSF changes across the field is :class:`FieldModel`, the low-rank model
+of :mod:`diffcam.model.field` (Yanny et al. 2020): ``K`` kernels ``g_k`` and their
+weights ``w_k`` on the object grid, ``b = crop(Σ_k g_k * (w_k · x))`` (per depth, summed,
+in 3-D), on the same grids and with the same boundaries. The solvers take it in place
+of a PSF.
+
 Grids follow :mod:`diffcam.core.grid`: index ``n//2`` of every axis is the optical axis, so
 the sensor's centre pixel sees the object's centre pixel through the PSF sample at
 ``m//2``. ``psf_centre`` moves that PSF sample (scikit-image's convention puts it at
@@ -32,20 +38,27 @@ the sensor's centre pixel sees the object's centre pixel through the PSF sample 
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
-from jax import Array
+from jax import Array, lax
 from jaxtyping import Complex, Float
 
 from diffcam.core.backend import fft_size, irfft2, rfft2
+from diffcam.core.errors import DiffcamError
 from diffcam.core.grid import crop_to, pad_to
+from diffcam.model.field import FieldPSF
 
 __all__ = [
     "BOUNDARIES",
     "ConvolutionModel",
     "convolution_model",
+    "FieldModel",
+    "field_model",
+    "operator_norm",
     "grid_shapes",
     "gradient",
     "divergence",
@@ -148,6 +161,126 @@ def convolution_model(psf: Float[Array, "*batch my mx"], sensor_shape: Sequence[
     otf = rfft2(kernel)
     return ConvolutionModel(otf=otf, sensor_shape=tuple(int(v) for v in sensor_shape[-2:]),
                             object_shape=object_shape, fft_shape=fft_shape, volume=volume)
+
+
+class FieldModel(eqx.Module):
+    """The field-dependent linear map ``A``: object ``(..., [nz,] oy, ox)`` → sensor
+    ``(..., ny, nx)``, ``A x = crop(Σ_k g_k * (w_k · x))`` (Σ over depths too in 3-D).
+
+    Build it with :func:`field_model`. ``model(x)`` is ``A x``, ``model.adjoint(y)`` is
+    ``Aᵀ y = Σ_k w_k · (g_k ⋆ pad(y))`` (exact to rounding). The sum over ``k`` is a
+    ``lax.scan`` accumulating into one spectrum (forward) or one object (adjoint), so
+    the working memory does not grow with ``K``; an evaluation costs ``K + 1`` real
+    FFTs of the object grid (one per kernel and one back).
+
+    Attributes:
+        otf: ``(K, [nz,] fy, fx//2+1)`` complex, real FFTs of the kernels on the FFT
+            grid, their axis sample moved to index 0.
+        weights: ``(K, [nz,] oy, ox)`` the kernels' weights on the object grid.
+        sensor_shape, object_shape, fft_shape: as :class:`ConvolutionModel`'s.
+        boundary: ``"same"``, ``"circular"`` or ``"crop"``.
+        volume: True if the model sums over a depth axis (-3).
+    """
+
+    otf: Complex[Array, "k *depth fy fxr"]
+    weights: Float[Array, "k *depth oy ox"]
+    sensor_shape: tuple[int, int] = eqx.field(static=True)
+    object_shape: tuple[int, int] = eqx.field(static=True)
+    fft_shape: tuple[int, int] = eqx.field(static=True)
+    boundary: str = eqx.field(static=True)
+    volume: bool = eqx.field(static=True)
+
+    @property
+    def rank(self) -> int:
+        """``K``, the number of kernels."""
+        return self.otf.shape[0]
+
+    def __call__(self, obj: Float[Array, "*batch oy ox"]) -> Float[Array, "*batch ny nx"]:
+        return crop_to(self.blur(obj), self.sensor_shape)
+
+    def blur(self, obj: Float[Array, "*batch oy ox"]) -> Float[Array, "*batch fy fx"]:
+        """``Σ_k g_k * (w_k · x)`` on the whole FFT grid (before the sensor's crop)."""
+        def add(spectrum, kernel):
+            otf, w = kernel
+            term = rfft2(pad_to(w * obj, self.fft_shape)) * otf
+            return spectrum + (term.sum(axis=-3) if self.volume else term), None
+        core = 3 if self.volume else 2
+        zero = jnp.zeros(jnp.shape(obj)[:jnp.ndim(obj) - core] + self.otf.shape[-2:],
+                         jnp.result_type(obj, self.otf))
+        spectrum, _ = lax.scan(add, zero, (self.otf, self.weights))
+        return irfft2(spectrum, s=self.fft_shape)
+
+    def adjoint(self, sensor: Float[Array, "*batch ny nx"]) -> Float[Array, "*batch oy ox"]:
+        return self.blur_adjoint(pad_to(sensor, self.fft_shape))
+
+    def blur_adjoint(self, image: Float[Array, "*batch fy fx"]) -> Float[Array, "*batch oy ox"]:
+        """The adjoint of :meth:`blur`: ``Σ_k w_k · (g_k ⋆ image)``."""
+        spectrum = rfft2(image)
+        if self.volume:
+            spectrum = spectrum[..., None, :, :]
+
+        def add(obj, kernel):
+            otf, w = kernel
+            back = irfft2(spectrum * jnp.conj(otf), s=self.fft_shape)
+            return obj + w * crop_to(back, self.object_shape), None
+        shape = jnp.broadcast_shapes(spectrum.shape[:-2], self.weights.shape[1:-2])
+        zero = jnp.zeros(shape + self.object_shape, jnp.result_type(image, self.weights))
+        obj, _ = lax.scan(add, zero, (self.otf, self.weights))
+        return obj
+
+    def centre_psf(self) -> Float[Array, "*depth fy fx"]:
+        """The PSF of a point at the object's centre, ``Σ_k w_k(0) g_k``, on the FFT
+        grid with its axis sample at index 0 (one per depth)."""
+        cy, cx = self.object_shape[0] // 2, self.object_shape[1] // 2
+        w = self.weights[..., cy, cx]
+        return irfft2(jnp.einsum("k...,k...yx->...yx", w.astype(self.otf.dtype), self.otf),
+                      s=self.fft_shape)
+
+
+def field_model(psf: FieldPSF, sensor_shape: Sequence[int], boundary: str = "crop"
+                ) -> FieldModel:
+    """The forward model of a camera whose PSF changes across the field.
+
+    Args:
+        psf: a :class:`diffcam.model.field.FieldPSF` (from
+            :func:`diffcam.model.field.field_psf` or
+            :func:`diffcam.model.field.load_field_psf`); with a depth axis it gives a
+            volume model.
+        sensor_shape: ``(ny, nx)`` samples; the kernels ``(my, mx)`` fit inside it.
+        boundary: ``"crop"`` (the DiffuserCam model), ``"same"`` or ``"circular"``
+            (module docstring).
+
+    Computes the OTFs and interpolates the weights onto the object grid once; the model
+    is jit-friendly and differentiable in the kernels, coefficients and positions.
+    """
+    if not isinstance(psf, FieldPSF):
+        raise DiffcamError(f"field_model takes a FieldPSF (diffcam.model.field.field_psf), "
+                           f"got {type(psf).__name__}; for one PSF use convolution_model.")
+    sensor_shape = tuple(int(v) for v in sensor_shape[-2:])
+    if psf.kernels.shape[-2] > sensor_shape[0] or psf.kernels.shape[-1] > sensor_shape[1]:
+        raise DiffcamError(f"the kernels {psf.kernels.shape[-2:]} are larger than the sensor "
+                           f"{sensor_shape}; crop the PSFs to the sensor first.")
+    return _field_model(psf, sensor_shape, boundary)
+
+
+@partial(jax.jit, static_argnames=("sensor_shape", "boundary"))
+def _field_model(psf: FieldPSF, sensor_shape, boundary) -> FieldModel:
+    conv = convolution_model(psf.kernels, sensor_shape, boundary, volume=psf.volume)
+    weights = psf.weights(conv.object_shape).astype(psf.kernels.dtype)
+    return FieldModel(otf=conv.otf, weights=weights, sensor_shape=sensor_shape,
+                      object_shape=conv.object_shape, fft_shape=conv.fft_shape,
+                      boundary=boundary, volume=psf.volume)
+
+
+def operator_norm(forward, adjoint, x0, iterations: int = 30) -> Array:
+    """``||A||`` by power iteration on ``AᵀA`` from ``x0`` (a non-negative start, such as
+    ones, converges fastest for a camera's non-negative PSFs); a lower bound that
+    approaches the norm from below."""
+    def step(_, x):
+        y = adjoint(forward(x))
+        return y / jnp.maximum(jnp.linalg.norm(y), jnp.finfo(y.dtype).tiny)
+    x = lax.fori_loop(0, iterations, step, x0 / jnp.linalg.norm(x0))
+    return jnp.linalg.norm(forward(x))
 
 
 def gradient(x: Float[Array, "*batch ny nx"]) -> Float[Array, "2 *batch ny nx"]:

@@ -63,11 +63,11 @@ from diffcam.core.errors import (ConvergenceWarning, DiffcamError, ShapeError, c
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
-                                        check_iterations, check_psf, check_tol,
-                                        float_dtype)
+                                        check_iterations, check_operator, check_psf,
+                                        check_tol, float_dtype)
 from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
-from diffcam.reconstruct.operators import (BOUNDARIES, convolution_model, divergence,
-                                           gradient, grid_shapes)
+from diffcam.reconstruct.operators import (BOUNDARIES, FieldModel, convolution_model,
+                                           divergence, gradient, grid_shapes)
 
 __all__ = ["richardson_lucy", "richardson_lucy_3d", "RichardsonLucyOptions"]
 
@@ -124,7 +124,10 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
         psf: ``(..., my, mx)`` PSF at the sensor pitch, non-negative, optical axis at
             ``(my//2, mx//2)``; ``my <= ny``, ``mx <= nx``. Leading axes of ``image`` and
             ``psf`` broadcast: one call deconvolves one image by a stack of PSFs (see
-            :func:`focus_sweep`) or a stack of images by one PSF.
+            :func:`focus_sweep`) or a stack of images by one PSF. Or a 2-D forward
+            model (:class:`~diffcam.reconstruct.operators.FieldModel`) for the image's
+            sensor: it brings its own boundary and units (the estimate is in the units
+            of ``image`` over the model's), with ``convention="adjoint"``.
         iterations: iterations (static: it fixes the history length).
         init: initial estimate (object-grid shape, non-negative), default the constant
             that matches the image's flux (0.5 for ``convention="skimage"``).
@@ -165,7 +168,8 @@ def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int =
     Args:
         image: ``(..., ny, nx)`` sensor image, non-negative.
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale (their
-            relative intensities matter), or a list of ``(my, mx)`` arrays.
+            relative intensities matter), or a list of ``(my, mx)`` arrays; or a 3-D
+            forward model (:class:`~diffcam.reconstruct.operators.FieldModel`).
         iterations, init: as for :func:`richardson_lucy`.
         options: :class:`RichardsonLucyOptions` (default ``boundary="crop"``, the
             DiffuserCam model; ``convention`` must be ``"adjoint"`` and
@@ -201,18 +205,14 @@ def _richardson_lucy(image, psf, iterations, init, opts: RichardsonLucyOptions, 
     check_tol(tol)
     check_image(image, nonnegative=True)
     core = 3 if volume else 2
-    psf = check_psf(psf, jnp.shape(image), min_ndim=core)
     for name, value in (("tv_weight", tv_weight), ("eps", eps)):
         if is_concrete(value) and not 0 <= float(value) < math.inf:
             raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")
-    batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
-    dtype = float_dtype(image, psf)
-    if is_concrete(image, psf) and convention == "adjoint":
-        _check_estimate_range(image, psf, dtype)
-    image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
-    psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
-    depth = jnp.shape(psf)[-3:-2] if volume else ()
-    object_shape = depth + grid_shapes(image.shape, psf.shape, boundary)[0]
+    model = check_operator(psf, jnp.shape(image), volume=volume, solver="richardson_lucy"
+                           + ("_3d" if volume else ""))
+    image, psf, batch, object_shape = (_model_inputs if model else _psf_inputs)(
+        image, psf, opts, volume)
+    dtype = image.dtype
     if init is not None:
         check_finite("init", init)
         if is_concrete(init) and float(jnp.min(init)) < 0:
@@ -233,11 +233,37 @@ def _richardson_lucy(image, psf, iterations, init, opts: RichardsonLucyOptions, 
     config = _Config(iterations, boundary, convention, bool(accelerate), use_tv, use_filter,
                      volume)
     with progress_bar(iterations, "Richardson–Lucy", progress):
-        out = jax.block_until_ready(_rl_batched(flat(image, 2), flat(psf, core), init,
+        out = jax.block_until_ready(_rl_batched(flat(image, 2),
+                                                psf if model else flat(psf, core), init,
                                                 weights, config))
     if use_tv and is_concrete(out.objective):
         _warn_if_oscillating(np.asarray(out.objective, np.float64), tv_weight)
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
+
+
+def _model_inputs(image, model, opts, volume):
+    """``(image, model, batch shape, object shape)`` of a run with a forward model."""
+    if opts.convention != "adjoint":
+        raise DiffcamError("a forward model runs with convention='adjoint'; "
+                           "convention='skimage' takes a PSF.")
+    depth = model.weights.shape[1:2] if volume else ()
+    image = jnp.asarray(image, float_dtype(image))
+    return image, model, tuple(image.shape[:-2]), depth + model.object_shape
+
+
+def _psf_inputs(image, psf, opts, volume):
+    """``(image, psf, batch shape, object shape)`` of a run with a PSF (stack), checked
+    and broadcast to their common batch axes."""
+    core = 3 if volume else 2
+    psf = check_psf(psf, jnp.shape(image), min_ndim=core)
+    batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
+    dtype = float_dtype(image, psf)
+    if is_concrete(image, psf) and opts.convention == "adjoint":
+        _check_estimate_range(image, psf, dtype)
+    psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
+    image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
+    depth = jnp.shape(psf)[-3:-2] if volume else ()
+    return image, psf, batch, depth + grid_shapes(image.shape, psf.shape, opts.boundary)[0]
 
 
 def _check_estimate_range(image, psf, dtype) -> None:
@@ -291,7 +317,10 @@ class _Config(NamedTuple):
 
 @partial(jax.jit, static_argnames=("config",))
 def _rl_batched(image, psf, init, weights: _Weights, config: _Config):
-    return jax.vmap(lambda b, h, x0: _rl_solve(b, h, x0, weights, config))(image, psf, init)
+    """One problem per image; ``psf`` is a batch of PSFs or one forward model."""
+    axes = (0, None if isinstance(psf, FieldModel) else 0, 0)
+    return jax.vmap(lambda b, h, x0: _rl_solve(b, h, x0, weights, config),
+                    in_axes=axes)(image, psf, init)
 
 
 def _operators(b, psf, x0, config: _Config):
@@ -307,7 +336,8 @@ def _operators(b, psf, x0, config: _Config):
         if x0 is None:
             x0 = jnp.full(sensor_shape, 0.5, b.dtype)
         return forward, back, sensitivity, seen, x0
-    forward = convolution_model(psf, sensor_shape, config.boundary, volume=config.volume)
+    forward = psf if isinstance(psf, FieldModel) else convolution_model(
+        psf, sensor_shape, config.boundary, volume=config.volume)
     sensitivity = forward.adjoint(jnp.ones(sensor_shape, b.dtype))
     seen = sensitivity > _SEEN * jnp.max(sensitivity)
     if x0 is None:
@@ -328,8 +358,10 @@ def _rl_solve(b, psf, x0, weights: _Weights, config: _Config) -> Reconstruction:
     b_scale = h_scale = jnp.ones((), b.dtype)
     if config.convention != "skimage":  # skimage's iteration is kept bit for bit
         b_scale = _positive(jnp.max(b))
-        h_scale = _positive(jnp.sum(psf))
-        b, psf = b / b_scale, psf / h_scale
+        if not isinstance(psf, FieldModel):   # a model keeps its units
+            h_scale = _positive(jnp.sum(psf))
+            psf = psf / h_scale
+        b = b / b_scale
         x0 = None if x0 is None else x0 * (h_scale / b_scale)
     solution = _rl_normalised(b, psf, x0, weights, config)
     return solution._replace(image=solution.image * (b_scale / h_scale),
@@ -347,7 +379,9 @@ def _rl_normalised(b, psf, x0, weights: _Weights, config: _Config) -> Reconstruc
     use_tv, use_filter, accelerate = config.use_tv, config.use_filter, config.accelerate
     inv_sensitivity = jnp.where(seen, 1 / jnp.where(seen, sensitivity, 1), 0)
     if use_tv:
-        psf_sum = jnp.sum(psf, axis=(-2, -1), keepdims=True)
+        psf_sum = (jnp.max(sensitivity, axis=(-2, -1), keepdims=True)
+                   if isinstance(psf, FieldModel)
+                   else jnp.sum(psf, axis=(-2, -1), keepdims=True))
         tv_scale = weights.tv_weight * psf_sum
         smooth = _TV_SMOOTH * jnp.mean(x0)
 
