@@ -60,27 +60,6 @@ def _camera(**changes):
     return Camera(**{**settings_, **changes})
 
 
-def _magnify_far_away():
-    """A reference at z1_ref = 1 nm shrinks by m ≈ 4e-5: all its light lands in the
-    centre pixel, with the area kernel bounded by the frame (not 24 000 taps)."""
-    ref = IMAGE[:8, :8]
-    out = np.asarray(magnify_psf(ref, 5e-6, 1e-9, 25e-3, 1e-3, kind="area"))
-    assert out.sum() == pytest.approx(ref.sum(), rel=1e-5)
-    assert out[4, 4] == pytest.approx(ref.sum(), rel=1e-5)
-
-
-def _affine_mse_of_a_constant():
-    """The least-squares affine fit of a constant estimate is the reference's mean, so
-    the MSE is the reference's variance (not 0/0)."""
-    assert float(mse(np.ones_like(IMAGE), IMAGE, align="affine")) == pytest.approx(
-        IMAGE.var(), rel=1e-5)
-
-
-def _scaled_zero_estimate():
-    assert np.array_equal(np.asarray(align_to(np.zeros_like(IMAGE), IMAGE, "scale")),
-                          np.zeros_like(IMAGE))
-
-
 def _fft_threads_from_environment(text):
     def call():
         with pytest.MonkeyPatch.context() as mp:
@@ -118,8 +97,6 @@ PROBES = [
         FIELD, 5e-6, 532e-9, 5e-2, pad=10**5), DiffcamError),
     Probe("unbounded work", "propagate(pad=10**5)", lambda: propagate(
         FIELD, 5e-6, 532e-9, 1e-3, method="fresnel_tf", pad=10**5), DiffcamError),
-    Probe("unbounded work", "magnify_psf(z1_ref=1e-9, kind='area') is bounded",
-          _magnify_far_away, VALID),
     # exceptions that were not DiffcamErrors
     Probe("API exception", "fresnel_tf(pad=1.5)", lambda: fresnel_tf(
         FIELD, 5e-6, 532e-9, 1e-3, pad=1.5), DiffcamError),
@@ -180,10 +157,10 @@ PROBES = [
           lambda: psf_fidelity(np.ones_like(IMAGE), IMAGE), DiffcamError),
     Probe("silent NaN", "psf_fidelity with one dark measured plane", lambda: psf_fidelity(
         np.stack([IMAGE, IMAGE]), np.stack([IMAGE, 0 * IMAGE])), DiffcamError),
-    Probe("silent NaN", "mse(align='affine') of a constant estimate",
-          _affine_mse_of_a_constant, VALID),
+    Probe("silent NaN", "mse(align='affine') of a constant estimate: any gain fits",
+          lambda: mse(np.ones_like(IMAGE), IMAGE, align="affine"), DiffcamError),
     Probe("silent NaN", "align_to(mode='scale') of an all-zero estimate",
-          _scaled_zero_estimate, VALID),
+          lambda: align_to(np.zeros_like(IMAGE), IMAGE, "scale"), DiffcamError),
     # garbage accepted
     Probe("garbage accepted", "richardson_lucy of an all-zero image",
           lambda: richardson_lucy(np.zeros_like(IMAGE), KERNEL, 2), DiffcamError),
@@ -294,8 +271,9 @@ def test_area_resampling_is_bounded_by_the_frame():
 def test_metrics_on_constant_slices(constant, which, value, fn):
     """A stack of three images in which some slices of one input hold one value: a
     DiffcamError if the metric is undefined there (Pearson; SSIM and PSNR in units of
-    a reference whose range is 0; psf_fidelity's min–max normalisation), otherwise
-    finite values (the affine MSE of a constant slice is the reference's variance)."""
+    a reference whose range is 0; psf_fidelity's min–max normalisation; the affine fit
+    of a constant estimate), otherwise finite values (the affine MSE against a
+    constant reference is 0)."""
     rng = np.random.default_rng(7)
     a, b = rng.random((3, 9, 10)) + 0.1, rng.random((3, 9, 10)) + 0.1
     dark = sorted(constant)
@@ -305,6 +283,7 @@ def test_metrics_on_constant_slices(constant, which, value, fn):
              "fidelity": lambda: psf_fidelity(a, b, register=False)["pearson"]}
     # the default data range is the whole reference's: 0 only if every slice is constant
     undefined = dark and (fn in ("pearson", "fidelity")
+                          or fn == "mse_affine" and which == "a"
                           or fn in ("ssim", "psnr") and which == "b" and len(dark) == 3)
     try:
         out = np.asarray(calls[fn]())
@@ -312,8 +291,8 @@ def test_metrics_on_constant_slices(constant, which, value, fn):
         assert undefined and "\n" not in str(e), str(e)
         return
     assert not undefined and np.isfinite(out).all()
-    if fn == "mse_affine" and which == "a":
-        np.testing.assert_allclose(out[dark], b[dark].var(axis=(-2, -1)), rtol=1e-4)
+    if fn == "mse_affine":
+        np.testing.assert_allclose(out[dark], 0, atol=1e-8)
 
 
 _VARIANTS = [{}, {"accelerate": True}, {"tv_weight": 1e-3}, {"boundary": "crop"}]

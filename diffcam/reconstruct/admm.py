@@ -61,8 +61,8 @@ from diffcam.core.grid import crop_to, pad_to
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
-                                        check_iterations, check_psf, check_tol,
-                                        float_dtype)
+                                        check_iterations, check_psf, check_scale,
+                                        check_tol, float_dtype)
 from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import convolution_model, divergence, gradient
 
@@ -230,7 +230,7 @@ def _admm(image, psf, iterations, options, *, volume, progress):
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
     dtype = float_dtype(image, psf)
     if is_concrete(image) and is_concrete(psf):
-        _check_scale(image, psf, dtype)
+        check_scale(image, psf, dtype)
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
     psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
     if not volume:
@@ -259,22 +259,6 @@ def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, bal
         return _admm_solve(b, h, settings, tol, iterations=iterations, boundary=boundary,
                            axial=axial, balance=balance, background=background)
     return jax.vmap(one)(image, psf)
-
-
-def _check_scale(image, psf, dtype) -> None:
-    """The image holds light, and the estimate's scale ``||image|| / ||psf||`` (norms
-    in float64) is a normal number of the solver's ``dtype``."""
-    image_norm = float(np.linalg.norm(np.asarray(image, np.float64)))
-    if image_norm == 0:
-        raise DiffcamError("image is all zeros: there is nothing to reconstruct.")
-    ratio = image_norm / float(np.linalg.norm(np.asarray(psf, np.float64)))
-    info = np.finfo(dtype)
-    if not float(info.tiny) < ratio < float(info.max):
-        raise DiffcamError(
-            f"the estimate's scale ||image|| / ||psf|| = {ratio:.3g} is outside the range "
-            f"of {np.dtype(dtype).name} ({info.tiny:.2g} to {info.max:.2g}); divide the "
-            f"image or multiply the PSF by a constant first (the estimate scales with "
-            f"image / psf).")
 
 
 def _safe_norm(a):

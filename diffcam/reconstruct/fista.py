@@ -19,9 +19,9 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike
 
 from diffcam.core.progress import progress_bar
+from diffcam.core.errors import DiffcamError, is_concrete
 from diffcam.reconstruct.checks import (batch_shape, check_image, check_iterations,
-                                        check_psf, check_tol, float_dtype)
-from diffcam.core.errors import DiffcamError
+                                        check_psf, check_scale, check_tol, float_dtype)
 from diffcam.reconstruct.loop import Reconstruction, iterate
 from diffcam.reconstruct.operators import BOUNDARIES, convolution_model
 
@@ -90,6 +90,8 @@ def fista(image: ArrayLike, psf: ArrayLike, iterations: int = 200, *,
     check_psf(psf, jnp.shape(image))
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), 2)
     dtype = float_dtype(image, psf)
+    if is_concrete(image, psf):
+        check_scale(image, psf, dtype)
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
     psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-2:])
     flat = lambda a: a.reshape((-1,) + a.shape[-2:])  # noqa: E731
