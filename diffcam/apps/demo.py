@@ -24,12 +24,12 @@ from __future__ import annotations
 import json
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 
 from diffcam.apps import paper
 from diffcam.apps.common import save_figure
+from diffcam.io import make_output_folder
 from diffcam import calibrate   # calibrate.resolve_twin: optimistix loads with it
 from diffcam.calibrate.simulation import cameraman_phase
 from diffcam.core.backend import fft_status
@@ -145,8 +145,7 @@ def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = Fals
 
     matplotlib.use("Agg")
     s = settings or (paper.Settings(grid=4000) if full else paper.Settings())
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_output_folder(out_dir)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     scale = (s.grid / 1024) ** 2 * np.log2(s.grid) / 10
     say(f"diffcam demo: grid {s.grid}² at 5 µm, GS {s.gs_iterations} iterations; expect about "
