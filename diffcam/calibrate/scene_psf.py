@@ -117,7 +117,7 @@ def _as_pairs(images, what: str) -> np.ndarray:
     if not np.isfinite(stack).all():
         raise DiffcamError(f"{what}: NaN/Inf values; clean the data first.")
     top = float(np.max(np.abs(stack)))
-    if top > np.finfo(np.float32).max:
+    if top > float(np.finfo(np.float32).max):
         raise DiffcamError(f"{what}: values up to {top:.3g}, beyond float32's range "
                            f"(3.4e+38), in which the fit runs; divide them by a constant "
                            f"first (the PSF scales with the raws).")
@@ -285,9 +285,9 @@ def predict_raw(calibration: ScenePsf, truth: Float[ArrayLike, "c ny nx"]) -> np
     model = convolution_model(jnp.asarray(psf / psf_peak), truth.shape, "crop")
     unit = model(pad_to(jnp.asarray(truth / truth_peak), model.object_shape))
     peaks = psf_peak * truth_peak
-    raw = (np.asarray(unit, np.float64) * peaks + offset[:, None, None]).astype(np.float32)
-    if not np.isfinite(raw).all():
+    raw = np.asarray(unit, np.float64) * peaks + offset[:, None, None]
+    if not np.abs(raw).max() <= float(np.finfo(np.float32).max):
         raise DiffcamError(f"the predicted raw exceeds float32's range (PSF and truth peak "
                            f"at {float(peaks.max()):.3g} together); divide the truth by a "
                            f"constant first.")
-    return raw
+    return raw.astype(np.float32)

@@ -36,6 +36,8 @@ __all__ = [
     "check_field",
     "real_array",
     "real_number",
+    "number_in",
+    "whole_number",
     "sampling_problem",
 ]
 
@@ -234,6 +236,25 @@ def real_number(name: str, value: Any, what: str) -> float:
     if arr.dtype.kind == "b" or arr.size != 1:
         raise DiffcamError(f"{name} must be {what}, got {value!r:.60}.")
     return float(arr.reshape(()))
+
+
+def number_in(name: str, value: Any, low: float, high: float, what: str) -> float:
+    """``value`` as a float in ``low`` … ``high`` (ends included), or a DiffcamError
+    saying ``name`` must be ``what`` (``"a share of the peak in 0 … 1"``)."""
+    v = real_number(name, value, what)
+    if not low <= v <= high:
+        raise DiffcamError(f"{name} must be {what}, got {value!r:.60}.")
+    return v
+
+
+def whole_number(name: str, value: Any, low: int, high: float = math.inf) -> int:
+    """``value`` as an int in ``low`` … ``high``: a Python or NumPy integer, not a bool
+    or a float, or a DiffcamError naming ``name``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or not low <= value <= high:
+        span = f"≥ {low}" if high == math.inf else f"in {low} … {high}"
+        raise DiffcamError(f"{name} must be a whole number {span}, got {value!r:.60}.")
+    return int(value)
 
 
 def check_field(field: Any, name: str = "field", *, finite: bool | str = True) -> None:

@@ -26,7 +26,7 @@ from jaxtyping import Float
 
 from diffcam.core.deprecation import renamed
 from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
-                                 check_positive, is_concrete)
+                                 check_positive, is_concrete, real_array)
 from diffcam.model.sensor import resample
 from diffcam.optics.propagation import magnification
 
@@ -71,6 +71,7 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
         DiffcamError: NaN/Inf in any argument (named), a negative or all-zero reference,
             non-positive lengths; ``ShapeError`` unless ``psf_ref`` is 2-D.
     """
+    real_array("psf_ref", psf_ref)
     check_field(psf_ref, "psf_ref")
     if np.ndim(psf_ref) != 2:
         raise ShapeError(f"psf_ref must be one 2-D PSF (ny, nx), got shape "

@@ -106,12 +106,19 @@ def _flat(estimate, mode, mask):
     return de, top(de) <= 64 * jnp.finfo(de.dtype).eps * top(estimate)
 
 
+@partial(jax.jit, static_argnames="mode")
+def _flat_mask(estimate, mode, mask):
+    """Where :func:`_flat` finds nothing to fit, as one program (eagerly, op by op, the
+    check cost seconds of dispatch and compilation)."""
+    return _flat(estimate, mode, mask)[1]
+
+
 def _check_alignable(estimate, mode, mask) -> None:
     """A DiffcamError if the fit of :func:`align_to` is undefined for any element of a
     concrete ``estimate``."""
     if not is_concrete(estimate, mask):
         return
-    flat = np.asarray(_flat(jnp.asarray(estimate), mode, mask)[1])
+    flat = np.asarray(_flat_mask(jnp.asarray(estimate), mode, mask))
     if flat.any():
         what = "all zero" if mode == "scale" else "constant"
         raise DiffcamError(

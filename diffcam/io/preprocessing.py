@@ -8,7 +8,8 @@ import warnings
 
 import numpy as np
 
-from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_finite
+from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
+                                 real_array, whole_number)
 from diffcam.io.reading import Capture
 
 __all__ = ["BackgroundWarning", "border_dark_level", "dark_level", "subtract_background",
@@ -132,6 +133,7 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
     if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
         raise DiffcamError(f"factor must be a positive integer, got {factor!r}.")
     image = np.asarray(image, dtype=np.float32)
+    real_array("image", image)
     check_field(image, "image")
     ny, nx = image.shape[-2:]
     my, mx = ny // factor, nx // factor
@@ -146,6 +148,7 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
 def normalise_l2(image: np.ndarray) -> np.ndarray:
     """``image / ||image||₂`` over the last two axes (per channel / per plane)."""
     image = np.asarray(image, dtype=np.float32)
+    real_array("image", image)
     check_field(image, "image")
     norm = np.sqrt(np.sum(image.astype(np.float64) ** 2, axis=(-2, -1), keepdims=True))
     if np.any(norm == 0):
@@ -180,6 +183,7 @@ def envelope_widths(image: np.ndarray, psfs: np.ndarray, samples: int = 5) -> np
     Returns:
         float64 ``(nz,)``, pixels: ``σ_z`` per plane (:func:`apply_envelope`).
     """
+    samples = whole_number("samples", samples, 1)
     profile, planes, centres = _profiles(image, psfs)
     rows = np.arange(planes.shape[1])
     spread = np.sqrt(planes @ rows ** 2 / planes.sum(axis=1) - centres ** 2)
@@ -217,8 +221,9 @@ def apply_envelope(psfs: np.ndarray, widths) -> np.ndarray:
     """
     widths = np.asarray(widths, np.float64)
     psfs = np.asarray(psfs, np.float32)
-    if psfs.ndim != 3 or widths.shape != psfs.shape[:1] or not np.all(widths > 0):
-        raise DiffcamError(f"apply_envelope needs a (nz, my, mx) stack and nz widths > 0 "
+    if psfs.ndim != 3 or widths.shape != psfs.shape[:1] or not np.all(
+            (widths > 0) & np.isfinite(widths)):
+        raise DiffcamError(f"apply_envelope needs a (nz, my, mx) stack and nz finite widths > 0 "
                            f"(pixels); got a stack of shape {psfs.shape} and widths of "
                            f"shape {widths.shape}.")
     _, planes, centres = _profiles(psfs[0], psfs)
@@ -240,8 +245,11 @@ def _bin(profiles, factor: int) -> np.ndarray:
 def _profiles(image, psfs):
     """The capture's row profile, each plane's row profile, and each plane's row
     centroid (pixels)."""
-    psfs = np.asarray(psfs, np.float64)
-    image = np.asarray(image, np.float64)
+    psfs = np.asarray(real_array("psfs", psfs), np.float64)
+    image = np.asarray(real_array("image", image), np.float64)
+    if not (np.isfinite(psfs).all() and np.isfinite(image).all()):
+        raise DiffcamError("the envelope needs a finite capture and PSF stack; clean the "
+                           "NaN/Inf pixels first.")
     if psfs.ndim != 3 or image.ndim != 2 or psfs.shape[1] > image.shape[0]:
         raise ShapeError(f"the envelope needs a (ny, nx) capture and a (nz, my, mx) PSF "
                          f"stack with my <= ny; got {image.shape} and {psfs.shape}.")

@@ -45,7 +45,7 @@ from tqdm.auto import tqdm
 from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
-from diffcam.core.errors import DiffcamError, ShapeError, check_positive
+from diffcam.core.errors import DiffcamError, ShapeError, check_finite, check_positive
 from diffcam.core.options import Options
 from diffcam.core.progress import enabled
 from diffcam.io import atomic_output, check_output_path, check_read_size, read_npz
@@ -101,6 +101,14 @@ class StackMeta:
             d[k] = np.asarray(d[k], dtype=np.float64)
         if d["offsets"] is not None:
             d["offsets"] = np.asarray(d["offsets"], dtype=np.float64).reshape(-1, 2)
+            check_finite("offsets", d["offsets"])
+        for name in ("depths", "pitch", "wavelengths"):
+            check_positive(name, d[name], "m")
+        weights = d["weights"]
+        if weights.shape != d["wavelengths"].shape or not (
+                np.all(weights >= 0) and weights.sum() > 0):
+            raise DiffcamError(f"weights {weights.tolist()!r:.60} must be one power ≥ 0 per "
+                               f"wavelength, not all 0; the metadata are damaged.")
         return cls(**d)
 
 

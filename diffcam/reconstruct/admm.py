@@ -261,12 +261,13 @@ def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, bal
     return jax.vmap(one)(image, psf)
 
 
-def _safe_norm(a):
-    """``||a||₂`` without overflow or underflow of the squares: ``m·||a/m||`` with
-    ``m = max|a|`` (1 where ``a`` is zero)."""
-    m = jnp.max(jnp.abs(a))
+def safe_norm(a, axis=None, keepdims: bool = False):
+    """``||a||₂`` over ``axis`` (all axes by default) without overflow or underflow of
+    the squares: ``m·||a/m||`` with ``m = max|a|`` (1 where ``a`` is zero)."""
+    m = jnp.max(jnp.abs(a), axis=axis, keepdims=True)
     m = jnp.where(m > 0, m, 1)
-    return m * jnp.linalg.norm(a / m)
+    norm = m * jnp.sqrt(jnp.sum((a / m) ** 2, axis=axis, keepdims=True))
+    return norm if keepdims else jnp.squeeze(norm, axis)
 
 
 def _tv(v, a):
@@ -407,7 +408,7 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
     background)."""
     # solved for the image and the PSF at unit L2 norm (the weights scaled alike), so
     # that no square under- or overflows; the estimate is scaled back at the end
-    b_norm, h_norm = _safe_norm(b), _safe_norm(psf)
+    b_norm, h_norm = safe_norm(b), safe_norm(psf)
     b = b / b_norm
     tau, tau_axial, sparsity = settings[3] / b_norm, settings[4] / b_norm, settings[5] / b_norm
     alpha = settings[6]
