@@ -141,11 +141,11 @@ def _public(rows):
 def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = False,
              settings: paper.Settings | None = None, quiet: bool = False) -> dict:
     """Run the demonstration; write the report; return the metrics written."""
+    out = make_output_folder(out_dir)      # before anything is loaded or computed
     import matplotlib
 
     matplotlib.use("Agg")
     s = settings or (paper.Settings(grid=4000) if full else paper.Settings())
-    out = make_output_folder(out_dir)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     scale = (s.grid / 1024) ** 2 * np.log2(s.grid) / 10
     say(f"diffcam demo: grid {s.grid}² at 5 µm, GS {s.gs_iterations} iterations; expect about "

@@ -203,8 +203,8 @@ def export_captures(name: str, folder, *, overwrite: bool = False) -> list[Path]
 
     if name not in CAPTURES:
         raise DiffcamError(f"unknown capture set {name!r}; choose one of {CAPTURES}.")
+    folder = make_output_folder(folder)     # before the captures are read
     files = _capture_files(name)
-    folder = make_output_folder(folder)
     paths = [folder / f for f in files]
     for subfolder in {p.parent for p in paths}:
         make_output_folder(subfolder)
