@@ -185,3 +185,20 @@ def test_a_crafted_psf_stack_names_the_field(tmp_path, edit, field):
         load_stack(bad)
     assert "\n" not in str(err.value) and str(bad) in str(err.value)
     assert field in str(err.value)
+
+
+def test_a_crafted_fit_file_through_the_command_line(fit_path, tmp_path, capsys):
+    """``diffcam predict`` and ``diffcam psf`` of the κ = 10⁶ file: exit 2, one line
+    naming the field, the existing output kept (it was an SVD traceback)."""
+    from diffcam.apps.cli import main
+
+    path = _crafted(fit_path, tmp_path, **CRAFTED["kappa"])
+    out = tmp_path / "out.tif"
+    out.write_bytes(b"old")
+    for argv in (["predict", str(path), "-o", str(out)],
+                 ["psf", str(path), "--planes", "0:3", "-o", str(out)]):
+        capsys.readouterr()
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "kappa" in err, err
+        assert "Traceback" not in err and out.read_bytes() == b"old"

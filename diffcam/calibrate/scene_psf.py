@@ -220,7 +220,7 @@ def fit_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
     options = ScenePsfOptions.of(options, **overrides)
     raws, truths = check_scene_pairs(raws, truths)
     # the fit runs on each channel scaled to unit peak: float32 sums of products of raw
-    # values overflow from ~1e19 (a raw of 1e30 gave an all-NaN PSF)
+    # values overflow from ~1e19 (a raw of 1e30 would give an all-NaN PSF)
     raw_peak, truth_peak = _channel_peaks(raws), _channel_peaks(truths)
     gain = raw_peak / truth_peak
     if not np.finfo(np.float32).tiny < gain.min() <= gain.max() < np.finfo(np.float32).max:

@@ -109,7 +109,7 @@ def _flat(estimate, mode, mask):
 @partial(jax.jit, static_argnames="mode")
 def _flat_mask(estimate, mode, mask):
     """Where :func:`_flat` finds nothing to fit, as one program (eagerly, op by op, the
-    check cost seconds of dispatch and compilation)."""
+    check takes seconds of dispatch and compilation on a loaded machine)."""
     return _flat(estimate, mode, mask)[1]
 
 

@@ -59,7 +59,7 @@ from jax.scipy.special import xlogy
 from jaxtyping import ArrayLike
 
 from diffcam.core.errors import (ConvergenceWarning, DiffcamError, ShapeError, check_finite,
-                                 is_concrete)
+                                 is_concrete, real_array)
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
@@ -214,6 +214,7 @@ def _richardson_lucy(image, psf, iterations, init, opts: RichardsonLucyOptions, 
     depth = jnp.shape(psf)[-3:-2] if volume else ()
     object_shape = depth + grid_shapes(image.shape, psf.shape, boundary)[0]
     if init is not None:
+        init = real_array("init", init)
         check_finite("init", init)
         if is_concrete(init) and float(jnp.min(init)) < 0:
             raise DiffcamError("init must be non-negative: RL keeps the sign of its start.")
