@@ -435,15 +435,24 @@ def test_an_output_folder_that_cannot_be_one(tmp_path):
     taken = tmp_path / "taken"
     (taken / "psfs").parent.mkdir()
     (taken / "psfs").write_bytes(_OLD)
+    link = tmp_path / "link"
+    link.symlink_to(existing)
     for argv in (["data", "hand", "-o", existing / "sub"],
                  ["data", "usaf3d", "-o", existing / "sub" / "deeper"],
                  ["data", "scenes", "-o", ""],
                  ["data", "usaf3d", "-o", taken],
+                 ["data", "hand", "-o", link],
                  ["demo", "--grid", "600", "-o", existing / "report"]):
         err = _check(argv)
         assert ("empty name" if argv[-1] == "" else "a file stands where") in err, err
     assert existing.read_bytes() == _OLD and (taken / "psfs").read_bytes() == _OLD
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "taken"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "link", "taken"]
+    try:                       # sysfs refuses new folders, even to root
+        os.mkdir("/sys/diffcam-hardening-probe")
+        os.rmdir("/sys/diffcam-hardening-probe")
+    except OSError:
+        assert "cannot create files" in _check(["data", "hand", "-o",
+                                                "/sys/diffcam-hardening-probe"])
 
 
 def test_white_balance_of_a_grayscale_raw(files, tmp_path):

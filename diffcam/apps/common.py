@@ -176,7 +176,7 @@ def save_open_figures(stem: str, folder=None) -> list[Path]:
     in the working folder (made if missing)."""
     import matplotlib.pyplot as plt
 
-    folder = make_output_folder(folder or os.environ.get("DIFFCAM_FIGURES", "figures"))
+    folder = make_output_folder(folder or os.environ.get("DIFFCAM_FIGURES") or "figures")
     paths = []
     for k, number in enumerate(plt.get_fignums(), start=1):
         paths.append(folder / f"{stem}_{k}.png")

@@ -222,7 +222,10 @@ def real_array(name: str, value: Any) -> Any:
         _as_real(name, value, "an array of real numbers")    # raises, naming the dtype
     if dtype.kind == "f" and dtype.itemsize >= 4:
         return value
-    return value.astype(np.result_type(dtype, np.float32))
+    target = np.result_type(dtype, np.float32)
+    if isinstance(value, _jax_types()):     # JAX holds float64 only with x64 on
+        target = sys.modules["jax"].dtypes.canonicalize_dtype(target)
+    return value.astype(target)
 
 
 def real_number(name: str, value: Any, what: str) -> float:
