@@ -36,7 +36,9 @@ from diffcam.core.errors import DiffcamError, SamplingError, UndersamplingWarnin
 from diffcam.evaluate.baseline import magnify_psf
 from diffcam.evaluate.metrics import align_to, mse, psf_fidelity, psnr
 from diffcam.evaluate.volume import depth_map, ridge_measures, target_box
-from diffcam.io import apply_envelope, envelope_widths
+from diffcam.evaluate.registration import register_magnification, scaling_baseline
+from diffcam.io import (apply_envelope, downsample, envelope_widths, plane_light,
+                        subtract_background)
 from diffcam.model import Camera, HeightMap
 from diffcam.model.camera import with_method
 from diffcam.model.point_spread import MIN_SAMPLES_ACROSS
@@ -261,6 +263,26 @@ PROBES = [
           lambda: retrieve_lsq(IMAGE + 0j, IMAGE, None, np.ones_like(IMAGE)), DiffcamError),
     Probe("dtype corner", "retrieve_projections of a complex capture",
           lambda: retrieve_projections(IMAGE, IMAGE + 1j, None), DiffcamError),
+    Probe("dtype corner", "register_magnification of a complex plane",
+          lambda: register_magnification(IMAGE + 1j, IMAGE), DiffcamError),
+    Probe("dtype corner", "scaling_baseline from a complex plane",
+          lambda: scaling_baseline({0: IMAGE + 1j, 3: IMAGE}, [1]), DiffcamError),
+    Probe("dtype corner", "fit_stack of a complex stack", lambda: fit_stack(
+        np.stack([IMAGE] * 3) + 1j, [0, 2], progress=False), DiffcamError),
+    Probe("dtype corner", "downsample of a complex image",
+          lambda: downsample(IMAGE + 1j, 2), DiffcamError),
+    Probe("dtype corner", "subtract_background of a complex image",
+          lambda: subtract_background(IMAGE + 1j, 0.1), DiffcamError),
+    Probe("dtype corner", "plane_light of a complex stack",
+          lambda: plane_light(np.stack([IMAGE] * 2) + 1j), DiffcamError),
+    Probe("dtype corner", "pearson with a complex mask",
+          lambda: dc.pearson(IMAGE, IMAGE.T, mask=np.ones_like(IMAGE) + 0j), DiffcamError),
+    Probe("dtype corner", "ssim(data_range=1+1j)",
+          lambda: dc.ssim(IMAGE, IMAGE.T, data_range=1 + 1j), DiffcamError),
+    Probe("dtype corner", "richardson_lucy(tv_weight='a')",
+          lambda: richardson_lucy(IMAGE, KERNEL, 2, tv_weight="a"), DiffcamError),
+    Probe("dtype corner", "admm_tv(tau='a')",
+          lambda: admm_tv(IMAGE, KERNEL, 2, tau="a", progress=False), DiffcamError),
     Probe("dtype corner", "psf_stack with a 2-D z1", lambda: dc.psf_stack(
         PHASE, CAMERA, np.full((2, 2), 25e-3)), DiffcamError),
     Probe("dtype corner", "psf_stack with text depths", lambda: dc.psf_stack(

@@ -63,8 +63,8 @@ def test_the_fit_and_its_prediction_scale_with_the_raws():
     assert big.flip == base.flip == "y"
     np.testing.assert_allclose(big.psf / 1e30, base.psf, rtol=1e-3, atol=1e-5 * base.psf.max())
     np.testing.assert_allclose(big.offset / 1e30, base.offset, rtol=1e-3, atol=1e-5)
-    np.testing.assert_allclose(predict_raw(big, truths[0]) / 1e30, predict_raw(base, truths[0]),
-                               rtol=1e-3, atol=1e-5 * raws.max())
+    np.testing.assert_allclose(predict_raw(big, truths[0]) / 1e30,
+                               predict_raw(base, truths[0]), rtol=1e-3, atol=1e-5 * raws.max())
     with pytest.raises(DiffcamError, match="exceeds float32's range"):
         predict_raw(big, truths[0] * 1e20)
 

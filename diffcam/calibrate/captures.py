@@ -156,8 +156,7 @@ def merge_exposures(raws: Float[Array, "k ny nx"], exposures, *, background=0.0,
 
 
 def _clean(raw, name, background, exposure, saturation):
-    raw = np.asarray(raw, np.float32)
-    real_array(f"{name} capture", raw)
+    raw = np.asarray(real_array(f"{name} capture", raw), np.float32)
     check_field(raw, f"{name} capture")
     if raw.ndim not in (2, 3):
         raise DiffcamError(f"{name} capture must be one 2-D image or a (k, ny, nx) exposure "

@@ -224,8 +224,7 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
 
 def _check_psfs(psfs, camera, sensor_pitch) -> np.ndarray:
     """The measured PSFs as an array of the camera's dtype, after checking them."""
-    psfs = np.asarray(psfs, np.dtype(real_dtype(camera)))
-    real_array("psfs", psfs)
+    psfs = np.asarray(real_array("psfs", psfs), np.dtype(real_dtype(camera)))
     check_field(psfs, "psfs")
     sensor = _sensor(camera, sensor_pitch)
     want = tuple(camera.out_shape) if sensor is None else sensor[1]

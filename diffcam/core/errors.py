@@ -215,9 +215,9 @@ def real_array(name: str, value: Any) -> Any:
         value = _as_real(name, value, "an array of real numbers")
     dtype = np.dtype(value.dtype)
     if dtype.kind == "c":
-        raise DiffcamError(f"{name} must be real, got complex numbers ({dtype}); an "
-                           f"intensity is real: pass np.abs(x)**2 of a field, or x.real if "
-                           f"the imaginary part is rounding.")
+        raise DiffcamError(f"{name} must be real, got complex numbers ({dtype}), whose "
+                           f"imaginary part a cast would drop: pass np.abs(x)**2 of a field "
+                           f"(its intensity), or x.real if the imaginary part is rounding.")
     if dtype.kind not in "biuf":
         _as_real(name, value, "an array of real numbers")    # raises, naming the dtype
     if dtype.kind == "f" and dtype.itemsize >= 4:

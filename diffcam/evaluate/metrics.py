@@ -156,7 +156,7 @@ def pearson(a: Float[Array, "... ny nx"], b: Float[Array, "... ny nx"], *, mask=
     a, b = _check_pair(a, b, "a", "b")
     a, b = jnp.asarray(a), jnp.asarray(b)
     if mask is not None:
-        mask = jnp.asarray(mask, dtype=a.dtype)
+        mask = jnp.asarray(real_array("mask", mask), dtype=a.dtype)
     if is_concrete(a, b, mask):
         _check_variance(a, b, mask)
     w = 1.0 if mask is None else mask
@@ -202,7 +202,7 @@ def _data_range(reference, data_range):
     be > 0: SSIM and PSNR are measured in units of it)."""
     if data_range is not None:
         if is_concrete(data_range):
-            dr = np.asarray(data_range, np.float64)
+            dr = np.asarray(real_array("data_range", data_range), np.float64)
             if dr.size == 0 or not (np.all(np.isfinite(dr)) and np.all(dr > 0)):
                 raise DiffcamError(
                     f"data_range must be a finite number > 0 (the span of the images' "

@@ -45,7 +45,8 @@ __all__ = [
     "subtract_background", "saturation_mask", "downsample", "normalise_l2",
     "envelope_widths", "apply_envelope", "BackgroundWarning", "read_npz", "npz_keys",
     "file_kind", "check_read_size",
-    "check_output_path", "make_output_folder", "atomic_output", "Terminated", "temporary_files",
+    "check_output_path", "make_output_folder", "atomic_output", "Terminated",
+    "temporary_files",
     "interrupts_as_keyboard_interrupt", "MAX_READ_BYTES",
 ]
 

@@ -31,7 +31,7 @@ def border_dark_level(images, ring: int = 6) -> np.ndarray:
     Raises:
         ShapeError: a frame too small for the band (2·ring ≥ its shorter side).
     """
-    a = np.asarray(images, np.float64)
+    a = np.asarray(real_array("images", images), np.float64)
     h, w = a.shape[-2:]
     if ring < 1 or 2 * ring >= min(h, w):
         raise ShapeError(f"frame {h}×{w} is too small for a {ring}-pixel border ring (or "
@@ -46,7 +46,7 @@ def plane_light(images, ring: int = 6) -> np.ndarray:
     units, shape ``images.shape[:-2]``; ``ring`` 0: no dark level), the quantity the
     inverse-square law relates across a PSF stack's planes
     (:func:`diffcam.evaluate.registration.magnification_from_light`)."""
-    a = np.asarray(images, np.float64)
+    a = np.asarray(real_array("images", images), np.float64)
     dark = border_dark_level(a, ring)[..., None, None] if ring else 0.0
     return (a - dark).sum(axis=(-2, -1))
 
@@ -80,8 +80,8 @@ def subtract_background(image: np.ndarray, background, *,
     Returns:
         float32 array, non-negative.
     """
-    image = np.asarray(image, dtype=np.float32)
-    background = np.asarray(background, dtype=np.float32)
+    image = np.asarray(real_array("image", image), dtype=np.float32)
+    background = np.asarray(real_array("background", background), dtype=np.float32)
     check_finite("image", image)
     check_finite("background", background)
     if background.ndim and background.shape == image.shape[:-2]:
@@ -132,8 +132,7 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
     """
     if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
         raise DiffcamError(f"factor must be a positive integer, got {factor!r}.")
-    image = np.asarray(image, dtype=np.float32)
-    real_array("image", image)
+    image = np.asarray(real_array("image", image), dtype=np.float32)
     check_field(image, "image")
     ny, nx = image.shape[-2:]
     my, mx = ny // factor, nx // factor
@@ -147,8 +146,7 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
 
 def normalise_l2(image: np.ndarray) -> np.ndarray:
     """``image / ||image||₂`` over the last two axes (per channel / per plane)."""
-    image = np.asarray(image, dtype=np.float32)
-    real_array("image", image)
+    image = np.asarray(real_array("image", image), dtype=np.float32)
     check_field(image, "image")
     norm = np.sqrt(np.sum(image.astype(np.float64) ** 2, axis=(-2, -1), keepdims=True))
     if np.any(norm == 0):
@@ -223,8 +221,8 @@ def apply_envelope(psfs: np.ndarray, widths) -> np.ndarray:
     psfs = np.asarray(psfs, np.float32)
     if psfs.ndim != 3 or widths.shape != psfs.shape[:1] or not np.all(
             (widths > 0) & np.isfinite(widths)):
-        raise DiffcamError(f"apply_envelope needs a (nz, my, mx) stack and nz finite widths > 0 "
-                           f"(pixels); got a stack of shape {psfs.shape} and widths of "
+        raise DiffcamError(f"apply_envelope needs a (nz, my, mx) stack and nz finite widths "
+                           f"> 0 (pixels); got a stack of shape {psfs.shape} and widths of "
                            f"shape {widths.shape}.")
     _, planes, centres = _profiles(psfs[0], psfs)
     rows = np.arange(psfs.shape[1])

@@ -56,7 +56,7 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from diffcam.core.backend import irfft2, rfft2
-from diffcam.core.errors import DiffcamError, is_concrete
+from diffcam.core.errors import DiffcamError, is_concrete, real_number
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
@@ -135,15 +135,18 @@ class AdmmOptions(Options):
                                f"{MAX_BACKGROUND_DEGREE} (or None), got {self.background!r}.")
         for name in ("mu1", "mu2", "mu3"):
             value = getattr(self, name)
-            if is_concrete(value) and not 0 < float(value) < math.inf:
+            if is_concrete(value) and not 0 < real_number(name, value, "a number > 0") \
+                    < math.inf:
                 raise DiffcamError(f"{name} must be a finite number > 0, got {value!r}; "
                                    f"DiffuserCam uses mu1=1e-6, mu2=1e-5, mu3=4e-5.")
-        if is_concrete(self.relaxation) and not 0 < float(self.relaxation) < 2:
+        if is_concrete(self.relaxation) and not 0 < real_number(
+                "relaxation", self.relaxation, "a number in (0, 2)") < 2:
             raise DiffcamError(f"relaxation must be in (0, 2) (1: plain ADMM; 1.5-1.8 "
                                f"over-relaxes), got {self.relaxation!r}.")
         for name in ("tau", "tau_axial", "sparsity"):
             value = getattr(self, name)
-            if value is not None and is_concrete(value) and not 0 <= float(value) < math.inf:
+            if value is not None and is_concrete(value) and not 0 <= real_number(
+                    name, value, "a number >= 0") < math.inf:
                 raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")
 
     def weights(self) -> tuple:

@@ -125,8 +125,9 @@ def _check_range(name: str, a: np.ndarray, dtype) -> None:
 
 
 def check_scale(image, psf, dtype) -> None:
-    """Every image (of a batch) holds light, and the estimate's scale ``||image|| / ||psf||`` (norms
-    in float64) is a normal number of the solver's ``dtype``."""
+    """Every image (of a batch) holds light, and the estimate's scale
+    ``||image|| / ||psf||`` (norms in float64) is a normal number of the solver's
+    ``dtype``."""
     a = np.asarray(image, np.float64)
     norms = np.linalg.norm(a.reshape((-1, a.shape[-2] * a.shape[-1])), axis=1)
     if not norms.all():

@@ -59,7 +59,7 @@ from jax.scipy.special import xlogy
 from jaxtyping import ArrayLike
 
 from diffcam.core.errors import (ConvergenceWarning, DiffcamError, ShapeError, check_finite,
-                                 is_concrete, real_array)
+                                 is_concrete, real_array, real_number)
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
@@ -203,7 +203,8 @@ def _richardson_lucy(image, psf, iterations, init, opts: RichardsonLucyOptions, 
     core = 3 if volume else 2
     psf = check_psf(psf, jnp.shape(image), min_ndim=core)
     for name, value in (("tv_weight", tv_weight), ("eps", eps)):
-        if is_concrete(value) and not 0 <= float(value) < math.inf:
+        if is_concrete(value) and not 0 <= real_number(name, value, "a number >= 0") \
+                < math.inf:
             raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
     dtype = float_dtype(image, psf)
