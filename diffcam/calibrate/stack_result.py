@@ -28,7 +28,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from diffcam.core.errors import DiffcamError
+from diffcam.core.errors import DiffcamError, number_in, whole_number
 from diffcam.core import grid as core_grid
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
                                            relative_magnification_at, spline_coefficients)
@@ -346,18 +346,20 @@ def _damaged(path, field: str, value, what: str) -> DiffcamError:
 
 def _whole(path, field: str, value, low: int, high: float = math.inf) -> int:
     """A whole number of a fit file's metadata in ``low`` … ``high``."""
-    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise _damaged(path, field, value, f"a whole number in {low} … {high}")
-    return value
+    try:
+        return whole_number(field, value, low, high)
+    except DiffcamError:
+        raise _damaged(path, field, value, f"a whole number in {low} … {high}") from None
 
 
 def _real(path, field: str, value, low: float, high: float) -> float:
     """A finite number of a fit file (metadata or a scalar array) in ``low`` … ``high``."""
-    v = np.asarray(value)
-    if v.shape != () or v.dtype.kind not in "iuf" or not low <= float(v) <= high:
-        raise _damaged(path, field, v.item() if v.shape == () else value,
-                       f"one finite number in {low:g} … {high:g}")
-    return float(v)
+    what = f"one finite number in {low:g} … {high:g}"
+    try:
+        return number_in(field, value, low, high, what)
+    except DiffcamError:
+        shown = value.item() if np.ndim(value) == 0 and hasattr(value, "item") else value
+        raise _damaged(path, field, shown, what) from None
 
 
 def _model_from(data, g: dict, path) -> StackModel:
