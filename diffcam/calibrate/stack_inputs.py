@@ -53,7 +53,8 @@ def given_planes(stack, planes):
     n_planes or None, input dtype)."""
     planes = _plane_list(planes)
     frames, n_planes = _frames_of(stack, planes)
-    frames = [real_array(f"plane {t}", f) for t, f in zip(planes, frames)]
+    for t, f in zip(planes, frames):   # refused if complex; the input dtype is kept: it
+        real_array(f"plane {t}", f)    # sets the saturation level
     dtype = _check_frames(frames, planes)
     return [f.astype(np.float64) for f in frames], planes, n_planes, dtype
 
