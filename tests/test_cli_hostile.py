@@ -422,3 +422,61 @@ def test_calibrate_checks_its_output_first_and_names_no_temporary_file(files, tm
                       *common, "-o", out])
         assert str(out) in err and "tmp-" not in err and "missing1" not in err, err
     assert locked.read_bytes() == _OLD
+
+
+# ------------------------------------------- the third round (issue #50): paths, scale
+
+def test_an_output_folder_that_cannot_be_one(tmp_path):
+    """``data``'s and ``demo``'s -o: a path under a file (NotADirectoryError), an empty
+    name (it wrote into the working folder), a file where usaf3d's psfs/ folder goes:
+    one line, exit 2, the file kept."""
+    existing = tmp_path / "a_file"
+    existing.write_bytes(_OLD)
+    taken = tmp_path / "taken"
+    (taken / "psfs").parent.mkdir()
+    (taken / "psfs").write_bytes(_OLD)
+    link = tmp_path / "link"
+    link.symlink_to(existing)
+    for argv in (["data", "hand", "-o", existing / "sub"],
+                 ["data", "usaf3d", "-o", existing / "sub" / "deeper"],
+                 ["data", "scenes", "-o", ""],
+                 ["data", "usaf3d", "-o", taken],
+                 ["data", "hand", "-o", link],
+                 ["demo", "--grid", "600", "-o", existing / "report"]):
+        err = _check(argv)
+        assert ("empty name" if argv[-1] == "" else "a file stands where") in err, err
+    assert existing.read_bytes() == _OLD and (taken / "psfs").read_bytes() == _OLD
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "link", "taken"]
+    try:                       # sysfs refuses new folders, even to root
+        os.mkdir("/sys/diffcam-hardening-probe")
+        os.rmdir("/sys/diffcam-hardening-probe")
+    except OSError:
+        assert "cannot create files" in _check(["data", "hand", "-o",
+                                                "/sys/diffcam-hardening-probe"])
+
+
+def test_white_balance_of_a_grayscale_raw(files, tmp_path):
+    """--white-balance on a grayscale capture was ignored: one line saying so."""
+    for gains in ("auto", "1,2,3"):
+        err = _check(_valid("reconstruct", files, tmp_path) + ["--white-balance", gains])
+        assert "grayscale" in err and "--white-balance" in err
+
+
+def test_a_raw_beyond_the_solvers_range(files, tmp_path):
+    """A raw ×1e37 (finite float32) through Richardson–Lucy: refused before the solve,
+    its estimate leaving float32 (the scaled fit of ``calibrate-psf`` is
+    tests/test_scene_psf.py::test_the_fit_and_its_prediction_scale_with_the_raws)."""
+    huge = tmp_path / "huge.npy"
+    np.save(huge, (np.load(files["raw"]).astype(np.float64) * 1e37).astype(np.float32))
+    argv = _replaced(_valid("reconstruct", files, tmp_path), "--method", "rl")
+    assert "float32" in _check([argv[0], In(huge)] + argv[2:])
+
+
+@pytest.mark.parametrize("address", ["node1", "node1:http", "node1:99999"])
+def test_a_coordinator_address_without_a_port(files, tmp_path, address):
+    """JAX_COORDINATOR_ADDRESS must be host:port: an IndexError inside JAX's
+    initialize was the last line of ``diffcam psf`` (the command that joins a run of
+    several processes); now it is refused first, naming the variable."""
+    env = {"JAX_COORDINATOR_ADDRESS": address, "JAX_NUM_PROCESSES": "2",
+           "JAX_PROCESS_ID": "0"}
+    assert "JAX_COORDINATOR_ADDRESS" in _check(_valid("psf", files, tmp_path), env=env)

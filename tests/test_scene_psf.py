@@ -51,6 +51,24 @@ def test_finds_the_flip(flip):
     assert set(cal.flip_residuals) == {"none", "y", "x", "yx"}
 
 
+def test_the_fit_and_its_prediction_scale_with_the_raws():
+    """Raws ×1e30 in float32 (the fit's sums overflowed: an all-NaN PSF, and the
+    command wrote it): the PSF, the offset and the predicted raw ×1e30 of the unscaled
+    fit; a prediction beyond float32 is refused, not Inf."""
+    raws, truths, _ = _synthetic("y")
+    options = ScenePsfOptions(iterations=50, search_iterations=40)   # as test_finds_the_flip
+    base = fit_psf_from_scenes(raws, truths, options, progress=False)
+    big = fit_psf_from_scenes((raws * 1e30).astype(np.float32), truths, options,
+                              progress=False)
+    assert big.flip == base.flip == "y"
+    np.testing.assert_allclose(big.psf / 1e30, base.psf, rtol=1e-3, atol=1e-5 * base.psf.max())
+    np.testing.assert_allclose(big.offset / 1e30, base.offset, rtol=1e-3, atol=1e-5)
+    np.testing.assert_allclose(predict_raw(big, truths[0]) / 1e30,
+                               predict_raw(base, truths[0]), rtol=1e-3, atol=1e-5 * raws.max())
+    with pytest.raises(DiffcamError, match="exceeds float32's range"):
+        predict_raw(big, truths[0] * 1e20)
+
+
 @pytest.mark.slow
 def test_held_out_lensless_learning_pair_is_predicted():
     """Calibrated on six of the shipped pairs (box-averaged by 2 more, 67×120), the PSF

@@ -311,9 +311,6 @@ def _add_demo(sub) -> None:
 
 def _cmd_data(args) -> int:
 
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        raise DiffcamError(f"{args.out}: is a file; -o names the folder the capture files "
-                           f"go to.")
     paths = export_captures(args.name, args.out, overwrite=args.force)
     print(f"diffcam data: {len(paths)} files → {args.out}")
     return 0

@@ -20,7 +20,8 @@ from diffcam.core.errors import DiffcamError
 from diffcam.core.units import parse_length, parse_length_range
 from diffcam import model  # lazy: loaded on use
 from diffcam.core.lazy import module_constant
-from diffcam.io import MAX_READ_BYTES, atomic_output, read_image, read_mat_stack
+from diffcam.io import (MAX_READ_BYTES, atomic_output, make_output_folder, read_image,
+                        read_mat_stack)
 
 def _units(parse, name):
     """An argparse type that reads lengths with units; errors become usage errors."""
@@ -78,10 +79,21 @@ def grid_count(low: int = 2):
     return count(low, math.isqrt(module_constant(name)), name)
 
 
+def finite_result(path, result: np.ndarray) -> np.ndarray:
+    """``result``, unless it holds NaN/Inf (a result beyond float32's range): then a
+    DiffcamError naming ``path``, before anything is written there."""
+    bad = result.size - int(np.count_nonzero(np.isfinite(result)))
+    if bad:
+        raise DiffcamError(f"{path}: the result holds {bad} NaN/Inf value(s), so nothing "
+                           f"was written; an input scaled beyond float32's range (divide it "
+                           f"by a constant) or a solver that diverged (fewer iterations).")
+    return result
+
+
 def save_image(path, image, *, bits: int = 16) -> None:
     """Write an image atomically: ``.png`` (``bits`` 16 or 8, min–max scaled),
     ``.tif``/``.tiff`` (float32, multi-page for a stack), or ``.npy`` (as is)."""
-    image = np.asarray(image, dtype=np.float32)
+    image = finite_result(path, np.asarray(image, dtype=np.float32))
     suffix = Path(path).suffix.lower()
     if suffix not in (".png", ".tif", ".tiff", ".npy"):
         raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
@@ -111,7 +123,7 @@ def save_rgb(path, image) -> None:
     ``(ny, nx, 3)`` as is; ``.png`` 8 bits and ``.tif``/``.tiff`` 16 bits per channel,
     scaled so that the 99.9th percentile of all channels is full scale (the few brighter
     pixels saturate; negatives clip to 0; one scale keeps the colour balance)."""
-    image = np.moveaxis(np.asarray(image, dtype=np.float32), 0, -1)
+    image = np.moveaxis(finite_result(path, np.asarray(image, dtype=np.float32)), 0, -1)
     suffix = Path(path).suffix.lower()
     if suffix not in (".png", ".tif", ".tiff", ".npy"):
         raise DiffcamError(f"{path}: write .png, .tif or .npy, not {suffix!r}.")
@@ -164,8 +176,7 @@ def save_open_figures(stem: str, folder=None) -> list[Path]:
     in the working folder (made if missing)."""
     import matplotlib.pyplot as plt
 
-    folder = Path(folder or os.environ.get("DIFFCAM_FIGURES", "figures"))
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_output_folder(folder or os.environ.get("DIFFCAM_FIGURES") or "figures")
     paths = []
     for k, number in enumerate(plt.get_fignums(), start=1):
         paths.append(folder / f"{stem}_{k}.png")

@@ -24,12 +24,12 @@ from __future__ import annotations
 import json
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 
 from diffcam.apps import paper
 from diffcam.apps.common import save_figure
+from diffcam.io import make_output_folder
 from diffcam import calibrate   # calibrate.resolve_twin: optimistix loads with it
 from diffcam.calibrate.simulation import cameraman_phase
 from diffcam.core.backend import fft_status
@@ -141,12 +141,11 @@ def _public(rows):
 def run_demo(out_dir: str | os.PathLike = "diffcam-report", *, full: bool = False,
              settings: paper.Settings | None = None, quiet: bool = False) -> dict:
     """Run the demonstration; write the report; return the metrics written."""
+    out = make_output_folder(out_dir)      # before anything is loaded or computed
     import matplotlib
 
     matplotlib.use("Agg")
     s = settings or (paper.Settings(grid=4000) if full else paper.Settings())
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     scale = (s.grid / 1024) ** 2 * np.log2(s.grid) / 10
     say(f"diffcam demo: grid {s.grid}² at 5 µm, GS {s.gs_iterations} iterations; expect about "

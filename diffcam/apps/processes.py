@@ -79,6 +79,11 @@ def distributed_settings(env: Mapping[str, str] | None = None) -> dict | None:
                            f"integers.") from None
     if count < 1 or not 0 <= rank < count:
         raise DiffcamError(f"{RANK}={rank} must be in 0 … {COUNT} − 1 = {count - 1}.")
+    host, _, port = env[ADDRESS].strip().rpartition(":")
+    if not host.strip("[]") or not (port.isascii() and port.isdigit()
+                                    and 0 < int(port) < 65536):
+        raise DiffcamError(f"{ADDRESS}={env[ADDRESS]!r:.60} must be host:port (process 0's "
+                           f"address and a TCP port 1 … 65535, e.g. node1:6123).")
     return {"coordinator_address": env[ADDRESS], "num_processes": count,
             "process_id": rank}
 

@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from diffcam.apps.common import save_figure, save_image, save_rgb
+from diffcam.apps.common import finite_result, save_figure, save_image, save_rgb
 from diffcam.apps.reconstruct_args import ITERATIONS, ITERATIONS_3D
 from diffcam.apps.reconstruct_inputs import (PsfSource, match_envelope, read_inputs,
                                              white_balance)
@@ -70,6 +70,14 @@ def _pick_plane(raw, source: PsfSource, args, say) -> np.ndarray:
     return psfs[plane]
 
 
+def _unit_norm(a) -> tuple[np.ndarray, float]:
+    """``a / ||a||₂`` (float32) and ``||a||₂``, both computed in float64: float32
+    squares overflow from 1.8e19, and the norm of a raw ×1e37 exceeds float32."""
+    a = np.asarray(a, np.float64)
+    norm = float(np.linalg.norm(a))
+    return (a / norm).astype(np.float32), norm
+
+
 def _iterations(args) -> int:
     """``--iterations``, or the method's measured default (:data:`ITERATIONS`,
     :data:`ITERATIONS_3D`)."""
@@ -97,10 +105,10 @@ def _run_2d(args, say) -> int:
     if args.method == "rl":
         rec = richardson_lucy(raw, psf, iterations, boundary="crop", progress=not args.quiet)
     elif args.method == "admm":
-        scale = np.linalg.norm(raw) / np.linalg.norm(psf)   # back to raw / PSF units
-        rec = admm_tv(raw / np.linalg.norm(raw), psf / np.linalg.norm(psf), iterations,
-                      progress=not args.quiet)
-        rec = rec._replace(image=rec.image * scale)
+        (unit_raw, raw_norm), (unit_psf, psf_norm) = _unit_norm(raw), _unit_norm(psf)
+        rec = admm_tv(unit_raw, unit_psf, iterations, progress=not args.quiet)
+        # back to raw / PSF units, in float64 (the scale may exceed float32's range)
+        rec = rec._replace(image=np.asarray(rec.image, np.float64) * (raw_norm / psf_norm))
     else:
         rec = wiener(raw, psf, boundary="crop")
     image = np.asarray(rec.image if args.full_field else crop_to(rec.image, raw.shape[-2:]))
@@ -144,12 +152,12 @@ def _solve_3d(raw, psfs, args):
     if args.method == "rl":
         rec = richardson_lucy_3d(raw, psfs, _iterations(args), progress=not args.quiet)
         return rec.image, rec
-    norm = float(np.linalg.norm(raw))
-    rec = admm_tv_3d(raw / norm, psfs, _iterations(args), VOLUME,
+    unit_raw, norm = _unit_norm(raw)
+    rec = admm_tv_3d(unit_raw, psfs, _iterations(args), VOLUME,
                      background=args.background, progress=not args.quiet)
     if rec.background is not None:
         rec = rec._replace(background=rec.background * norm)
-    return rec.image * norm, rec
+    return np.asarray(rec.image, np.float64) * norm, rec
 
 
 def final_residual(rec) -> float:
@@ -188,10 +196,8 @@ def _run_3d(args, say) -> int:
         f"PSFs): {args.method}, {_iterations(args)} iterations")
     t0 = time.perf_counter()
     image, rec = _solve_3d(raw, source.psfs, args)
-    volume = np.asarray(image if args.full_field else crop_to(image, raw.shape), np.float32)
-    if not np.isfinite(volume).all():
-        raise DiffcamError("the reconstruction holds NaN/Inf values; check the dark levels "
-                           "and try fewer --iterations.")
+    volume = finite_result(paths.volume, np.asarray(
+        image if args.full_field else crop_to(image, raw.shape), np.float32))
     seconds = time.perf_counter() - t0
     info = _volume_info(args, rec, seconds, widths)
     say(f"writing {paths.volume} and " + ", ".join(p.name for p in paths[1:]))

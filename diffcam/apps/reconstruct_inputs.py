@@ -193,6 +193,9 @@ def read_inputs(args, say) -> tuple[np.ndarray, PsfSource]:
     if args.downsample is not None and args.downsample < 1:
         raise DiffcamError(f"--downsample {args.downsample}: give a factor of 1 or more.")
     raw = read_raw(args.raw, args.channel_order)
+    if args.white_balance is not None and raw.ndim != 3:
+        raise DiffcamError(f"{args.raw}: a grayscale raw has no colour to balance; leave "
+                           f"out --white-balance (it sets the gains of R, G and B).")
     source = colour_psf(args.psf, raw, args.channel_order) or read_psf_source(args.psf,
                                                                                args.planes)
     raw = subtract_dark(raw, raw_level, f"{args.raw} (raw dark level)", say)

@@ -30,7 +30,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from diffcam.core.errors import DiffcamError, check_field, check_positive
+from diffcam.core.errors import DiffcamError, check_field, check_positive, real_array
 from diffcam.core.options import Options
 from diffcam.io import subtract_background
 from diffcam.model.sensor import bin_pixels, quantise, resample, saturate, shot_noise
@@ -88,6 +88,7 @@ def resample_capture(image: Float[Array, "my mx"], sensor_pitch: float, pitch, s
     prefilter, as :func:`diffcam.evaluate.magnify_psf` does, so light at one edge never
     leaks into the opposite one and the same pitch and shape return the capture.
     """
+    real_array("capture", image)
     check_field(image, "capture")
     check_positive("sensor_pitch", sensor_pitch, "m")
     py, px = (pitch, pitch) if np.ndim(pitch) == 0 else pitch
@@ -155,7 +156,7 @@ def merge_exposures(raws: Float[Array, "k ny nx"], exposures, *, background=0.0,
 
 
 def _clean(raw, name, background, exposure, saturation):
-    raw = np.asarray(raw, np.float32)
+    raw = np.asarray(real_array(f"{name} capture", raw), np.float32)
     check_field(raw, f"{name} capture")
     if raw.ndim not in (2, 3):
         raise DiffcamError(f"{name} capture must be one 2-D image or a (k, ny, nx) exposure "

@@ -62,7 +62,8 @@ from diffcam.calibrate.near_far import (CalibrationGeometry, NearFarModel, check
 from diffcam.calibrate.projections import initial_phase, retrieve_projections
 from diffcam.calibrate.result import RetrievalResult
 from diffcam.core.options import Options
-from diffcam.core.errors import ConvergenceWarning, DiffcamError, ShapeError, check_field
+from diffcam.core.errors import (ConvergenceWarning, DiffcamError, ShapeError, check_field,
+                                 real_array)
 from diffcam.core.progress import progress_bar, tick
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.core.phasor import expj
@@ -439,6 +440,7 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
     if len(masks) != len(measured):
         raise ShapeError(f"{len(masks)} masks for {len(measured)} measured images.")
     for i, (m, w) in enumerate(zip(measured, masks)):
+        real_array(f"measured image {i}", m)
         check_field(m, f"measured image {i}")
         if w.shape != m.shape:
             raise ShapeError(f"mask {i} {w.shape} and measured image {i} {m.shape} differ.")

@@ -27,7 +27,7 @@ from jax import Array
 from jaxtyping import Float
 
 from diffcam.core.errors import (DiffcamError, GeometryWarning, ShapeError, check_field,
-                                 check_positive, fmt_length)
+                                 check_positive, fmt_length, real_array)
 from diffcam.core.backend import transfer_step
 from diffcam.core.grid import fft2c, pitch_yx
 from diffcam.optics.elements import apply_phase
@@ -232,6 +232,7 @@ def _speckle_message(ratio, predicted, geometry, shape, sensor_pitch) -> str:
 def check_captures(near, far, *, near_name="near", far_name="far") -> None:
     """Shapes, finiteness, sign and information content of a near/far intensity pair."""
     for name, img in ((near_name, near), (far_name, far)):
+        real_array(f"{name} intensity", img)
         check_field(img, f"{name} intensity")
         if np.ndim(img) != 2:
             raise ShapeError(f"{name} intensity must be one 2-D image (ny, nx), got shape "

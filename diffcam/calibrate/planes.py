@@ -23,7 +23,8 @@ from jax import Array
 from jaxtyping import Float
 
 from diffcam.model.camera import Camera
-from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_positive
+from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_positive,
+                                 real_array)
 from diffcam.model.sensor import resample
 from diffcam.optics.propagation import effective_distance, magnification
 
@@ -64,6 +65,7 @@ def psf_plane(psf: Float[Array, "cy cx"], camera: Camera, z1: float) -> Defocuse
         the PSF zero outside its frame, so no light wraps across it), masked to the part of
         the grid the capture covers.
     """
+    real_array("psf", psf)
     check_field(psf, "psf")
     check_positive("z1", z1, "m")
     p = np.asarray(psf, np.float32)
@@ -91,6 +93,7 @@ def check_planes(planes, shape) -> tuple[DefocusedPlane, ...]:
         if not isinstance(plane, DefocusedPlane):
             raise DiffcamError(f"planes[{k}] must be a DefocusedPlane (see "
                                f"diffcam.calibrate.psf_plane), got {type(plane).__name__}.")
+        real_array(f"planes[{k}].intensity", plane.intensity)
         check_field(plane.intensity, f"planes[{k}].intensity")
         if np.shape(plane.intensity) != tuple(shape) or np.shape(plane.mask) != tuple(shape):
             raise ShapeError(f"planes[{k}] is {np.shape(plane.intensity)} (mask "

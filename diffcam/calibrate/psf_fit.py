@@ -37,7 +37,8 @@ from jaxtyping import Float
 
 from diffcam.model import Camera, psf
 from diffcam.model.camera import real_dtype
-from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_positive
+from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_positive,
+                                 real_array)
 from diffcam.model.sensor import bin_pixels
 from diffcam.model.stack import psf_stack
 from diffcam.evaluate.metrics import psf_fidelity, twin_phase
@@ -223,7 +224,7 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
 
 def _check_psfs(psfs, camera, sensor_pitch) -> np.ndarray:
     """The measured PSFs as an array of the camera's dtype, after checking them."""
-    psfs = np.asarray(psfs, np.dtype(real_dtype(camera)))
+    psfs = np.asarray(real_array("psfs", psfs), np.dtype(real_dtype(camera)))
     check_field(psfs, "psfs")
     sensor = _sensor(camera, sensor_pitch)
     want = tuple(camera.out_shape) if sensor is None else sensor[1]

@@ -40,10 +40,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.errors import DiffcamError, ShapeError, real_array
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
+from diffcam.reconstruct.checks import check_iterations
 from diffcam.reconstruct.fista import nonnegative_least_squares
 from diffcam.reconstruct.operators import convolution_model
 
@@ -70,9 +71,7 @@ class ScenePsfOptions(Options):
 
     def __check_init__(self):
         for name in ("iterations", "search_iterations"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or value < 1:
-                raise DiffcamError(f"{name} must be a positive int, got {value!r}.")
+            check_iterations(getattr(self, name), name)
         if self.flip not in FLIPS + ("auto",):
             raise DiffcamError(f"flip must be 'auto' or one of {FLIPS}, got {self.flip!r}.")
 
@@ -98,11 +97,16 @@ class ScenePsf(NamedTuple):
 
 
 def _as_pairs(images, what: str) -> np.ndarray:
-    """``(k, c, ny, nx)`` float32 from a sequence of ``(c, ny, nx)`` or ``(ny, nx)`` images."""
+    """``(k, c, ny, nx)`` float32 from a sequence of ``(c, ny, nx)`` or ``(ny, nx)`` real
+    images, finite and within float32's range."""
     if isinstance(images, np.ndarray) and images.ndim in (2, 3):
         raise ShapeError(f"{what}: give a sequence of images (one per pair), got one "
                          f"array of shape {images.shape}; wrap it in a list.")
-    arrays = [np.asarray(a, np.float32) for a in images]
+    try:
+        arrays = [np.asarray(real_array(f"{what}[{k}]", a)) for k, a in enumerate(images)]
+    except TypeError:
+        raise DiffcamError(f"{what}: give a sequence of images (one per pair), got "
+                           f"{images!r:.60}.") from None
     if not arrays:
         raise DiffcamError(f"{what}: no images given; give at least one pair.")
     shapes = {a.shape for a in arrays}
@@ -112,6 +116,12 @@ def _as_pairs(images, what: str) -> np.ndarray:
     stack = np.stack(arrays)
     if not np.isfinite(stack).all():
         raise DiffcamError(f"{what}: NaN/Inf values; clean the data first.")
+    top = float(np.max(np.abs(stack)))
+    if top > float(np.finfo(np.float32).max):
+        raise DiffcamError(f"{what}: values up to {top:.3g}, beyond float32's range "
+                           f"(3.4e+38), in which the fit runs; divide them by a constant "
+                           f"first (the PSF scales with the raws).")
+    stack = stack.astype(np.float32)
     return stack[:, None] if stack.ndim == 3 else stack
 
 
@@ -120,8 +130,9 @@ def check_scene_pairs(raws, truths) -> tuple[np.ndarray, np.ndarray]:
 
     Raises:
         DiffcamError: different numbers of raws and scenes, of channels or of pixels; a
-            scene that is dark everywhere (it does not overlap the sensor frame); a raw
-            that is constant; NaN/Inf.
+            scene that is dark everywhere (it does not overlap the sensor frame) or has
+            negative values; a raw that is constant; complex, NaN/Inf or beyond
+            float32's range.
     """
     raws, truths = _as_pairs(raws, "raws"), _as_pairs(truths, "truths")
     if len(raws) != len(truths):
@@ -134,6 +145,12 @@ def check_scene_pairs(raws, truths) -> tuple[np.ndarray, np.ndarray]:
         raise ShapeError(f"raws are {raws.shape[2]}×{raws.shape[3]} pixels, truths "
                          f"{truths.shape[2]}×{truths.shape[3]}; resample the truths to the "
                          f"sensor's pixels (the scene on the sensor grid) first.")
+    if (truths < 0).any():
+        k, ch = np.argwhere((truths < 0).any(axis=(-2, -1)))[0]
+        raise DiffcamError(f"truth {k} (channel {ch}) has negative values (min "
+                           f"{float(truths[k, ch].min()):.3g}); a scene is an intensity: "
+                           f"subtract its dark level with clipping "
+                           f"(diffcam.io.subtract_background) or np.clip(truth, 0, None).")
     lit = np.max(truths, axis=(-2, -1)) > 0
     if not lit.all():
         k, ch = np.argwhere(~lit)[0]
@@ -202,6 +219,16 @@ def fit_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
     """
     options = ScenePsfOptions.of(options, **overrides)
     raws, truths = check_scene_pairs(raws, truths)
+    # the fit runs on each channel scaled to unit peak: float32 sums of products of raw
+    # values overflow from ~1e19 (a raw of 1e30 would give an all-NaN PSF)
+    raw_peak, truth_peak = _channel_peaks(raws), _channel_peaks(truths)
+    gain = raw_peak / truth_peak
+    if not np.finfo(np.float32).tiny < gain.min() <= gain.max() < np.finfo(np.float32).max:
+        raise DiffcamError(f"the PSF's scale max(raw)/max(truth) reaches {gain.min():.3g}…"
+                           f"{gain.max():.3g}, outside float32's range; divide the raws or "
+                           f"the truths by a constant first (the PSF scales with raw/truth).")
+    raws = raws / raw_peak[:, None, None].astype(np.float32)
+    truths = truths / truth_peak[:, None, None].astype(np.float32)
     raws_j = jnp.asarray(raws)
     flips = FLIPS if options.flip == "auto" else (options.flip,)
     trials = {}
@@ -215,18 +242,52 @@ def fit_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
     with progress_bar(options.iterations, "PSF from scenes", progress):
         h, offset, residual = jax.block_until_ready(_fit(
             raws_j, jnp.asarray(flip_scene(truths, flip)), options.iterations))
-    return ScenePsf(psf=np.asarray(h), offset=np.asarray(offset), flip=flip,
-                    residual=np.asarray(residual), flip_residuals=trials)
+    psf = (np.asarray(h, np.float64) * gain[:, None, None]).astype(np.float32)
+    offset = (np.asarray(offset, np.float64) * raw_peak).astype(np.float32)
+    residual = np.asarray(residual)
+    if not (np.isfinite(psf).all() and np.isfinite(offset).all()
+            and np.isfinite(residual).all()):
+        raise DiffcamError("the PSF fit from scenes did not stay finite; check that the "
+                           "raws and truths are the captures of each other.")
+    return ScenePsf(psf=psf, offset=offset, flip=flip, residual=residual,
+                    flip_residuals=trials)
+
+
+def _channel_peaks(images: np.ndarray) -> np.ndarray:
+    """max |images| per channel of a ``(k, c, ny, nx)`` stack, float64 (1 where 0)."""
+    peak = np.max(np.abs(images), axis=(0, 2, 3)).astype(np.float64)
+    return np.where(peak > 0, peak, 1.0)
 
 
 def predict_raw(calibration: ScenePsf, truth: Float[ArrayLike, "c ny nx"]) -> np.ndarray:
     """The raw capture the calibrated camera records of ``truth`` (a scene in the lensed
-    frame, shape ``(c, ny, nx)`` like the calibration's raws): ``crop(h * x) + c``."""
-    truth = jnp.asarray(flip_scene(truth, calibration.flip), jnp.float32)
-    psf = jnp.asarray(calibration.psf)
-    if truth.shape != psf.shape:
+    frame, shape ``(c, ny, nx)`` like the calibration's raws, or ``(ny, nx)`` for one
+    channel): ``crop(h * x) + c``, computed on the PSF and the scene scaled to unit peak.
+
+    Raises:
+        DiffcamError: a truth that is not a finite, non-negative real image of the
+            calibration's shape, a calibration with NaN/Inf or negative values, or a
+            prediction beyond float32's range.
+    """
+    truth = _as_pairs([flip_scene(real_array("truth", truth), calibration.flip)],
+                      "truth")[0]
+    psf = _as_pairs([calibration.psf], "calibration.psf")[0]
+    offset = np.asarray(real_array("calibration.offset", calibration.offset), np.float64)
+    if truth.shape != psf.shape or offset.shape != psf.shape[:1]:
         raise ShapeError(f"truth {truth.shape} does not match the calibration's "
-                         f"{psf.shape} (channels, ny, nx).")
-    model = convolution_model(psf, truth.shape, "crop")
-    return np.asarray(model(pad_to(truth, model.object_shape))
-                      + calibration.offset[:, None, None])
+                         f"{psf.shape} (channels, ny, nx) and offset {offset.shape}.")
+    if (truth < 0).any() or (psf < 0).any() or not np.isfinite(offset).all():
+        raise DiffcamError("predict_raw needs a non-negative truth and a calibration with "
+                           "a non-negative PSF and a finite offset (fit_psf_from_scenes "
+                           "gives one).")
+    psf_peak = _channel_peaks(psf[None])[:, None, None]
+    truth_peak = _channel_peaks(truth[None])[:, None, None]
+    model = convolution_model(jnp.asarray(psf / psf_peak), truth.shape, "crop")
+    unit = model(pad_to(jnp.asarray(truth / truth_peak), model.object_shape))
+    peaks = psf_peak * truth_peak
+    raw = np.asarray(unit, np.float64) * peaks + offset[:, None, None]
+    if not np.abs(raw).max() <= float(np.finfo(np.float32).max):
+        raise DiffcamError(f"the predicted raw exceeds float32's range (PSF and truth peak "
+                           f"at {float(peaks.max()):.3g} together); divide the truth by a "
+                           f"constant first.")
+    return raw.astype(np.float32)

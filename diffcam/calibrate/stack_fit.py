@@ -42,7 +42,7 @@ import scipy.ndimage as ndi
 from jax import Array
 
 from diffcam.core.backend import fft_size, transfer_step
-from diffcam.core.errors import DiffcamError
+from diffcam.core.errors import DiffcamError, real_number
 from diffcam.core.options import Options
 from diffcam.core.progress import new_bar
 from diffcam.core.phasor import expj
@@ -130,7 +130,7 @@ class StackFitOptions(Options):
     seed: int = 0
     zetas: tuple[float, ...] | None = eqx.field(
         default=None,
-        converter=lambda z: None if z is None else tuple(float(v) for v in np.atleast_1d(z)))
+        converter=lambda z: None if z is None else tuple(np.ravel(z).tolist()))
     scan_steps: int = 80
     gs_iterations: int = 30
     oversample: int = 2
@@ -161,25 +161,27 @@ class StackFitOptions(Options):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
                 raise DiffcamError(f"{name} must be an int ≥ 0, got {v!r}.")
-        if not 0 < float(self.validation_fraction) < 0.5:
+        if not 0 < real_number("validation_fraction", self.validation_fraction,
+                               "a share in (0, 0.5)") < 0.5:
             raise DiffcamError(f"validation_fraction must be in (0, 0.5), got "
                                f"{self.validation_fraction!r}.")
         if self.optimiser not in OPTIMISERS:
             raise DiffcamError(f"optimiser must be one of {OPTIMISERS}, got "
                                f"{self.optimiser!r}.")
-        if not float(self.time_budget) > 0:
+        if not real_number("time_budget", self.time_budget, "seconds > 0") > 0:
             raise DiffcamError(f"time_budget must be > 0 s, got {self.time_budget!r}.")
-        zetas = (ZETA_START,) if self.zetas is None else tuple(self.zetas)
-        if not zetas or not all(np.isfinite(float(z)) and float(z) > 0 for z in zetas):
-            raise DiffcamError(f"zetas must be positive distances (fine samples²), got "
-                               f"{self.zetas!r}.")
+        zetas = (ZETA_START,) if self.zetas is None else self.zetas
+        what = "positive distances (fine samples², λ·z_eff/dx_fine²)"
+        if not zetas or not all(0 < real_number("zetas", z, what) < math.inf for z in zetas):
+            raise DiffcamError(f"zetas must be {what}, got {self.zetas!r}.")
         for name in ("sigma", "amplitude_blur"):
-            if not float(getattr(self, name)) > 0:
-                raise DiffcamError(f"{name} must be > 0 fine samples, got "
-                                   f"{getattr(self, name)!r}.")
+            if not 0 < real_number(name, getattr(self, name), "> 0 fine samples") < math.inf:
+                raise DiffcamError(f"{name} must be a finite number > 0 (fine samples), "
+                                   f"got {getattr(self, name)!r}.")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if f.name.startswith("step_") and not (0 <= float(v) < math.inf):
+            if f.name.startswith("step_") and not (
+                    0 <= real_number(f.name, v, "a finite step ≥ 0") < math.inf):
                 raise DiffcamError(f"{f.name} must be a finite step ≥ 0, got {v!r}.")
 
 

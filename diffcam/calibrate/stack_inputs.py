@@ -7,7 +7,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from diffcam.core.errors import DiffcamError, ShapeError, check_positive
+from diffcam.core.errors import DiffcamError, ShapeError, check_positive, real_array
 from diffcam.io import border_dark_level
 
 __all__ = ["prepare_planes", "given_planes", "check_saturation", "saturation_level",
@@ -31,7 +31,7 @@ def prepare_planes(images, ring: int = 6, *, labels: Sequence[int] | None = None
     Returns:
         float64 array of the same shape.
     """
-    a = np.asarray(images, np.float64)
+    a = np.asarray(real_array("images", images), np.float64)
     h, w = a.shape[-2:]
     if ring:
         a = a - border_dark_level(a, ring)[..., None, None]
@@ -53,6 +53,8 @@ def given_planes(stack, planes):
     n_planes or None, input dtype)."""
     planes = _plane_list(planes)
     frames, n_planes = _frames_of(stack, planes)
+    for t, f in zip(planes, frames):   # refused if complex; the input dtype is kept: it
+        real_array(f"plane {t}", f)    # sets the saturation level
     dtype = _check_frames(frames, planes)
     return [f.astype(np.float64) for f in frames], planes, n_planes, dtype
 

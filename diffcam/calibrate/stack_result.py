@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from pathlib import Path
 
@@ -27,7 +28,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from diffcam.core.errors import DiffcamError
+from diffcam.core.errors import DiffcamError, number_in, whole_number
+from diffcam.core import grid as core_grid
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
                                            relative_magnification_at, spline_coefficients)
 from diffcam.io import atomic_output, check_output_path, read_npz
@@ -42,6 +44,11 @@ _ARRAYS = ("field_real", "field_imag", "log_zeta", "log_s", "centre", "log_sigma
 MAX_PLANES = 4096
 """Most planes one :meth:`StackFit.predict` call returns (a 270×320 frame: 1.4 GB);
 raise it for the session by assigning to this constant."""
+
+
+KAPPA_LIMIT = 10
+"""Largest |κ| of the depth law ζ(t) = ζ_ref·s(t)^(−κ) that :meth:`StackFit.predict`
+renders and a fit file may hold (1 is the scaling theorem's; a κ of 10⁶ overflows)."""
 
 
 def _check_count(n: int) -> None:
@@ -152,9 +159,10 @@ class StackFit:
         model = self.model
         if kappa is not None and not (isinstance(kappa, (int, float, np.number))
                                       and not isinstance(kappa, bool)
-                                      and abs(float(kappa)) <= 10):
-            raise DiffcamError(f"kappa must be a number in [-10, 10] (1: the scaling "
-                               f"theorem's depth law, 0: frozen distance), got {kappa!r}.")
+                                      and abs(float(kappa)) <= KAPPA_LIMIT):
+            raise DiffcamError(f"kappa must be a number in [-{KAPPA_LIMIT}, {KAPPA_LIMIT}] "
+                               f"(1: the scaling theorem's depth law, 0: frozen distance), "
+                               f"got {kappa!r}.")
         if kappa is not None:
             model = eqx.tree_at(lambda m: m.kappa, model, jnp.float32(kappa))
             if model.frozen and kappa != 0:
@@ -166,7 +174,13 @@ class StackFit:
         out /= out.mean(axis=(-2, -1), keepdims=True)
         if light:
             out *= gain[:, None, None]
-        return out.astype(np.float32)
+        out = out.astype(np.float32)
+        bad = [t for t, plane in zip(ts, out) if not np.isfinite(plane).all()]
+        if bad:
+            raise DiffcamError(f"the model renders plane(s) {bad[:5]} dark or as NaN/Inf "
+                               f"(its values are outside what a fit gives there); predict "
+                               f"planes nearer the fitted ones {list(self.planes)}.")
+        return out
 
     def _light(self, ts) -> np.ndarray:
         """Each plane's light relative to the reference plane's (inverse-square law)."""
@@ -295,11 +309,16 @@ def load_stack_fit(path: str | os.PathLike) -> StackFit:
                                f"fit the stack again (diffcam fit STACK --planes …).")
         data = read_npz(path, ("metadata", "history", "validation") + _ARRAYS, what=what)
         model = _model_from(data, meta["geometry"], path)
+        planes, n_planes = _planes_from(path, meta, model)
         measured = _measured_from(path, meta, model)
         reg = meta["registration"]
+        _real(path, "registration.magnification", reg["magnification"], 1e-3, 1e3)
+        light = meta["identifiable"].get("magnification_reference_from_light")
+        if light is not None:
+            _real(path, "identifiable.magnification_reference_from_light", light,
+                  1 + 1e-9, 1e9)
         return StackFit(
-            model=model, planes=tuple(int(t) for t in meta["planes"]),
-            n_planes=None if meta["n_planes"] is None else int(meta["n_planes"]),
+            model=model, planes=planes, n_planes=n_planes,
             registration=Registration(float(reg["magnification"]),
                                       tuple(float(c) for c in reg["centre"]),
                                       float(reg["pearson"]), float(reg.get("seconds", 0.0))),
@@ -319,27 +338,100 @@ def load_stack_fit(path: str | os.PathLike) -> StackFit:
                            f"the metadata are missing or damaged.") from None
 
 
+def _damaged(path, field: str, value, what: str) -> DiffcamError:
+    """The one line for a value of a fit file that a fit cannot have written."""
+    return DiffcamError(f"{path}: {field} = {value!r:.60} is not {what}; the file is damaged "
+                        f"or was edited: fit the stack again (diffcam fit STACK --planes …).")
+
+
+def _whole(path, field: str, value, low: int, high: float = math.inf) -> int:
+    """A whole number of a fit file's metadata in ``low`` … ``high``."""
+    try:
+        return whole_number(field, value, low, high)
+    except DiffcamError:
+        raise _damaged(path, field, value, f"a whole number in {low} … {high}") from None
+
+
+def _real(path, field: str, value, low: float, high: float) -> float:
+    """A finite number of a fit file (metadata or a scalar array) in ``low`` … ``high``."""
+    what = f"one finite number in {low:g} … {high:g}"
+    try:
+        return number_in(field, value, low, high, what)
+    except DiffcamError:
+        shown = value.item() if np.ndim(value) == 0 and hasattr(value, "item") else value
+        raise _damaged(path, field, shown, what) from None
+
+
 def _model_from(data, g: dict, path) -> StackModel:
-    """The :class:`StackModel` of a fit file, its arrays checked against its geometry."""
-    model = StackModel(
-        **{k: jnp.asarray(data[k], jnp.float32) for k in _ARRAYS},
-        frame=tuple(int(v) for v in g["frame"]), pad=int(g["pad"]),
-        grid=tuple(int(v) for v in g["grid"]), stride=int(g["stride"]),
-        reference=int(g["reference"]), anchor=int(g["anchor"]),
-        oversample=int(g["oversample"]), frozen=bool(g["frozen"]),
-        grid_magnification=float(g.get("grid_magnification", 1.0)))
-    coarse = coefficient_shape(model.grid, model.stride)
-    if model.field_real.shape != coarse or model.field_imag.shape != coarse \
-            or model.centre.shape != (2,):
-        raise DiffcamError(f"{path}: arrays do not match the recorded geometry (field "
-                           f"coefficients {model.field_real.shape}, expected {coarse}); the "
-                           f"file is damaged.")
-    if not all(np.isfinite(np.asarray(data[k])).all() for k in _ARRAYS):
-        raise DiffcamError(f"{path}: the model holds NaN/Inf values; the file is damaged.")
-    if not model.grid_magnification > 0:
-        raise DiffcamError(f"{path}: grid magnification {model.grid_magnification!r} is "
-                           f"not positive; the file is damaged.")
-    return model
+    """The :class:`StackModel` of a fit file, every value checked against the ranges a
+    fit produces and its arrays against its recorded geometry (:func:`_check_model`)."""
+    side = math.isqrt(core_grid.MAX_GRID_SAMPLES)
+    frame = g["frame"]
+    if not isinstance(frame, list) or len(frame) != 2:
+        raise _damaged(path, "geometry.frame", frame, "a [height, width] pair")
+    frame = tuple(_whole(path, "geometry.frame", v, 1, side) for v in frame)
+    pad = _whole(path, "geometry.pad", g["pad"], 0, side)
+    stride = _whole(path, "geometry.stride", g["stride"], 1, side)
+    oversample = _whole(path, "geometry.oversample", g["oversample"], 1, 16)
+    reference = _whole(path, "geometry.reference", g["reference"], 0, MAX_PLANES - 1)
+    anchor = _whole(path, "geometry.anchor", g["anchor"], 0, MAX_PLANES - 1)
+    if anchor == reference:
+        raise _damaged(path, "geometry.anchor", anchor, "a plane other than the reference")
+    grid = g["grid"]
+    need = [oversample * n + 2 * pad for n in frame]
+    if not isinstance(grid, list) or len(grid) != 2 or not all(
+            isinstance(v, int) and not isinstance(v, bool) and n <= v <= side
+            for v, n in zip(grid, need)):
+        raise _damaged(path, "geometry.grid", grid, f"a field grid that holds the "
+                       f"oversampled frame and its pad ({need[0]}×{need[1]} or more)")
+    if not isinstance(g["frozen"], bool):
+        raise _damaged(path, "geometry.frozen", g["frozen"], "true or false")
+    grid_magnification = _real(path, "geometry.grid_magnification",
+                               g.get("grid_magnification", 1.0), 1e-3, 1e3)
+    shapes = {k: () for k in ("log_zeta", "log_s", "log_sigma", "kappa")}
+    shapes.update(field_real=coefficient_shape(tuple(grid), stride),
+                  field_imag=coefficient_shape(tuple(grid), stride), centre=(2,))
+    arrays = {}
+    for k, shape in shapes.items():
+        a = np.asarray(data[k])
+        if a.shape != shape or a.dtype.kind not in "iuf" or not np.isfinite(a).all():
+            raise DiffcamError(f"{path}: the array {k} ({a.dtype}, shape {a.shape}) is not "
+                               f"finite real numbers of the recorded geometry's shape "
+                               f"{shape}; the file is damaged: fit the stack again.")
+        arrays[k] = a
+    # ranges: a fit's own values lie far inside these; outside them a rendering
+    # overflows float32 (ζ·s^−κ, the blur's exp) or samples nothing (a far centre)
+    _real(path, "kappa", arrays["kappa"], -KAPPA_LIMIT, KAPPA_LIMIT)
+    _real(path, "log_zeta", arrays["log_zeta"], -30.0, 30.0)
+    _real(path, "log_s", arrays["log_s"], -math.log(1e3), math.log(1e3))
+    _real(path, "log_sigma", arrays["log_sigma"], -30.0, math.log(max(grid)))
+    reach = 100 * max(frame)
+    if np.abs(arrays["centre"]).max() > reach:
+        raise _damaged(path, "centre", arrays["centre"].tolist(),
+                       f"within {reach} pixels of the frame")
+    return StackModel(
+        **{k: jnp.asarray(a, jnp.float32) for k, a in arrays.items()},
+        frame=frame, pad=pad, grid=tuple(grid), stride=stride, reference=reference,
+        anchor=anchor, oversample=oversample, frozen=g["frozen"],
+        grid_magnification=grid_magnification)
+
+
+def _planes_from(path, meta: dict, model: StackModel) -> tuple[tuple[int, ...], int | None]:
+    """The given planes (two or more, distinct, the reference first, the anchor among
+    them) and the stack's plane count (None or a whole number) of a fit file."""
+    planes = meta["planes"]
+    if not isinstance(planes, list):
+        raise _damaged(path, "planes", planes, "a list of plane indices")
+    planes = tuple(_whole(path, "planes", t, 0, MAX_PLANES - 1) for t in planes)
+    if len(set(planes)) != len(planes) or len(planes) < 2 or \
+            planes[0] != model.reference or model.anchor not in planes:
+        raise _damaged(path, "planes", list(planes), f"two or more distinct planes "
+                       f"starting with the reference {model.reference} and holding the "
+                       f"anchor {model.anchor}")
+    n = meta["n_planes"]     # its range is checked where the planes are rendered
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int)):
+        raise _damaged(path, "n_planes", n, "a whole number or null")
+    return planes, n
 
 
 def _measured_from(path, meta: dict, model: StackModel) -> np.ndarray:

@@ -34,6 +34,10 @@ __all__ = [
     "check_finite",
     "environment_count",
     "check_field",
+    "real_array",
+    "real_number",
+    "number_in",
+    "whole_number",
     "sampling_problem",
 ]
 
@@ -195,6 +199,65 @@ def _as_real(name: str, value: Any, what: str, *, complex_ok: bool = False) -> n
         raise DiffcamError(f"{name} must be {what}, got {held} ({value!r:.60}); convert it "
                            f"first, e.g. np.asarray(x, dtype=np.float32).")
     return arr
+
+
+def real_array(name: str, value: Any) -> Any:
+    """``value`` as an array of real floats, the one conversion every public function
+    applies to an image, a PSF or a capture: bool, integer and float16 data become the
+    float type that holds them (float32 at least: ``np.result_type(dtype, float32)``),
+    float32 and float64 arrays pass as they are (a JAX array or tracer stays one).
+
+    Raises:
+        DiffcamError: complex numbers (an intensity is real: a cast would drop the
+            imaginary part), object or text data; the message names ``name``.
+    """
+    if not isinstance(value, (np.ndarray, np.generic, *_jax_types())):
+        value = _as_real(name, value, "an array of real numbers")
+    dtype = np.dtype(value.dtype)
+    if dtype.kind == "c":
+        raise DiffcamError(f"{name} must be real, got complex numbers ({dtype}), whose "
+                           f"imaginary part a cast would drop: pass np.abs(x)**2 of a field "
+                           f"(its intensity), or x.real if the imaginary part is rounding.")
+    if dtype.kind not in "biuf":
+        _as_real(name, value, "an array of real numbers")    # raises, naming the dtype
+    if dtype.kind == "f" and dtype.itemsize >= 4:
+        return value
+    target = np.result_type(dtype, np.float32)
+    if isinstance(value, _jax_types()):     # JAX holds float64 only with x64 on
+        target = sys.modules["jax"].dtypes.canonicalize_dtype(target)
+    return value.astype(target)
+
+
+def real_number(name: str, value: Any, what: str) -> float:
+    """``value`` as one Python float: a real number (or an array holding one), not a
+    bool, text or several values; NaN and Inf pass (the caller checks the range).
+
+    Raises:
+        DiffcamError: anything else, saying ``name`` must be ``what`` (``"a step ≥ 0"``).
+    """
+    arr = _as_real(name, value, what)
+    if arr.dtype.kind == "b" or arr.size != 1:
+        raise DiffcamError(f"{name} must be {what}, got {value!r:.60}.")
+    return float(arr.reshape(()))
+
+
+def number_in(name: str, value: Any, low: float, high: float, what: str) -> float:
+    """``value`` as a float in ``low`` … ``high`` (ends included), or a DiffcamError
+    saying ``name`` must be ``what`` (``"a share of the peak in 0 … 1"``)."""
+    v = real_number(name, value, what)
+    if not low <= v <= high:
+        raise DiffcamError(f"{name} must be {what}, got {value!r:.60}.")
+    return v
+
+
+def whole_number(name: str, value: Any, low: int, high: float = math.inf) -> int:
+    """``value`` as an int in ``low`` … ``high``: a Python or NumPy integer, not a bool
+    or a float, or a DiffcamError naming ``name``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or not low <= value <= high:
+        span = f"≥ {low}" if high == math.inf else f"in {low} … {high}"
+        raise DiffcamError(f"{name} must be a whole number {span}, got {value!r:.60}.")
+    return int(value)
 
 
 def check_field(field: Any, name: str = "field", *, finite: bool | str = True) -> None:

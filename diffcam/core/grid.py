@@ -54,7 +54,8 @@ def pitch_yx(dx) -> tuple:
     """``(dy, dx)`` from a scalar pitch or a pair, metres per sample."""
     if isinstance(dx, (tuple, list)):
         if len(dx) != 2:
-            raise ValueError(f"pitch must be a scalar or a (dy, dx) pair, got {dx!r}")
+            raise DiffcamError(f"the pitch dx must be one number or a (dy, dx) pair in "
+                               f"metres, got {dx!r}.")
         return dx[0], dx[1]
     return dx, dx
 

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from diffcam.core.errors import DiffcamError
-from diffcam.io import BackgroundWarning, atomic_output, downsample
+from diffcam.io import BackgroundWarning, atomic_output, downsample, make_output_folder
 from diffcam.io import subtract_background as _subtract
 
 __all__ = ["DATA_DIR", "TutorialPair", "load_tutorial_pair", "ScenePairs",
@@ -193,7 +193,9 @@ def export_captures(name: str, folder, *, overwrite: bool = False) -> list[Path]
         The paths written.
 
     Raises:
-        DiffcamError: an unknown name, or files that exist (without ``overwrite``).
+        DiffcamError: an unknown name, a folder that cannot be one
+            (:func:`diffcam.io.make_output_folder`), or files that exist (without
+            ``overwrite``).
     """
     import tifffile
     from skimage.io import imsave
@@ -201,15 +203,15 @@ def export_captures(name: str, folder, *, overwrite: bool = False) -> list[Path]
 
     if name not in CAPTURES:
         raise DiffcamError(f"unknown capture set {name!r}; choose one of {CAPTURES}.")
+    folder = make_output_folder(folder)     # before the captures are read
     files = _capture_files(name)
-    folder = Path(folder)
     paths = [folder / f for f in files]
+    for subfolder in {p.parent for p in paths}:
+        make_output_folder(subfolder)
     existing = [str(p) for p in paths if p.exists()]
     if existing and not overwrite:
         raise DiffcamError(f"{existing[0]} exists ({len(existing)} of the {len(paths)} "
                            f"files); choose another folder, or overwrite (--force).")
-    for p in paths:
-        p.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(*paths) as temps:
         for tmp, image in zip(temps if len(paths) > 1 else [temps], files.values()):
             if tmp.suffix == ".png":

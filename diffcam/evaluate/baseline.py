@@ -26,7 +26,7 @@ from jaxtyping import Float
 
 from diffcam.core.deprecation import renamed
 from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
-                                 check_positive, is_concrete)
+                                 check_positive, is_concrete, real_array)
 from diffcam.model.sensor import resample
 from diffcam.optics.propagation import magnification
 
@@ -71,6 +71,7 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
         DiffcamError: NaN/Inf in any argument (named), a negative or all-zero reference,
             non-positive lengths; ``ShapeError`` unless ``psf_ref`` is 2-D.
     """
+    real_array("psf_ref", psf_ref)
     check_field(psf_ref, "psf_ref")
     if np.ndim(psf_ref) != 2:
         raise ShapeError(f"psf_ref must be one 2-D PSF (ny, nx), got shape "
@@ -91,6 +92,8 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
         raise DiffcamError(f"kind must be 'cubic' or 'area', got {kind!r}.")
     m = relative_magnification(z1_ref, jnp.asarray(z1), z2)
     ref = jnp.asarray(psf_ref)
+    if is_concrete(m):
+        _check_magnification(np.asarray(m), max(ref.shape))
     # the area kernel's taps depend only on ceil(max_width), and never exceed the frame
     # (diffcam.model.sensor): one compilation per count, at most one per frame size
     max_width = (float(min(math.ceil(1 / float(np.min(np.asarray(m)))), max(ref.shape)))
@@ -103,6 +106,19 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
             f"magnifying psf_ref by m = {np.asarray(m).min():.4g}…{np.asarray(m).max():.4g} "
             f"leaves no light in the frame; check z1, z1_ref and z2 (metres).")
     return out
+
+
+def _check_magnification(m: np.ndarray, n: int) -> None:
+    """``m`` maps the reference's ``n``-pixel frame onto at least one pixel and one of
+    its pixels onto at most the frame: 1/n ≤ m ≤ n. Beyond, the whole PSF lands in one
+    pixel or one pixel fills the frame: a depth ratio no camera images with (a length
+    not in metres, most likely)."""
+    lo, hi = float(m.min()), float(m.max())
+    if lo < 1 / n or hi > n:
+        raise DiffcamError(
+            f"magnify_psf: the magnification z1_ref → z1 is {lo:.3g}…{hi:.3g}, outside "
+            f"1/{n} … {n}: the reference's {n}-pixel frame would shrink below one pixel or "
+            f"one pixel fill the frame; check z1_ref, z1 and z2 (metres: 25 mm is 25e-3).")
 
 
 @partial(jax.jit, static_argnames=("kind", "max_width"))

@@ -23,7 +23,8 @@ from jaxtyping import Float
 
 from diffcam.core.backend import fft2, ifft2
 
-from diffcam.core.errors import DiffcamError, ShapeError, check_finite, is_concrete
+from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, is_concrete,
+                                 real_array)
 from diffcam.core.options import Options
 
 __all__ = ["pearson", "ssim", "SsimOptions", "mse", "psnr", "align_to", "wrap_phase", "twin_phase",
@@ -33,6 +34,9 @@ _SPACE = (-2, -1)
 
 
 def _check_pair(a, b, name_a="estimate", name_b="reference"):
+    """``a`` and ``b`` as real float arrays (:func:`~diffcam.core.errors.real_array`:
+    integers converted, complex refused), checked: image axes of one shape, finite."""
+    a, b = real_array(name_a, a), real_array(name_b, b)
     sa, sb = np.shape(a), np.shape(b)
     if len(sa) < 2 or len(sb) < 2:
         raise ShapeError(f"metrics take images (..., ny, nx); got shapes {sa} and {sb}.")
@@ -41,6 +45,7 @@ def _check_pair(a, b, name_a="estimate", name_b="reference"):
                          f"crop or resample one onto the other's grid first.")
     check_finite(name_a, a)
     check_finite(name_b, b)
+    return a, b
 
 
 def _mean(x, mask):
@@ -66,29 +71,73 @@ def _peak(x):
 def align_to(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx"],
              mode: str = "affine", mask=None) -> Float[Array, "... ny nx"]:
     """``a·estimate + b`` (``mode="affine"``) or ``a·estimate`` (``"scale"``) fitted to
-    ``reference`` by least squares over the image (or ``mask``), per batch element."""
-    if mode not in ("affine", "scale"):
-        raise DiffcamError(f"align must be None, 'scale' or 'affine', got {mode!r}.")
+    ``reference`` by least squares over the image (or ``mask``), per batch element.
+
+    The fit is undefined when the estimate is constant (``"scale"``: all zero) over the
+    image: every ``a`` fits equally well. Called eagerly that is a DiffcamError; under a
+    caller's ``jit`` such an element gets a = 0 (the least-norm solution)."""
+    estimate, reference = _check_pair(estimate, reference)
+    return _aligned(estimate, reference, mode, mask)
+
+
+def _fit(estimate, reference, mode, mask):
+    """:func:`align_to` after its checks (the traced path: a = 0 where undefined)."""
     w = 1.0 if mask is None else mask
+    unit = _peak(reference)       # the means below are sums: of unit-peak values
+    reference = reference / unit
     rm = 0.0 if mode == "scale" else _mean(reference, mask)
-    de = estimate if mode == "scale" else estimate - _mean(estimate, mask)
     dr = reference - rm
     scale = _peak(dr)
     r = dr / scale
-    # a constant estimate (or, for "scale", an all-zero one) fits every a equally well:
-    # a = 0, the least-squares solution of least norm, not 0/0 or a fit to the rounding
-    # of its mean (a few ulps, which _peak would blow up to ±1)
-    flat = _peak(de) <= 64 * jnp.finfo(de.dtype).eps * _peak(estimate)
+    de, flat = _flat(estimate, mode, mask)
     e = jnp.where(flat, 0, de / _peak(de))
     ee = jnp.sum(w * e * e, axis=_SPACE, keepdims=True)
     a = jnp.sum(w * e * r, axis=_SPACE, keepdims=True) / jnp.where(ee > 0, ee, 1)
-    return scale * a * e + rm
+    return unit * (scale * a * e + rm)
+
+
+def _flat(estimate, mode, mask):
+    """The estimate's part that a fits (minus its mean for ``"affine"``), and where it
+    is nothing but rounding (a few ulps of the estimate's mean, which :func:`_peak`
+    would blow up to ±1): there every a fits equally well."""
+    estimate = estimate / _peak(estimate)     # a absorbs the scale; the mean is a sum
+    de = estimate if mode == "scale" else estimate - _mean(estimate, mask)
+    top = lambda x: jnp.max(jnp.abs(x), axis=_SPACE, keepdims=True)  # noqa: E731
+    return de, top(de) <= 64 * jnp.finfo(de.dtype).eps * top(estimate)
+
+
+@partial(jax.jit, static_argnames="mode")
+def _flat_mask(estimate, mode, mask):
+    """Where :func:`_flat` finds nothing to fit, as one program (eagerly, op by op, the
+    check takes seconds of dispatch and compilation on a loaded machine)."""
+    return _flat(estimate, mode, mask)[1]
+
+
+def _check_alignable(estimate, mode, mask) -> None:
+    """A DiffcamError if the fit of :func:`align_to` is undefined for any element of a
+    concrete ``estimate``."""
+    if not is_concrete(estimate, mask):
+        return
+    flat = np.asarray(_flat_mask(jnp.asarray(estimate), mode, mask))
+    if flat.any():
+        what = "all zero" if mode == "scale" else "constant"
+        raise DiffcamError(
+            f"align={mode!r} is undefined: the estimate is {what} over "
+            f"{'the image' if mask is None else 'the mask'} ({int(flat.sum())} image(s)), "
+            f"so every gain a fits it equally well; compare without align, or check "
+            f"that the estimate holds any signal.")
 
 
 def _aligned(estimate, reference, align, mask=None):
-    estimate = jnp.asarray(estimate)
-    reference = jnp.asarray(reference)
-    return estimate if align is None else align_to(estimate, reference, align, mask)
+    """``estimate`` aligned to ``reference`` (checked arrays) by ``align`` (None: as it
+    is), the fit checked first when the estimate is concrete."""
+    estimate, reference = jnp.asarray(estimate), jnp.asarray(reference)
+    if align is None:
+        return estimate
+    if align not in ("affine", "scale"):
+        raise DiffcamError(f"align must be None, 'scale' or 'affine', got {align!r}.")
+    _check_alignable(estimate, align, mask)
+    return _fit(estimate, reference, align, mask)
 
 
 def pearson(a: Float[Array, "... ny nx"], b: Float[Array, "... ny nx"], *, mask=None
@@ -104,13 +153,14 @@ def pearson(a: Float[Array, "... ny nx"], b: Float[Array, "... ny nx"], *, mask=
     selects nothing: called eagerly, that is a DiffcamError saying which; under a
     caller's ``jit`` the result is NaN or meaningless.
     """
-    _check_pair(a, b, "a", "b")
+    a, b = _check_pair(a, b, "a", "b")
     a, b = jnp.asarray(a), jnp.asarray(b)
     if mask is not None:
-        mask = jnp.asarray(mask, dtype=a.dtype)
+        mask = jnp.asarray(real_array("mask", mask), dtype=a.dtype)
     if is_concrete(a, b, mask):
         _check_variance(a, b, mask)
     w = 1.0 if mask is None else mask
+    a, b = a / _peak(a), b / _peak(b)     # the means are sums: of unit-peak values
     da, db = a - _mean(a, mask), b - _mean(b, mask)
     da, db = da / _peak(da), db / _peak(db)
     num = jnp.sum(w * da * db, axis=_SPACE)
@@ -142,7 +192,7 @@ def _check_variance(a, b, mask):
 
 def mse(estimate, reference, *, align: str | None = None) -> Float[Array, "..."]:
     """Mean squared error over the last two axes (after optional alignment)."""
-    _check_pair(estimate, reference)
+    estimate, reference = _check_pair(estimate, reference)
     e = _aligned(estimate, reference, align)
     return jnp.mean((e - jnp.asarray(reference)) ** 2, axis=_SPACE)
 
@@ -152,7 +202,7 @@ def _data_range(reference, data_range):
     be > 0: SSIM and PSNR are measured in units of it)."""
     if data_range is not None:
         if is_concrete(data_range):
-            dr = np.asarray(data_range, np.float64)
+            dr = np.asarray(real_array("data_range", data_range), np.float64)
             if dr.size == 0 or not (np.all(np.isfinite(dr)) and np.all(dr > 0)):
                 raise DiffcamError(
                     f"data_range must be a finite number > 0 (the span of the images' "
@@ -251,13 +301,15 @@ def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx
     gives Wang et al.'s original definition.
     """
     options = SsimOptions.of(options, **overrides)
-    _check_pair(estimate, reference)
+    estimate, reference = _check_pair(estimate, reference)
     weights = options.window()
     ny, nx = np.shape(reference)[-2:]
     win = len(weights)
     if ny < win or nx < win:
         raise ShapeError(f"images of {ny}×{nx} are smaller than the {win}×{win} SSIM window.")
     dr = _data_range(reference, data_range)
+    if align is not None:
+        _check_alignable(jnp.asarray(estimate), align, None)
     return _ssim(jnp.asarray(estimate), jnp.asarray(reference), dr,
                  tuple(float(w) for w in weights), float(options.K1), float(options.K2),
                  bool(options.use_sample_covariance), align)
@@ -310,7 +362,7 @@ def twin_phase(phase: Float[Array, "... ny nx"]) -> Float[Array, "... ny nx"]:
 def phase_offset(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
                  mask=None) -> Float[Array, "..."]:
     """The piston d = arg Σ_mask e^{j(θest − θtrue)} that best aligns two phases (rad)."""
-    _check_pair(estimate, truth, "estimate", "truth")
+    estimate, truth = _check_pair(estimate, truth, "estimate", "truth")
     w = 1.0 if mask is None else jnp.asarray(mask)
     z = jnp.sum(w * jnp.exp(1j * (jnp.asarray(estimate) - jnp.asarray(truth))), axis=_SPACE)
     return jnp.angle(z)
@@ -353,7 +405,7 @@ def phase_scores(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... n
     twin), ``raw`` (plain Pearson of θest and θtrue),
     ``mse`` (rad², piston-aligned) and ``mse_twin_resolved`` (the smaller of the MSEs of
     the estimate and its twin)."""
-    _check_pair(estimate, truth, "estimate", "truth")
+    estimate, truth = _check_pair(estimate, truth, "estimate", "truth")
     mask = None if mask is None else jnp.asarray(mask)
     return _phase_scores(jnp.asarray(estimate), jnp.asarray(truth), mask)
 
@@ -411,7 +463,7 @@ def registration_shift(moving: Float[Array, "... ny nx"], reference: Float[Array
     ``skimage.registration.phase_cross_correlation(reference, moving)``. Shifts are
     piecewise constant in the images, so their gradient is zero.
     """
-    _check_pair(moving, reference, "moving", "reference")
+    moving, reference = _check_pair(moving, reference, "moving", "reference")
     if not isinstance(upsample, int) or upsample < 1:
         raise DiffcamError(f"upsample must be a positive int, got {upsample!r}.")
     return _registration_shift(jnp.asarray(moving), jnp.asarray(reference), upsample)
@@ -462,7 +514,7 @@ def psf_fidelity(model: Float[Array, "... ny nx"], measured: Float[Array, "... n
         ``{"pearson": (...), "ssim": (...), "shift": (..., 2)}``; ``shift`` in pixels
         (zero when ``register=False``).
     """
-    _check_pair(model, measured, "model", "measured")
+    model, measured = _check_pair(model, measured, "model", "measured")
     for name, x in (("model", model), ("measured", measured)):
         if is_concrete(x):
             x = np.asarray(x)

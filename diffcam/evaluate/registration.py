@@ -27,7 +27,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.errors import DiffcamError, ShapeError, real_array
 from diffcam.model.spline import bspline
 
 __all__ = ["Registration", "register_magnification", "magnify_about", "spline_coefficients",
@@ -135,7 +135,7 @@ def _moments(img):
 
 
 def _check_plane(image, name):
-    a = np.asarray(image)
+    a = np.asarray(real_array(name, image))
     if a.ndim != 2 or 0 in a.shape:
         raise ShapeError(f"{name} must be a non-empty 2-D image (ny, nx), got shape "
                          f"{a.shape}.")
@@ -316,7 +316,7 @@ def scaling_baseline(given: Mapping[int, np.ndarray], planes: int | Sequence[int
         raise DiffcamError(f"the scaling baseline needs at least two given planes to fix "
                            f"the magnification law, got {len(given)}.")
     keys = sorted(int(k) for k in given)
-    imgs = {k: np.asarray(given[k], np.float64) for k in keys}
+    imgs = {k: np.asarray(real_array(f"plane {k}", given[k]), np.float64) for k in keys}
     shapes = {v.shape for v in imgs.values()}
     if len(shapes) != 1:
         raise ShapeError(f"given planes differ in shape: {sorted(shapes)}.")

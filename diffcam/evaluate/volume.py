@@ -17,7 +17,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.errors import (DiffcamError, ShapeError, number_in, real_array,
+                                 whole_number)
 
 __all__ = ["Box", "Ridge", "target_box", "ridge_measures", "depth_map"]
 
@@ -67,7 +68,7 @@ class Ridge(NamedTuple):
 
 
 def _check_volume(volume) -> np.ndarray:
-    v = np.asarray(volume, np.float64)
+    v = np.asarray(real_array("volume", volume), np.float64)
     if v.ndim != 3:
         raise ShapeError(f"a volume is (nz, ny, nx); got shape {v.shape}.")
     if not np.isfinite(v).all():
@@ -91,8 +92,11 @@ def target_box(max_projection, fraction: float = 0.3, sigma: float = 4.0,
     """
     from scipy import ndimage
 
-    mip = np.asarray(max_projection, np.float64)
-    if mip.ndim != 2 or mip.max() <= 0:
+    fraction = number_in("fraction", fraction, 1e-6, 1, "a share of the peak in (0, 1]")
+    sigma = number_in("sigma", sigma, 0, 1e4, "a width ≥ 0 in pixels")
+    margin = whole_number("margin", margin, 0)
+    mip = np.asarray(real_array("max_projection", max_projection), np.float64)
+    if mip.ndim != 2 or not np.isfinite(mip).all() or mip.max() <= 0:
         raise DiffcamError(f"target_box needs a (ny, nx) max projection with some light; "
                            f"got shape {mip.shape}, max {mip.max() if mip.size else None}.")
     smooth = ndimage.gaussian_filter(mip, sigma)
@@ -120,10 +124,7 @@ def ridge_measures(volume, box: Box | None = None) -> Ridge:
     """
     v = _check_volume(volume)
     mip = v.max(axis=0)
-    box = target_box(mip) if box is None else Box(*box)
-    if box.bottom <= box.top or box.right - box.left < 2:
-        raise DiffcamError(f"the target box {tuple(box)} is empty or one column wide; "
-                           f"give a box of at least 2 columns inside the frame.")
+    box = target_box(mip) if box is None else _box_in(box, mip.shape)
     xz = v[:, box.top:box.bottom, box.left:box.right].max(axis=1)     # (nz, columns)
     peaks = xz.argmax(axis=0)
     cols = np.arange(box.left, box.right)
@@ -133,6 +134,22 @@ def ridge_measures(volume, box: Box | None = None) -> Ridge:
     outside = float(mip[~box.mask(mip.shape)].sum() / mip.sum())
     brightness = xz.max(axis=0) / xz.max()
     return Ridge(float(slope), rms, width, outside, peaks, brightness)
+
+
+def _box_in(box, shape) -> Box:
+    """``box`` as a :class:`Box` of whole pixels inside a frame of ``shape``, at least
+    one row and two columns."""
+    ny, nx = shape
+    values = tuple(box) if isinstance(box, (tuple, list, np.ndarray)) else ()
+    if len(values) != 4:
+        raise DiffcamError(f"box must be (top, bottom, left, right) pixels, got "
+                           f"{box!r:.60}.")
+    top, bottom, left, right = (whole_number(f"box.{name} (frame {ny}×{nx})", v, 0, n)
+                                for name, v, n in zip(Box._fields, values, (ny, ny, nx, nx)))
+    if bottom <= top or right - left < 2:
+        raise DiffcamError(f"the target box {tuple(box)} is empty or one column wide; "
+                           f"give a box of at least 2 columns inside the frame.")
+    return Box(top, bottom, left, right)
 
 
 def depth_map(volume, fraction: float = 0.2) -> np.ma.MaskedArray:
@@ -145,6 +162,7 @@ def depth_map(volume, fraction: float = 0.2) -> np.ma.MaskedArray:
         fraction: share of the max projection's 99.5th percentile below which a pixel
             is masked.
     """
+    fraction = number_in("fraction", fraction, 0, 1, "a share of the peak in 0 … 1")
     v = _check_volume(volume)
     mip = v.max(axis=0)
     return np.ma.masked_array(v.argmax(axis=0), mip < fraction * np.percentile(mip, 99.5))

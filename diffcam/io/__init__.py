@@ -36,7 +36,8 @@ from diffcam.io.reading import (IMAGE_SUFFIXES, Capture, as_rgb, check_read_size
                                 file_kind, image_files, natural_key, npz_keys, read_image,
                                 read_mat_stack, read_npz, read_psf_stack, read_rgb)
 from diffcam.io.writing import (Terminated, atomic_output, check_output_path,
-                                interrupts_as_keyboard_interrupt, temporary_files)
+                                interrupts_as_keyboard_interrupt, make_output_folder,
+                                temporary_files)
 
 __all__ = [
     "Capture", "read_image", "read_rgb", "as_rgb", "read_psf_stack", "image_files",
@@ -44,7 +45,8 @@ __all__ = [
     "subtract_background", "saturation_mask", "downsample", "normalise_l2",
     "envelope_widths", "apply_envelope", "BackgroundWarning", "read_npz", "npz_keys",
     "file_kind", "check_read_size",
-    "check_output_path", "atomic_output", "Terminated", "temporary_files",
+    "check_output_path", "make_output_folder", "atomic_output", "Terminated",
+    "temporary_files",
     "interrupts_as_keyboard_interrupt", "MAX_READ_BYTES",
 ]
 

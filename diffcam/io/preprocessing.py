@@ -8,7 +8,8 @@ import warnings
 
 import numpy as np
 
-from diffcam.core.errors import DiffcamError, ShapeError, check_field, check_finite
+from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
+                                 real_array, whole_number)
 from diffcam.io.reading import Capture
 
 __all__ = ["BackgroundWarning", "border_dark_level", "dark_level", "subtract_background",
@@ -30,7 +31,7 @@ def border_dark_level(images, ring: int = 6) -> np.ndarray:
     Raises:
         ShapeError: a frame too small for the band (2·ring ≥ its shorter side).
     """
-    a = np.asarray(images, np.float64)
+    a = np.asarray(real_array("images", images), np.float64)
     h, w = a.shape[-2:]
     if ring < 1 or 2 * ring >= min(h, w):
         raise ShapeError(f"frame {h}×{w} is too small for a {ring}-pixel border ring (or "
@@ -45,7 +46,7 @@ def plane_light(images, ring: int = 6) -> np.ndarray:
     units, shape ``images.shape[:-2]``; ``ring`` 0: no dark level), the quantity the
     inverse-square law relates across a PSF stack's planes
     (:func:`diffcam.evaluate.registration.magnification_from_light`)."""
-    a = np.asarray(images, np.float64)
+    a = np.asarray(real_array("images", images), np.float64)
     dark = border_dark_level(a, ring)[..., None, None] if ring else 0.0
     return (a - dark).sum(axis=(-2, -1))
 
@@ -79,8 +80,8 @@ def subtract_background(image: np.ndarray, background, *,
     Returns:
         float32 array, non-negative.
     """
-    image = np.asarray(image, dtype=np.float32)
-    background = np.asarray(background, dtype=np.float32)
+    image = np.asarray(real_array("image", image), dtype=np.float32)
+    background = np.asarray(real_array("background", background), dtype=np.float32)
     check_finite("image", image)
     check_finite("background", background)
     if background.ndim and background.shape == image.shape[:-2]:
@@ -131,7 +132,7 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
     """
     if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
         raise DiffcamError(f"factor must be a positive integer, got {factor!r}.")
-    image = np.asarray(image, dtype=np.float32)
+    image = np.asarray(real_array("image", image), dtype=np.float32)
     check_field(image, "image")
     ny, nx = image.shape[-2:]
     my, mx = ny // factor, nx // factor
@@ -145,7 +146,7 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
 
 def normalise_l2(image: np.ndarray) -> np.ndarray:
     """``image / ||image||₂`` over the last two axes (per channel / per plane)."""
-    image = np.asarray(image, dtype=np.float32)
+    image = np.asarray(real_array("image", image), dtype=np.float32)
     check_field(image, "image")
     norm = np.sqrt(np.sum(image.astype(np.float64) ** 2, axis=(-2, -1), keepdims=True))
     if np.any(norm == 0):
@@ -180,6 +181,7 @@ def envelope_widths(image: np.ndarray, psfs: np.ndarray, samples: int = 5) -> np
     Returns:
         float64 ``(nz,)``, pixels: ``σ_z`` per plane (:func:`apply_envelope`).
     """
+    samples = whole_number("samples", samples, 1)
     profile, planes, centres = _profiles(image, psfs)
     rows = np.arange(planes.shape[1])
     spread = np.sqrt(planes @ rows ** 2 / planes.sum(axis=1) - centres ** 2)
@@ -217,9 +219,10 @@ def apply_envelope(psfs: np.ndarray, widths) -> np.ndarray:
     """
     widths = np.asarray(widths, np.float64)
     psfs = np.asarray(psfs, np.float32)
-    if psfs.ndim != 3 or widths.shape != psfs.shape[:1] or not np.all(widths > 0):
-        raise DiffcamError(f"apply_envelope needs a (nz, my, mx) stack and nz widths > 0 "
-                           f"(pixels); got a stack of shape {psfs.shape} and widths of "
+    if psfs.ndim != 3 or widths.shape != psfs.shape[:1] or not np.all(
+            (widths > 0) & np.isfinite(widths)):
+        raise DiffcamError(f"apply_envelope needs a (nz, my, mx) stack and nz finite widths "
+                           f"> 0 (pixels); got a stack of shape {psfs.shape} and widths of "
                            f"shape {widths.shape}.")
     _, planes, centres = _profiles(psfs[0], psfs)
     rows = np.arange(psfs.shape[1])
@@ -240,8 +243,11 @@ def _bin(profiles, factor: int) -> np.ndarray:
 def _profiles(image, psfs):
     """The capture's row profile, each plane's row profile, and each plane's row
     centroid (pixels)."""
-    psfs = np.asarray(psfs, np.float64)
-    image = np.asarray(image, np.float64)
+    psfs = np.asarray(real_array("psfs", psfs), np.float64)
+    image = np.asarray(real_array("image", image), np.float64)
+    if not (np.isfinite(psfs).all() and np.isfinite(image).all()):
+        raise DiffcamError("the envelope needs a finite capture and PSF stack; clean the "
+                           "NaN/Inf pixels first.")
     if psfs.ndim != 3 or image.ndim != 2 or psfs.shape[1] > image.shape[0]:
         raise ShapeError(f"the envelope needs a (ny, nx) capture and a (nz, my, mx) PSF "
                          f"stack with my <= ny; got {image.shape} and {psfs.shape}.")

@@ -18,8 +18,8 @@ from typing import Iterator, Sequence
 
 from diffcam.core.errors import DiffcamError
 
-__all__ = ["check_output_path", "atomic_output", "Terminated", "temporary_files",
-           "interrupts_as_keyboard_interrupt"]
+__all__ = ["check_output_path", "make_output_folder", "atomic_output", "Terminated",
+           "temporary_files", "interrupts_as_keyboard_interrupt"]
 
 
 def check_output_path(path: str | os.PathLike, *,
@@ -70,6 +70,39 @@ def check_output_path(path: str | os.PathLike, *,
         os.close(_create_temp(target, probe=True)[0])
     except OSError as err:
         raise DiffcamError(f"{path}: cannot create files in {folder} "
+                           f"({err.strerror or err}); choose another folder or fix its "
+                           f"permissions.") from None
+    return path
+
+
+def make_output_folder(path: str | os.PathLike) -> Path:
+    """Create the folder ``path`` (with its parents) that a command writes its files
+    into, or say in one line why it cannot be one; call it before any work starts.
+
+    Raises:
+        DiffcamError: an empty path (write ``.`` for the working folder), a file where
+            the folder or one of its parents should be, or a folder that cannot be
+            created or refuses new files (a probe file is created and removed).
+    """
+    try:
+        text = os.fspath(path)
+    except TypeError:
+        raise DiffcamError(f"an output folder must be a str or os.PathLike, got "
+                           f"{path!r}.") from None
+    if not str(text).strip():
+        raise DiffcamError("the output folder is an empty name; give a folder (. for the "
+                           "working folder).")
+    path = Path(text)
+    for part in (path, *path.parents):
+        if part.exists() and not part.is_dir():
+            where = "" if part == path else f" ({part} is not a folder)"
+            raise DiffcamError(f"{path}: a file stands where the output folder should "
+                               f"be{where}; name a folder.")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        os.close(_create_temp(path / "folder", probe=True)[0])
+    except OSError as err:
+        raise DiffcamError(f"{path}: cannot create files in this folder "
                            f"({err.strerror or err}); choose another folder or fix its "
                            f"permissions.") from None
     return path

@@ -25,7 +25,8 @@ from jaxtyping import Float
 
 from diffcam.core.backend import fft2, fft_size, ifft2
 
-from diffcam.core.errors import DiffcamError, check_field, check_positive, is_concrete
+from diffcam.core.errors import (DiffcamError, check_field, check_positive, is_concrete,
+                                 real_array)
 from diffcam.model.spline import cubic_sample
 
 __all__ = ["resample", "bin_pixels", "shot_noise", "read_noise", "saturate", "quantise"]
@@ -95,6 +96,7 @@ def resample(intensity: Float[Array, "... ny nx"], dx, out_pitch, out_shape,
     Returns:
         The resampled image (power per output pixel).
     """
+    real_array("intensity", intensity)
     check_field(intensity, "intensity")
     check_positive("dx", dx, "m")
     check_positive("out_pitch", out_pitch, "m")

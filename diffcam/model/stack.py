@@ -45,7 +45,7 @@ from tqdm.auto import tqdm
 from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (irradiance_and_fields, check_inputs, diffuser_fields,
                               fields_for_fft)
-from diffcam.core.errors import DiffcamError, ShapeError
+from diffcam.core.errors import DiffcamError, ShapeError, check_finite, check_positive
 from diffcam.core.options import Options
 from diffcam.core.progress import enabled
 from diffcam.io import atomic_output, check_output_path, check_read_size, read_npz
@@ -101,6 +101,14 @@ class StackMeta:
             d[k] = np.asarray(d[k], dtype=np.float64)
         if d["offsets"] is not None:
             d["offsets"] = np.asarray(d["offsets"], dtype=np.float64).reshape(-1, 2)
+            check_finite("offsets", d["offsets"])
+        for name in ("depths", "pitch", "wavelengths"):
+            check_positive(name, d[name], "m")
+        weights = d["weights"]
+        if weights.shape != d["wavelengths"].shape or not (
+                np.all(weights >= 0) and weights.sum() > 0):
+            raise DiffcamError(f"weights {weights.tolist()!r:.60} must be one power ≥ 0 per "
+                               f"wavelength, not all 0; the metadata are damaged.")
         return cls(**d)
 
 
@@ -229,6 +237,20 @@ def _legacy_positions(offsets, positions):
     return np.asarray(positions, dtype=np.float64)[:, ::-1]
 
 
+def depth_list(z1) -> np.ndarray:
+    """The depths ``z1`` (a number or a 1-D list, metres) as float64 ``(nz,)``.
+
+    Raises:
+        DiffcamError: no depth, more than one axis, or a value that is not a finite
+            number > 0 (each checked by :func:`~diffcam.core.errors.check_positive`).
+    """
+    if np.ndim(z1) > 1:
+        raise ShapeError(f"z1 must be one depth or a 1-D list of depths (nz,), got shape "
+                         f"{np.shape(z1)}; flatten it (np.ravel) if the order is meant.")
+    check_positive("z1", z1, "m")
+    return np.asarray(z1, dtype=np.float64).reshape(-1)
+
+
 def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
                    options: PsfStackOptions | None = None, **overrides
                    ) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
@@ -245,9 +267,7 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     :func:`~diffcam.model.point_spread.psf` over ``z1`` (its checks are skipped under
     ``jax.jit``: call it once eagerly to validate).
     """
-    depths = np.asarray(z1, dtype=np.float64).reshape(-1)
-    if depths.size == 0:
-        raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
+    depths = depth_list(z1)
     opts, offsets = _options_and_offsets(options, offsets, overrides)
     pos = _offsets_array(offsets)
     wavelengths, weights = as_spectrum(spectrum, camera)
@@ -365,7 +385,7 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
         every process.
     """
     outputs = _output_paths(out)  # before any work: a bad path costs nothing
-    depths = np.asarray(z1, dtype=np.float64).reshape(-1)
+    depths = depth_list(z1)
     opts, offsets = _options_and_offsets(options, offsets, overrides)
     chunks = iter_psf_stack(phase, camera, depths, offsets=offsets, spectrum=spectrum,
                             options=dataclasses.replace(opts, to_host=True))

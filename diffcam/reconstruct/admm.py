@@ -67,12 +67,13 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from diffcam.core.backend import irfft2, rfft2
-from diffcam.core.errors import DiffcamError, is_concrete
+from diffcam.core.errors import DiffcamError, is_concrete, real_number
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
                                         check_iterations, check_operator, check_psf,
+                                        check_scale,
                                         check_tol, float_dtype)
 from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import (FieldModel, convolution_model, divergence,
@@ -147,15 +148,18 @@ class AdmmOptions(Options):
                                f"{MAX_BACKGROUND_DEGREE} (or None), got {self.background!r}.")
         for name in ("mu1", "mu2", "mu3"):
             value = getattr(self, name)
-            if is_concrete(value) and not 0 < float(value) < math.inf:
+            if is_concrete(value) and not 0 < real_number(name, value, "a number > 0") \
+                    < math.inf:
                 raise DiffcamError(f"{name} must be a finite number > 0, got {value!r}; "
                                    f"DiffuserCam uses mu1=1e-6, mu2=1e-5, mu3=4e-5.")
-        if is_concrete(self.relaxation) and not 0 < float(self.relaxation) < 2:
+        if is_concrete(self.relaxation) and not 0 < real_number(
+                "relaxation", self.relaxation, "a number in (0, 2)") < 2:
             raise DiffcamError(f"relaxation must be in (0, 2) (1: plain ADMM; 1.5-1.8 "
                                f"over-relaxes), got {self.relaxation!r}.")
         for name in ("tau", "tau_axial", "sparsity"):
             value = getattr(self, name)
-            if value is not None and is_concrete(value) and not 0 <= float(value) < math.inf:
+            if value is not None and is_concrete(value) and not 0 <= real_number(
+                    name, value, "a number >= 0") < math.inf:
                 raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")
 
     def weights(self) -> tuple:
@@ -245,6 +249,8 @@ def _admm(image, psf, iterations, options, *, volume, progress):
                            solver="admm_tv" + ("_3d" if volume else ""))
     if model:
         batch, dtype = tuple(jnp.shape(image)[:-2]), float_dtype(image)
+        if is_concrete(image, psf):
+            check_scale(image, psf.centre_psf(), dtype)
         depth = psf.weights.shape[1] if volume else 1
         boundary = psf.boundary
     else:
@@ -252,7 +258,7 @@ def _admm(image, psf, iterations, options, *, volume, progress):
         batch = batch_shape(jnp.shape(image), jnp.shape(psf), core)
         dtype = float_dtype(image, psf)
         if is_concrete(image) and is_concrete(psf):
-            _check_scale(image, psf, dtype)
+            check_scale(image, psf, dtype)
         psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-core:])
         if not volume:
             psf = psf[..., None, :, :]
@@ -285,28 +291,13 @@ def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, bal
     return jax.vmap(one, in_axes=(0, None if isinstance(psf, FieldModel) else 0))(image, psf)
 
 
-def _check_scale(image, psf, dtype) -> None:
-    """The image holds light, and the estimate's scale ``||image|| / ||psf||`` (norms
-    in float64) is a normal number of the solver's ``dtype``."""
-    image_norm = float(np.linalg.norm(np.asarray(image, np.float64)))
-    if image_norm == 0:
-        raise DiffcamError("image is all zeros: there is nothing to reconstruct.")
-    ratio = image_norm / float(np.linalg.norm(np.asarray(psf, np.float64)))
-    info = np.finfo(dtype)
-    if not float(info.tiny) < ratio < float(info.max):
-        raise DiffcamError(
-            f"the estimate's scale ||image|| / ||psf|| = {ratio:.3g} is outside the range "
-            f"of {np.dtype(dtype).name} ({info.tiny:.2g} to {info.max:.2g}); divide the "
-            f"image or multiply the PSF by a constant first (the estimate scales with "
-            f"image / psf).")
-
-
-def _safe_norm(a):
-    """``||a||₂`` without overflow or underflow of the squares: ``m·||a/m||`` with
-    ``m = max|a|`` (1 where ``a`` is zero)."""
-    m = jnp.max(jnp.abs(a))
+def safe_norm(a, axis=None, keepdims: bool = False):
+    """``||a||₂`` over ``axis`` (all axes by default) without overflow or underflow of
+    the squares: ``m·||a/m||`` with ``m = max|a|`` (1 where ``a`` is zero)."""
+    m = jnp.max(jnp.abs(a), axis=axis, keepdims=True)
     m = jnp.where(m > 0, m, 1)
-    return m * jnp.linalg.norm(a / m)
+    norm = m * jnp.sqrt(jnp.sum((a / m) ** 2, axis=axis, keepdims=True))
+    return norm if keepdims else jnp.squeeze(norm, axis)
 
 
 def _tv(v, a):
@@ -418,7 +409,7 @@ class _LinearisedData(NamedTuple):
 def _linearised(model: FieldModel, a, dtype):
     """The data term of ``model`` scaled by its centre PSF's norm (the volume's in
     3-D): ``(data term, that norm)``."""
-    h_norm = _safe_norm(model.centre_psf())
+    h_norm = safe_norm(model.centre_psf())
     if model.volume:
         forward = lambda v: model.blur(v) / h_norm  # noqa: E731
         adjoint = lambda y: model.blur_adjoint(y) / h_norm  # noqa: E731
@@ -444,7 +435,7 @@ def _data_term(psf, b, boundary, a):
     one for a PSF stack ``(nz, my, mx)``, the linearised one for a forward model."""
     if isinstance(psf, FieldModel):
         return _linearised(psf, a, b.dtype)
-    h_norm = _safe_norm(psf)
+    h_norm = safe_norm(psf)
     model = convolution_model(psf / h_norm, b.shape, boundary, volume=True)
     return _ExactData(_basis(model.otf, model.fft_shape, a, b.dtype)), h_norm
 
@@ -517,7 +508,7 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
     background)."""
     # solved for the image and the PSF at unit L2 norm (the weights scaled alike), so
     # that no square under- or overflows; the estimate is scaled back at the end
-    b_norm = _safe_norm(b)
+    b_norm = safe_norm(b)
     b = b / b_norm
     tau, tau_axial, sparsity = settings[3] / b_norm, settings[4] / b_norm, settings[5] / b_norm
     alpha = settings[6]

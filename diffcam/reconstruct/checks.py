@@ -10,7 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffcam.core.errors import DiffcamError, ShapeError, check_field, is_concrete
+from diffcam.core.errors import (DiffcamError, ShapeError, check_field, is_concrete,
+                                 real_array)
 from diffcam.io import BackgroundWarning
 from diffcam.reconstruct.operators import FieldModel
 
@@ -22,7 +23,8 @@ MAX_ITERATIONS = 100_000
 two numbers per iteration and image, is allocated. Raise it for the session by
 assigning to ``diffcam.reconstruct.checks.MAX_ITERATIONS``."""
 
-__all__ = ["as_psf_stack", "check_operator", "check_psf", "check_image", "check_iterations",
+__all__ = ["as_psf_stack", "check_operator", "check_psf", "check_image", "check_scale",
+           "check_iterations",
            "check_tol",
            "batch_shape", "float_dtype", "MAX_ITERATIONS"]
 
@@ -69,6 +71,7 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Any
     background subtraction or an FFT) clipped to 0 and reported by one
     :class:`diffcam.io.BackgroundWarning`; deeper negatives raise.
     """
+    real_array("psf", psf)
     check_field(psf, "psf")
     shape = np.shape(psf)
     if len(shape) < min_ndim:
@@ -111,6 +114,7 @@ def check_image(image: Any, *, nonnegative: bool) -> None:
     FFT-simulated image; the solver clips them); deeper ones raise, and so does an image
     (or a slice of a batch) without light.
     """
+    real_array("image", image)
     check_field(image, "image")
     if is_concrete(image):
         _check_range("image", np.asarray(image), float_dtype(image))
@@ -143,17 +147,39 @@ def _check_range(name: str, a: np.ndarray, dtype) -> None:
             f"inversely with the PSF), or enable jax_enable_x64.")
 
 
-def check_iterations(iterations: Any) -> int:
-    """``iterations`` as a positive Python int (it fixes the history length: static)."""
-    if isinstance(iterations, jax.core.Tracer) or not isinstance(iterations, numbers.Integral) \
-            or isinstance(iterations, bool):
+def check_scale(image, psf, dtype) -> None:
+    """Every image (of a batch) holds light, and the estimate's scale
+    ``||image|| / ||psf||`` (norms in float64) is a normal number of the solver's
+    ``dtype``."""
+    a = np.asarray(image, np.float64)
+    norms = np.linalg.norm(a.reshape((-1, a.shape[-2] * a.shape[-1])), axis=1)
+    if not norms.all():
+        raise DiffcamError(f"image is all zeros ({int(np.sum(norms == 0))} of its "
+                           f"{norms.size} image(s)): there is nothing to reconstruct; check "
+                           f"the capture and the background subtraction.")
+    image_norm = float(np.linalg.norm(norms))
+    ratio = image_norm / float(np.linalg.norm(np.asarray(psf, np.float64)))
+    info = np.finfo(dtype)
+    if not float(info.tiny) < ratio < float(info.max):
         raise DiffcamError(
-            f"iterations must be a Python int (it is static under jit), got {iterations!r}.")
+            f"the estimate's scale ||image|| / ||psf|| = {ratio:.3g} is outside the range "
+            f"of {np.dtype(dtype).name} ({info.tiny:.2g} to {info.max:.2g}); divide the "
+            f"image or multiply the PSF by a constant first (the estimate scales with "
+            f"image / psf).")
+
+
+def check_iterations(iterations: Any, name: str = "iterations") -> int:
+    """``iterations`` (or the count called ``name``) as a positive Python int, at most
+    :data:`MAX_ITERATIONS` (it fixes the history length: static); a bool is no count."""
+    if isinstance(iterations, jax.core.Tracer) or not isinstance(iterations, numbers.Integral) \
+            or isinstance(iterations, (bool, np.bool_)):
+        raise DiffcamError(
+            f"{name} must be a Python int (it is static under jit), got {iterations!r}.")
     if iterations <= 0:
-        raise DiffcamError(f"iterations must be >= 1, got {iterations}; 50–300 is typical.")
+        raise DiffcamError(f"{name} must be >= 1, got {iterations}; 50–300 is typical.")
     if iterations > MAX_ITERATIONS:
         raise DiffcamError(
-            f"iterations = {iterations} is above the limit of {MAX_ITERATIONS} "
+            f"{name} = {iterations} is above the limit of {MAX_ITERATIONS} "
             f"(diffcam.reconstruct.checks.MAX_ITERATIONS); 50–300 is typical: pass tol= to "
             f"stop early, or raise the limit.")
     return int(iterations)

@@ -19,9 +19,10 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike
 
 from diffcam.core.progress import progress_bar
+from diffcam.core.errors import DiffcamError, is_concrete
 from diffcam.reconstruct.checks import (batch_shape, check_image, check_iterations,
-                                        check_operator, check_psf, check_tol, float_dtype)
-from diffcam.core.errors import DiffcamError
+                                        check_operator, check_psf, check_scale, check_tol,
+                                        float_dtype)
 from diffcam.reconstruct.loop import Reconstruction, iterate
 from diffcam.reconstruct.operators import BOUNDARIES, convolution_model, operator_norm
 
@@ -95,6 +96,8 @@ def fista(image: ArrayLike, psf: ArrayLike, iterations: int = 200, *,
     check_psf(psf, jnp.shape(image))
     batch = batch_shape(jnp.shape(image), jnp.shape(psf), 2)
     dtype = float_dtype(image, psf)
+    if is_concrete(image, psf):
+        check_scale(image, psf, dtype)
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
     psf = jnp.broadcast_to(jnp.asarray(psf, dtype), batch + jnp.shape(psf)[-2:])
     flat = lambda a: a.reshape((-1,) + a.shape[-2:])  # noqa: E731
@@ -112,6 +115,8 @@ _STEP_MARGIN = 1.1   # the power iteration's ||A||² approaches from below
 def _fista_model(image, model, iterations, tol, progress) -> Reconstruction:
     """FISTA with a forward model in place of a PSF; leading image axes are a batch."""
     dtype = float_dtype(image)
+    if is_concrete(image, model):
+        check_scale(image, model.centre_psf(), dtype)
     image = jnp.asarray(image, dtype)
     flat = image.reshape((-1,) + image.shape[-2:])
     with progress_bar(iterations, "FISTA", progress):

@@ -24,8 +24,8 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from diffcam.core.errors import DiffcamError, ShapeError
-from diffcam.reconstruct.admm import admm_tv
+from diffcam.core.errors import DiffcamError, ShapeError, real_array
+from diffcam.reconstruct.admm import admm_tv, safe_norm
 from diffcam.reconstruct.checks import as_psf_stack
 from diffcam.reconstruct.loop import Reconstruction
 from diffcam.reconstruct.richardson_lucy import richardson_lucy
@@ -96,9 +96,9 @@ def focus_sweep(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *
     if jnp.ndim(psf_stack) < 3:
         raise ShapeError(f"psf_stack must be (nz, my, mx), got shape {jnp.shape(psf_stack)}; "
                          f"for one PSF call a solver directly.")
-    image = jnp.asarray(image)[..., None, :, :]
+    image = jnp.asarray(real_array("image", image))[..., None, :, :]
     if method == "admm":
-        norm = jnp.sqrt(jnp.sum(image ** 2, axis=(-2, -1), keepdims=True))
+        norm = safe_norm(image, axis=(-2, -1), keepdims=True)
         rec = admm_tv(image / jnp.where(norm > 0, norm, 1), psf_stack, iterations, **options)
     else:
         rec = richardson_lucy(image, psf_stack, iterations, **options)

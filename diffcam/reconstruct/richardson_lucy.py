@@ -59,7 +59,7 @@ from jax.scipy.special import xlogy
 from jaxtyping import ArrayLike
 
 from diffcam.core.errors import (ConvergenceWarning, DiffcamError, ShapeError, check_finite,
-                                 is_concrete)
+                                 is_concrete, real_array, real_number)
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
@@ -206,7 +206,8 @@ def _richardson_lucy(image, psf, iterations, init, opts: RichardsonLucyOptions, 
     check_image(image, nonnegative=True)
     core = 3 if volume else 2
     for name, value in (("tv_weight", tv_weight), ("eps", eps)):
-        if is_concrete(value) and not 0 <= float(value) < math.inf:
+        if is_concrete(value) and not 0 <= real_number(name, value, "a number >= 0") \
+                < math.inf:
             raise DiffcamError(f"{name} must be a finite number >= 0, got {value!r}.")
     model = check_operator(psf, jnp.shape(image), volume=volume, solver="richardson_lucy"
                            + ("_3d" if volume else ""))
@@ -214,6 +215,7 @@ def _richardson_lucy(image, psf, iterations, init, opts: RichardsonLucyOptions, 
         image, psf, opts, volume)
     dtype = image.dtype
     if init is not None:
+        init = real_array("init", init)
         check_finite("init", init)
         if is_concrete(init) and float(jnp.min(init)) < 0:
             raise DiffcamError("init must be non-negative: RL keeps the sign of its start.")
