@@ -14,8 +14,9 @@ the best start; then Adam (optax) with per-group step sizes on
 Σ_k (1 − Pearson over the training pixels of plane k). A fraction of the pixels of every
 given plane (fixed seed) is held out for validation; the parameters with the best
 validation Pearson are kept, and the fit stops when validation has not improved for
-``patience`` steps, at ``max_steps`` or at the time budget. Planes that are not given
-never enter.
+``patience`` steps or at ``max_steps``: the same steps, and the same model, on any
+machine and under any load (a wall-clock ``time_budget`` is an option). Planes that are
+not given never enter.
 
 What is identifiable: ζ = λ·z_eff/dx² (and the magnification law, the centre, the
 blur). z2 and the absolute magnification are not: under the Fresnel scaling theorem a
@@ -83,9 +84,11 @@ class StackFitOptions(Options):
     Attributes:
         max_steps: Adam steps at most.
         patience: stop after this many steps without a better validation Pearson.
-        time_budget: wall-clock limit of the fit, s (registration, initialisation,
-            compilation and steps; checked after every step, so a fit may end about one
-            step later); ``math.inf`` for none.
+        time_budget: an optional wall-clock limit of the fit, s (registration,
+            initialisation, compilation and steps; checked after every step, so a fit
+            may end about one step later). ``None`` (the default) or ``math.inf``: none,
+            so the steps taken, and the model, do not depend on the machine's speed or
+            load.
         validation_fraction: share of each given plane's pixels held out (0 < f < 0.5).
         seed: the validation split's and the GS start's seed.
         zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²).
@@ -125,7 +128,7 @@ class StackFitOptions(Options):
 
     max_steps: int = 400
     patience: int = 40
-    time_budget: float = 55.0
+    time_budget: float | None = None
     validation_fraction: float = 0.1
     seed: int = 0
     zetas: tuple[float, ...] | None = eqx.field(
@@ -167,7 +170,7 @@ class StackFitOptions(Options):
         if self.optimiser not in OPTIMISERS:
             raise DiffcamError(f"optimiser must be one of {OPTIMISERS}, got "
                                f"{self.optimiser!r}.")
-        if not float(self.time_budget) > 0:
+        if self.time_budget is not None and not float(self.time_budget) > 0:
             raise DiffcamError(f"time_budget must be > 0 s, got {self.time_budget!r}.")
         zetas = (ZETA_START,) if self.zetas is None else tuple(self.zetas)
         if not zetas or not all(np.isfinite(float(z)) and float(z) > 0 for z in zetas):
@@ -468,7 +471,7 @@ class _Run(NamedTuple):
 
 def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -> _Run:
     """The optimiser from ``model`` until validation stalls, ``max_steps`` or the time
-    budget (counted from ``t0``, perf_counter seconds)."""
+    budget if one is set (counted from ``t0``, perf_counter seconds)."""
     advance = (_adam if opts.optimiser == "adam" else _optimistix)(model, data, opts)
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
@@ -490,7 +493,7 @@ def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -
             if k - best_step >= opts.patience:
                 reason = f"no validation improvement for {opts.patience} steps"
                 break
-            if time.perf_counter() - t0 > opts.time_budget:
+            if opts.time_budget is not None and time.perf_counter() - t0 > opts.time_budget:
                 reason = f"time budget ({opts.time_budget:g} s)"
                 break
     return _Run(best_model, best_step, float(best_val), train_hist, val_hist, reason)
