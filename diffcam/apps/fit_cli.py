@@ -1,5 +1,5 @@
 """``diffcam fit``, ``diffcam predict`` and ``diffcam compare-stack``: a wave model of a
-PSF stack fitted to a few of its planes (:func:`diffcam.calibrate.fit_stack`).
+PSF stack fitted to a few of its planes (`diffcam.calibrate.fit_stack`).
 
     diffcam fit psfs.tif --planes 5,25 -o model.npz
     diffcam predict model.npz --planes 0:43 -o predicted.tif

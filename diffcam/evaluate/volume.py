@@ -3,8 +3,8 @@
 A flat target tilted along x puts each column of the scene at one depth. In the x–z
 maximum projection of a good volume the light of each column peaks at one plane, the
 peaks lie on a line (the tilt), and the peak is thin along depth. Haze and speckle put
-light outside the target. :func:`ridge_measures` reports these numbers;
-:func:`target_box` finds the target in a max projection, so that several volumes of
+light outside the target. `ridge_measures` reports these numbers;
+`target_box` finds the target in a max projection, so that several volumes of
 one capture are judged on the same box.
 
 All functions take NumPy-convertible arrays and return plain Python numbers (they
@@ -39,7 +39,7 @@ class Box(NamedTuple):
 
 
 class Ridge(NamedTuple):
-    """The depth ridge of a tilted target (:func:`ridge_measures`).
+    """The depth ridge of a tilted target (`ridge_measures`).
 
     Attributes:
         slope: planes per column of the line through the per-column peak planes.
@@ -115,7 +115,7 @@ def ridge_measures(volume, box: Box | None = None) -> Ridge:
 
     Args:
         volume: ``(nz, ny, nx)`` non-negative volume, plane 0 nearest.
-        box: the target (:func:`target_box`); default: found in this volume's max
+        box: the target (`target_box`); default: found in this volume's max
             projection. Judge several volumes of one capture on one box.
     """
     v = _check_volume(volume)

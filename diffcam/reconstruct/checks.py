@@ -44,7 +44,7 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Any
 
     Returns the PSF, with negatives down to ``-1e-5·max(psf)`` (the rounding left by a
     background subtraction or an FFT) clipped to 0 and reported by one
-    :class:`diffcam.io.BackgroundWarning`; deeper negatives raise.
+    `diffcam.io.BackgroundWarning`; deeper negatives raise.
     """
     check_field(psf, "psf")
     shape = np.shape(psf)

@@ -44,7 +44,7 @@ def nonnegative_least_squares(forward: Callable, adjoint: Callable, data, x0,
         tol: relative change of the objective that stops the loop, or ``None``.
 
     Returns:
-        ``(x, residual, objective, iterations, converged)`` as :func:`iterate` gives them;
+        ``(x, residual, objective, iterations, converged)`` as `iterate` gives them;
         the residual is ``||A y - b|| / ||b||`` at the extrapolated point of each step.
     """
     def step(state):
@@ -74,13 +74,13 @@ def fista(image: ArrayLike, psf: ArrayLike, iterations: int = 200, *,
             broadcast with the image's (one PSF per colour channel, or one shared).
         iterations: iterations (static); the only regularisation.
         boundary: ``"crop"`` (DiffuserCam model; the estimate is on the larger object
-            grid), ``"same"`` or ``"circular"`` (:mod:`diffcam.reconstruct.operators`).
+            grid), ``"same"`` or ``"circular"`` (`diffcam.reconstruct.operators`).
         tol: stop early when the objective changes by less than ``tol`` (relative).
         progress: a progress bar for runs over 2 s.
 
     Returns:
-        :class:`Reconstruction`, ``image`` in the units of ``image / psf`` (so
-        ``A x ≈ b`` with the PSF as given).
+        [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction], ``image`` in the units
+        of ``image / psf`` (so ``A x ≈ b`` with the PSF as given).
     """
     if boundary not in BOUNDARIES:
         raise DiffcamError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}.")

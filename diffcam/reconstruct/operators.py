@@ -24,10 +24,10 @@ A volume model (``volume=True``) takes a PSF stack ``(..., nz, my, mx)``, one PS
 depth, and an object ``(..., nz, oy, ox)``; the sensor image is the sum over depths,
 ``b = crop(sum_z h_z * x_z)``.
 
-Grids follow :mod:`diffcam.core.grid`: index ``n//2`` of every axis is the optical axis, so
+Grids follow `diffcam.core.grid`: index ``n//2`` of every axis is the optical axis, so
 the sensor's centre pixel sees the object's centre pixel through the PSF sample at
 ``m//2``. ``psf_centre`` moves that PSF sample (scikit-image's convention puts it at
-``(m-1)//2``, see :mod:`diffcam.reconstruct.richardson_lucy`).
+``(m-1)//2``, see `diffcam.reconstruct.richardson_lucy`).
 """
 
 from __future__ import annotations
@@ -86,9 +86,10 @@ def _crop_grid(n: int, m: int) -> int:
 class ConvolutionModel(eqx.Module):
     """The linear map ``A``: object ``(..., [nz,] oy, ox)`` → sensor ``(..., ny, nx)``.
 
-    Build it with :func:`convolution_model`. ``model(x)`` is ``A x``; ``model.adjoint(y)``
-    is ``Aᵀ y`` (exact: ``<A x, y> = <x, Aᵀ y>`` to rounding). Leading axes of the OTF
-    and of the arguments broadcast.
+    Build it with [`convolution_model`][diffcam.reconstruct.operators.convolution_model].
+    ``model(x)`` is ``A x``; ``model.adjoint(y)`` is ``Aᵀ y`` (exact:
+    ``<A x, y> = <x, Aᵀ y>`` to rounding). Leading axes of the OTF and of the arguments
+    broadcast.
 
     Attributes:
         otf: ``(..., [nz,] fy, fx//2+1)`` complex, real FFT of the PSF on the FFT grid,
@@ -160,7 +161,7 @@ def gradient(x: Float[Array, "*batch ny nx"]) -> Float[Array, "2 *batch ny nx"]:
 
 
 def divergence(g: Float[Array, "2 *batch ny nx"]) -> Float[Array, "*batch ny nx"]:
-    """Negative adjoint of :func:`gradient`: ``div = -gradientᵀ``."""
+    """Negative adjoint of `gradient`: ``div = -gradientᵀ``."""
     return (g[0] - jnp.roll(g[0], 1, axis=-2)) + (g[1] - jnp.roll(g[1], 1, axis=-1))
 
 
