@@ -40,7 +40,7 @@ import numpy as np
 import tifffile
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from tqdm.auto import tqdm
+from tqdm import tqdm  # not tqdm.auto: it warns in Jupyter without ipywidgets
 
 from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (irradiance_and_fields, check_inputs, diffuser_fields,
