@@ -523,7 +523,7 @@ def test_cli_fit_stops_on_steps_and_repeats_exactly(tmp_path, capsys):
     assert "stopped: time budget (0.001 s); best step 0 of 1" in capsys.readouterr().out
 
 
-@pytest.mark.slow   # two fits of the README's planes: 3–4 min on 2 cores
+@pytest.mark.slow   # two fits of the README's planes: 9.4 min on 2 cores at load 12–15
 def test_readme_fit_is_the_same_on_a_busy_machine(tmp_path):
     """The README's `diffcam fit captures/psfs --planes 5,27`, run twice in fresh
     processes, the second with both cores kept busy by two spinning processes: the
