@@ -183,7 +183,8 @@ def _cmd_calibrate(args) -> int:
             restarts=args.restarts or (1 if planes else 4))
     phase = np.asarray(result.phase)
     info = {"solver": result.stats.get("method", args.solver), "iterations": args.iterations,
-            "focal_length": args.focal_length, "near_distance": args.near_distance,
+            "seed": args.seed, "focal_length": args.focal_length,
+            "near_distance": args.near_distance,
             "final_error": float(np.asarray(result.history)[-1]),
             "twin_resolved": False, "near": str(args.near), "far": str(args.far)}
     if reference is not None:
