@@ -1,6 +1,6 @@
-"""Stub of :mod:`diffcam`: its public names and the modules they come from.
+"""Stub of [`diffcam`][diffcam]: its public names and the modules they come from.
 
-diffcam/__init__.py imports each on first use (:mod:`diffcam.core.lazy`)."""
+diffcam/__init__.py imports each on first use ([`diffcam.core.lazy`][diffcam.core.lazy])."""
 
 from diffcam import calibrate, core, evaluate, model, optics, reconstruct
 from diffcam.calibrate import retrieve_phase

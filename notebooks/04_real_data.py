@@ -89,7 +89,7 @@ axes[1].set_xlabel("plane")
 axes[1].set_ylabel("sharpness (mean square / squared mean)")
 axes[2].imshow(np.asarray(sweep.reconstruction.image[int(sweep.best)]), cmap="gray")
 axes[2].set_title(f"reconstruction at plane {step * int(sweep.best)}")
-axes[2].axis("off")
+axes[2].axis("off");
 
 # %% [markdown]
 # ## 3. The whole stack from two measured planes
@@ -129,7 +129,7 @@ for t in GIVEN:
     ax.axvline(t, color="0.7", lw=0.8)
 ax.set_xlabel("plane (0 = nearest source)")
 ax.set_ylabel("Pearson with the measured PSF")
-ax.legend()
+ax.legend();
 
 # %% [markdown]
 # ## 4. 3-D reconstruction with the predicted stack
@@ -161,7 +161,7 @@ for k, (name, vol) in enumerate(volumes.items()):
     dm = axes[1, k].imshow(depth, cmap="viridis", vmin=0, vmax=vol.shape[0] - 1)
     for ax in axes[:, k]:
         ax.axis("off")
-fig.colorbar(dm, ax=axes[1, :], shrink=0.8, label="plane of the maximum")
+fig.colorbar(dm, ax=axes[1, :], shrink=0.8, label="plane of the maximum");
 
 # %% [markdown]
 # Run as a script (`python notebooks/04_real_data.py`), the notebook writes its figures

@@ -6,8 +6,9 @@ outputs to ``docs/notebooks/*.ipynb``, which the documentation site renders as t
     DIFFCAM_NOTEBOOK_SMALL=1 python scripts/render_notebooks.py   # reduced size
 
 Each notebook runs in a fresh kernel in a temporary folder (the figures it also saves
-go there). ``tests/test_docs.py`` checks that every rendered notebook holds the code of
-its source and shows its figures.
+go there), with progress reports off (``DIFFCAM_PROGRESS=0``): the page shows the
+notebook's own output only. ``tests/test_docs.py`` checks that every rendered notebook
+holds the code of its source and shows its figures, and no stderr or stray value.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ def render(source: Path, timeout: float = 3600) -> Path:
     notebook = jupytext.read(source)
     with tempfile.TemporaryDirectory() as work:
         os.environ["DIFFCAM_FIGURES"] = str(Path(work) / "figures")
+        os.environ["DIFFCAM_PROGRESS"] = "0"
         NotebookClient(notebook, timeout=timeout, kernel_name="python3",
                        resources={"metadata": {"path": work}}).execute()
     notebook.metadata.pop("jupytext", None)

@@ -226,6 +226,7 @@ def test_calibrate_with_a_projection_solver(calibration_files, tmp_path):
     assert r.returncode == 0, r.stderr
     loaded = load_phase(tmp_path / "raar.npz")
     assert loaded.phase.shape == (256, 256) and loaded.info["solver"] == "raar"
+    assert loaded.info["seed"] == 0          # the random starts' seed, recorded
     assert loaded.dx == pytest.approx(5e-6)
 
 

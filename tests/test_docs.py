@@ -1,8 +1,10 @@
 """The documentation: the site builds strictly and offline with an API entry for every
-public name, the rendered notebooks hold their sources' code and show figures,
-RESULTS.md is what its generator writes, reference text carries no work log, and every
-command block of the README and the docs runs as written."""
+public name and no raw Sphinx role, the rendered notebooks hold their sources' code and
+show figures but no progress reports or stray return values, RESULTS.md is what its
+generator writes, reference text carries no work log, and every command block of the
+README and the docs runs as written."""
 
+import html
 import importlib
 import json
 import os
@@ -100,6 +102,41 @@ def test_rendered_notebooks_hold_their_sources_and_figures():
         assert figures, f"{rendered.name} shows no figure"
 
 
+ROLE = re.compile(r":(mod|class|func|data|meth|attr|obj|exc):`")
+# what a notebook must not show: a progress report on stderr, or the value a plotting
+# call returns (a tuple of limits, an Axes, a Legend, a Colorbar, a Text, a list of
+# Line2D) echoed as the cell's Out[n]
+STRAY_VALUE = re.compile(r"^\(np\.float64|^\[?<matplotlib\.|^Text\(|^\(-?[\d.]+, -?[\d.]+")
+
+
+def test_sources_carry_no_sphinx_roles():
+    """The site is mkdocs: cross-references are Markdown ([`name`][diffcam.x.y]) or
+    plain code, never Sphinx roles, which the API pages would print raw."""
+    hits = [f"{path.relative_to(ROOT)}:{i}: {line.strip()}"
+            for path in sorted((ROOT / "diffcam").rglob("*.py*")) if path.suffix in (".py", ".pyi")
+            for i, line in enumerate(path.read_text().splitlines(), 1) if ROLE.search(line)]
+    assert not hits, "\n".join(hits)
+
+
+def test_rendered_notebooks_show_no_progress_or_stray_values():
+    for rendered in sorted((ROOT / "docs" / "notebooks").glob("*.ipynb")):
+        for n, cell in enumerate(json.loads(rendered.read_text())["cells"]):
+            for out in cell.get("outputs", []):
+                assert out.get("name") != "stderr", (rendered.name, n, "".join(out["text"]))
+                text = "".join(out.get("data", {}).get("text/plain", ""))
+                assert not (out["output_type"] == "execute_result" and STRAY_VALUE.search(text)), \
+                    (rendered.name, n, text)
+
+
+def test_stray_value_pattern_catches_plotting_returns():
+    for stray in ("(np.float64(-0.5), np.float64(639.5), np.float64(539.5), np.float64(-0.5))",
+                  "<matplotlib.legend.Legend at 0x7f1070657950>", "Text(0.5, 1.0, 'PSF')",
+                  "[<matplotlib.lines.Line2D at 0x7f10>]", "(-0.5, 639.5, 539.5, -0.5)"):
+        assert STRAY_VALUE.search(stray), stray
+    for value in ("0.9658", "{'model': 0.98}", "array([1, 2])", "'(5, 27)'"):
+        assert not STRAY_VALUE.search(value), value
+
+
 def test_api_pages_cover_every_public_module():
     """Every module with an ``__all__`` is on an API page (the built site's entries are
     checked by test_site_builds_with_every_public_name)."""
@@ -144,6 +181,26 @@ def test_site_shows_the_notebooks_with_figures(site):
     for source in sorted((ROOT / "notebooks").glob("*.py")):
         html = (site / "notebooks" / source.stem / "index.html").read_text()
         assert html.count("data:image/png;base64,") >= 1, source.stem
+        # an output element of that type (the page's CSS names it too)
+        assert not re.search(r'<div[^>]*data-mime-type="application/vnd\.jupyter\.stderr"', html), \
+            source.stem
+        shown = [re.sub(r"<[^>]+>", "", out).strip() for out in
+                 re.findall(r"Out\[\d+\]:.*?</pre>", html, flags=re.S)]
+        stray = [s for s in shown if STRAY_VALUE.search(html.unescape(s).split(":", 1)[1].strip())]
+        assert not stray, (source.stem, stray)
+
+
+@pytest.mark.slow
+def test_site_prints_no_sphinx_roles(site):
+    """No page shows a raw role (":mod: .camera — :class: Camera"), and the header
+    links to no repository (there is no public address)."""
+    hits = []
+    for page in site.rglob("*.html"):
+        text = re.sub(r"<[^>]+>", "", page.read_text())
+        hits += [f"{page.relative_to(site)}: {m.group(0)}"
+                 for m in re.finditer(r":(mod|class|func|data|meth|attr|obj|exc):\s*\S+", text)]
+    assert not hits, hits[:20]
+    assert 'class="md-source"' not in (site / "index.html").read_text()
 
 
 # pages whose ``sh`` blocks are synopses of a user's own files, to be fenced as ``text``

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -481,6 +482,72 @@ def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     # a bad planes argument is a usage error; a plane out of range is a DiffcamError
     assert main(["fit", str(src), "--planes", "4,40", "-o", str(model)]) == 2
     assert "out of range" in capsys.readouterr().err
+
+
+def _fit_file(path) -> tuple[dict, dict]:
+    """A model file's arrays, and its metadata without the wall times."""
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files if k != "metadata"}
+        meta = json.loads(str(data["metadata"][()]))
+    del meta["seconds"], meta["registration"]["seconds"]
+    return arrays, meta
+
+
+def _same_fit_files(a, b) -> None:
+    (arrays_a, meta_a), (arrays_b, meta_b) = _fit_file(a), _fit_file(b)
+    assert sorted(arrays_a) == sorted(arrays_b)
+    for key in arrays_a:
+        np.testing.assert_array_equal(arrays_a[key], arrays_b[key], err_msg=key)
+    assert meta_a == meta_b
+
+
+@pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack_fit.StackFitWarning")
+def test_cli_fit_stops_on_steps_and_repeats_exactly(tmp_path, capsys):
+    """By default `diffcam fit` has no wall-clock limit: it stops on its step budget,
+    which the file records with the seed, and a second run writes the same arrays and
+    metadata (wall times aside). `--time-budget` still stops it on the clock."""
+    from diffcam.data import load_psf_stack_3d
+
+    src = tmp_path / "crop.npy"
+    np.save(src, load_psf_stack_3d()[:16, 100:164, 120:200])
+    runs = [tmp_path / "a.npz", tmp_path / "b.npz"]
+    for out in runs:
+        assert main(["fit", str(src), "--planes", "4,12", "--max-steps", "6",
+                     "--no-progress", "-o", str(out)]) == 0
+    assert "stopped: max_steps (6)" in capsys.readouterr().out
+    _same_fit_files(*runs)
+    options = _fit_file(runs[0])[1]["options"]
+    assert (options["seed"], options["max_steps"], options["time_budget"]) == (0, 6, None)
+    assert main(["fit", str(src), "--planes", "4,12", "--time-budget", "1e-3",
+                 "--no-progress", "-o", str(tmp_path / "c.npz")]) == 0
+    assert "stopped: time budget (0.001 s); best step 0 of 1" in capsys.readouterr().out
+
+
+@pytest.mark.slow   # two fits of the README's planes: 9.4 min on 2 cores at load 12–15
+def test_readme_fit_is_the_same_on_a_busy_machine(tmp_path):
+    """The README's `diffcam fit captures/psfs --planes 5,27`, run twice in fresh
+    processes, the second with both cores kept busy by two spinning processes: the
+    model files hold identical arrays and metadata (wall times aside)."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, DIFFCAM_PROGRESS="0")
+    diffcam = [sys.executable, "-m", "diffcam"]
+    subprocess.run([*diffcam, "data", "usaf3d", "-o", str(tmp_path / "captures")],
+                   check=True, env=env, capture_output=True)
+    runs = [tmp_path / "idle.npz", tmp_path / "busy.npz"]
+    spin = [sys.executable, "-c", "while 1: pass"]
+    for k, out in enumerate(runs):
+        spinners = [subprocess.Popen(spin) for _ in range(2 * k)]
+        try:
+            subprocess.run([*diffcam, "fit", str(tmp_path / "captures" / "psfs"),
+                            "--planes", "5,27", "-o", str(out)],
+                           check=True, env=env, capture_output=True, timeout=1800)
+        finally:
+            for p in spinners:
+                p.kill()
+                p.wait()
+    _same_fit_files(*runs)
 
 
 @pytest.mark.slow   # two fits' compilation: 18 s

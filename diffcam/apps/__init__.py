@@ -1,5 +1,5 @@
-"""What runs the library end to end: the command line (:mod:`.cli`), the demo
-(:mod:`.demo`) and the paper's experiments (:mod:`.paper`)."""
+"""What runs the library end to end: the command line (`diffcam.apps.cli`), the demo
+(`diffcam.apps.demo`) and the paper's experiments (`diffcam.apps.paper`)."""
 
 from diffcam.core.lazy import attach_stub
 

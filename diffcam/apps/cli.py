@@ -98,8 +98,8 @@ def _cmd_psf(args) -> int:
 
 def _several_processes(args) -> bool:
     """Whether ``diffcam psf`` starts ``--processes`` copies of itself
-    (:func:`~diffcam.apps.processes.run_processes`). A copy it started, or one task of
-    a cluster's launcher, has joined the run instead (:func:`_join_run`)."""
+    (`run_processes`). A copy it started, or one task of
+    a cluster's launcher, has joined the run instead (`_join_run`)."""
 
     cpus = os.cpu_count() or 1
     if not 1 <= args.processes <= cpus:
@@ -183,7 +183,8 @@ def _cmd_calibrate(args) -> int:
             restarts=args.restarts or (1 if planes else 4))
     phase = np.asarray(result.phase)
     info = {"solver": result.stats.get("method", args.solver), "iterations": args.iterations,
-            "focal_length": args.focal_length, "near_distance": args.near_distance,
+            "seed": args.seed, "focal_length": args.focal_length,
+            "near_distance": args.near_distance,
             "final_error": float(np.asarray(result.history)[-1]),
             "twin_resolved": False, "near": str(args.near), "far": str(args.far)}
     if reference is not None:
@@ -489,7 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def check_environment() -> None:
     """The environment's settings, checked before any work: ``DIFFCAM_FFT`` (a backend,
-    :func:`diffcam.core.backend.fft_backend`) and ``DIFFCAM_FFT_THREADS`` (a positive
+    `diffcam.core.backend.fft_backend`) and ``DIFFCAM_FFT_THREADS`` (a positive
     integer when set, whichever backend runs)."""
 
     core.backend.fft_backend()
@@ -531,7 +532,7 @@ def _verbosity(args):
 def main(argv=None, *, compilation_cache: bool = False) -> int:
     """The ``diffcam`` command line ``argv`` (default: ``sys.argv``); returns the exit
     status. ``compilation_cache``: keep compiled programs on disk
-    (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), once the command line
+    (`enable_compilation_cache`), once the command line
     is read (``--help`` loads no JAX)."""
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -558,9 +559,9 @@ def main(argv=None, *, compilation_cache: bool = False) -> int:
 
 
 def run() -> None:
-    """The ``diffcam`` command: :func:`main` with compiled programs cached on disk
-    (:func:`~diffcam.apps.compile_cache.enable_compilation_cache`), then the process
-    ends with its status (:func:`~diffcam.apps.processes.end_process`), also after
+    """The ``diffcam`` command: `main` with compiled programs cached on disk
+    (`enable_compilation_cache`), then the process
+    ends with its status (`end_process`), also after
     ``--help``, ``--version`` and usage errors (argparse's ``SystemExit``)."""
     try:
         status = main(compilation_cache=True)

@@ -1,8 +1,8 @@
 """What the ``diffcam`` subcommands share: argparse types (lengths with units, checked
 counts, plane lists), the ``--help`` formatter and the limits each help states, image
-and figure writers, and the PSF readers. The command modules (:mod:`~diffcam.apps.cli`,
-:mod:`~diffcam.apps.fit_cli`, :mod:`~diffcam.apps.reconstruct_cli`,
-:mod:`~diffcam.apps.scene_psf_cli`, :mod:`~diffcam.apps.demo`) import from here, never
+and figure writers, and the PSF readers. The command modules (`cli`,
+`fit_cli`, `reconstruct_cli`,
+`scene_psf_cli`, `demo`) import from here, never
 from each other's private names."""
 
 from __future__ import annotations
@@ -64,16 +64,16 @@ def count(low: int, high: int, limit: str = ""):
 
 
 def iterations_count():
-    """:func:`count` for an iteration count: 1 to
-    :data:`diffcam.reconstruct.checks.MAX_ITERATIONS`."""
+    """`count` for an iteration count: 1 to
+    `diffcam.reconstruct.checks.MAX_ITERATIONS`."""
 
     name = "diffcam.reconstruct.checks.MAX_ITERATIONS"
     return count(1, module_constant(name), name)
 
 
 def grid_count(low: int = 2):
-    """:func:`count` for samples per side of a square grid: ``low`` to the side of
-    :data:`diffcam.core.grid.MAX_GRID_SAMPLES`."""
+    """`count` for samples per side of a square grid: ``low`` to the side of
+    `diffcam.core.grid.MAX_GRID_SAMPLES`."""
 
     name = "diffcam.core.grid.MAX_GRID_SAMPLES"
     return count(low, math.isqrt(module_constant(name)), name)
@@ -171,7 +171,7 @@ def save_figure(fig, path) -> None:
 
 def save_open_figures(stem: str, folder=None) -> list[Path]:
     """Write every open matplotlib figure as ``FOLDER/STEM_k.png`` (k = 1, 2, … in the
-    order they were made) with :func:`save_figure`, and close them: how a notebook run
+    order they were made) with `save_figure`, and close them: how a notebook run
     as a script leaves its figures. ``FOLDER``: ``$DIFFCAM_FIGURES``, else ``figures``
     in the working folder (made if missing)."""
     import matplotlib.pyplot as plt

@@ -4,17 +4,17 @@ Each ``diffcam`` command is a fresh process, and XLA compiles its programs again
 each one: a second ``diffcam predict`` of the same model recompiles the renderer
 (≈ 1.5 s on 2 cores) before it renders anything. The command line therefore keeps
 compiled programs on disk, in the ``jax`` folder of diffcam's cache folder
-(:func:`diffcam.core.fftw.cache_folder`: ``$DIFFCAM_CACHE``, else
+(`diffcam.core.fftw.cache_folder`: ``$DIFFCAM_CACHE``, else
 ``$XDG_CACHE_HOME/diffcam``, else ``~/.cache/diffcam``), and a later run of the same
 program on the same machine and JAX version loads it instead of compiling.
 
-The folder is capped at :data:`DEFAULT_MAX_MB` megabytes (``DIFFCAM_CACHE_MAX_MB``
+The folder is capped at `DEFAULT_MAX_MB` megabytes (``DIFFCAM_CACHE_MAX_MB``
 chooses another cap) by JAX's own eviction (``jax_compilation_cache_max_size``, which
 locks the folder with the ``filelock`` package): before a new program is written, the
 programs used least recently are deleted until the folder, the new program included,
 fits. JAX dates each program by a ``KEY-atime`` file beside its ``KEY-cache`` file and
 cannot evict without it; programs written without a cap have none, so
-:func:`enable_compilation_cache` first dates them by their modification time.
+`enable_compilation_cache` first dates them by their modification time.
 
 The user's settings come first: ``JAX_COMPILATION_CACHE_DIR`` (and JAX's other
 ``JAX_PERSISTENT_CACHE_*`` and ``JAX_COMPILATION_CACHE_*`` variables) are left to JAX,
@@ -88,7 +88,7 @@ def enable_compilation_cache() -> str | None:
 
 def cache_cap() -> int:
     """The cap of diffcam's cache folder in bytes: ``$DIFFCAM_CACHE_MAX_MB`` megabytes,
-    else :data:`DEFAULT_MAX_MB`.
+    else `DEFAULT_MAX_MB`.
 
     Raises:
         DiffcamError: the variable is set to anything but a whole number ≥ 1.

@@ -3,7 +3,7 @@
 Runs on built-in data only (scikit-image's "cameraman" is the diffuser phase, as in the
 paper; the random diffuser and the test objects are generated), nothing downloaded. The
 captures and true PSFs come from a higher-fidelity simulation than the model that
-inverts them (:mod:`diffcam.apps.paper`), so no score is perfect by construction:
+inverts them (`diffcam.apps.paper`), so no score is perfect by construction:
 
 1. Fig. 3 — phase retrieval from near/far intensities: textbook Gerchberg–Saxton
    (which stagnates) and diffcam's default calibration, scored on the central 300²;

@@ -1,5 +1,5 @@
 """``diffcam fit``, ``diffcam predict`` and ``diffcam compare-stack``: a wave model of a
-PSF stack fitted to a few of its planes (:func:`diffcam.calibrate.fit_stack`).
+PSF stack fitted to a few of its planes (`diffcam.calibrate.fit_stack`).
 
     diffcam fit psfs.tif --planes 5,25 -o model.npz
     diffcam predict model.npz --planes 0:43 -o predicted.tif
@@ -280,10 +280,12 @@ def add_fit(sub) -> None:
                      help="given planes, e.g. 5,25 (the first is the reference)")
     fit.add_argument("--key", help="array name inside an .npz or .mat stack")
     fit.add_argument("--max-steps", type=iterations_count(), help="Adam steps at most (400)")
-    fit.add_argument("--time-budget", type=float, help="seconds for the whole fit (55)")
+    fit.add_argument("--time-budget", type=float,
+                     help="also stop after this many seconds (default: no wall-clock "
+                          "limit; the steps alone stop the fit, the same on any machine)")
     fit.add_argument("--patience", type=iterations_count(),
                      help="steps without validation gain (40)")
-    fit.add_argument("--seed", type=int, help="seed of the validation split (0)")
+    fit.add_argument("--seed", type=int, help="seed of the validation split and of the start (0)")
     fit.add_argument("--frozen", action="store_true",
                      help="frozen-distance ablation: ζ the same at every plane")
     fit.add_argument("--saturation", type=_saturation_arg,

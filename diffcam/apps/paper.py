@@ -1,18 +1,18 @@
 """The paper's simulation experiments (Optics Express 2019, Section 3.1), as functions.
 
-Each returns plain numbers and arrays, so the demo (:mod:`diffcam.apps.demo`), the notebooks
+Each returns plain numbers and arrays, so the demo (`diffcam.apps.demo`), the notebooks
 and the tests share one implementation:
 
-- :func:`fig3_phase_retrieval` — cameraman phase → near/far captures → textbook GS
+- `fig3_phase_retrieval` — cameraman phase → near/far captures → textbook GS
   and diffcam's default calibration, scored by the phase metric of docs/design.md;
-- :func:`fig5_psf_and_reconstruction` — PSFs from true and retrieved phases at
+- `fig5_psf_and_reconstruction` — PSFs from true and retrieved phases at
   z1 = 25 mm, z2 = 1 mm; Richardson–Lucy of a test object; a table per stage;
-- :func:`fig9_depth_sweep` — PSFs over z1 = 22 … 30 mm: model vs truth vs the scaling
+- `fig9_depth_sweep` — PSFs over z1 = 22 … 30 mm: model vs truth vs the scaling
   baseline anchored at 22 mm (ideal and realistically captured reference).
 
 **No inverse crime.** The captures and the true PSFs are made by a higher-fidelity model
-than the one that inverts them (:func:`diffcam.calibrate.simulation.high_fidelity_captures`
-and :func:`~diffcam.calibrate.simulation.high_fidelity_psfs`: the diffuser on a grid 2×
+than the one that inverts them (`diffcam.calibrate.simulation.high_fidelity_captures`
+and `high_fidelity_psfs`: the diffuser on a grid 2×
 finer, three wavelengths over 12 nm, a 50 µm source, pixel integration, Poisson noise);
 diffcam's model (monochromatic, at the sensor pitch, a point source) inverts them and
 predicts the PSFs. Even the true phase through diffcam's model then scores below 1: the
@@ -117,10 +117,10 @@ def _scores(estimate, truth, n):
 
 def paper_phase(near, far, *, iterations: int, refine_iterations: int = 50, restarts: int = 2,
                 planes=()):
-    """diffcam's default calibration path (:func:`diffcam.calibrate.retrieve_phase`: RAAR with
+    """diffcam's default calibration path (`diffcam.calibrate.retrieve_phase`: RAAR with
     random restarts, then ``refine_iterations`` least-squares steps, 0 for none) on the
     paper's aperture; a RetrievalResult. With ``planes`` (a captured PSF,
-    :func:`diffcam.calibrate.psf_plane`) it starts flat, once."""
+    `diffcam.calibrate.psf_plane`) it starts flat, once."""
     n = np.shape(near)[-1]
     aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
     refine = None if not refine_iterations else calibrate.FitOptions.of(
@@ -133,7 +133,7 @@ def paper_phase(near, far, *, iterations: int, refine_iterations: int = 50, rest
 def fig3_phase_retrieval(truth_512: np.ndarray, s: Settings, seed: int = 0,
                          psf_z1: float | None = None) -> dict:
     """Near/far captures of the diffuser ``truth_512`` in the paper's set-up on the
-    ``s.grid`` grid, made by :func:`diffcam.calibrate.simulation.high_fidelity_captures`
+    ``s.grid`` grid, made by `diffcam.calibrate.simulation.high_fidelity_captures`
     (module docstring); textbook GS and the default calibration; phase figures and wall
     times. With ``psf_z1`` (metres), also the calibration with one captured PSF at that
     depth as a third plane (``"with_psf"`` keys)."""
@@ -192,7 +192,7 @@ def _embed(obj, shape):
 def fig5_psf_and_reconstruction(truth: np.ndarray, stages: dict, obj: np.ndarray,
                                 s: Settings) -> list[dict]:
     """For each stage (name → phase on the grid; ``None``: the true phase): phase MSE,
-    PSF Pearson against the true PSF (:func:`high_fidelity_psfs`, noise-free), and SSIM /
+    PSF Pearson against the true PSF (`high_fidelity_psfs`, noise-free), and SSIM /
     Pearson of a Richardson–Lucy reconstruction of ``obj`` from a sensor image made with
     the true PSF; every stage's PSF, the true phase's included, is diffcam's model."""
     cam = camera(s)
@@ -222,7 +222,7 @@ def fig5_psf_and_reconstruction(truth: np.ndarray, stages: dict, obj: np.ndarray
 def captured_reference(truth, cam, z1_ref, *, defocus=0.3e-3, photons=1e4,
                        background=0.01, seed=0):
     """A realistically captured reference PSF: the higher-fidelity PSF
-    (:func:`high_fidelity_psfs`) with the source out of its nominal plane by ``defocus``
+    (`high_fidelity_psfs`) with the source out of its nominal plane by ``defocus``
     (m), Poisson noise at ``photons`` at the peak over a ``background`` (fraction of the
     peak) that is then subtracted."""
     p = high_fidelity_psfs(truth, cam, z1_ref + defocus)[0]
@@ -235,7 +235,7 @@ def captured_reference(truth, cam, z1_ref, *, defocus=0.3e-3, photons=1e4,
 def fig9_depth_sweep(truth: np.ndarray, model_phase: np.ndarray, s: Settings,
                      z2: float = Z2, crop: int | None = None) -> list[dict]:
     """Per depth: Pearson (after registration) against the true PSF
-    (:func:`high_fidelity_psfs`, noise-free) of diffcam's model PSF from ``model_phase``
+    (`high_fidelity_psfs`, noise-free) of diffcam's model PSF from ``model_phase``
     and from the true phase (the model's floor), and of the scaling baseline from an
     ideal (the true PSF) and from a captured reference at 22 mm."""
     cam = camera(s, z2=z2, crop=crop)

@@ -3,23 +3,23 @@ launcher (SLURM's ``srun``) starting one ``diffcam psf`` per task.
 
 The engine is JAX's multi-controller runtime: each process calls
 ``jax.distributed.initialize()``, ``jax.devices()`` then lists every process's devices,
-and :func:`diffcam.model.stack.psf_stack` shards the depth axis over all of them. This
+and `diffcam.model.stack.psf_stack` shards the depth axis over all of them. This
 module only starts the processes and reads their environment:
 
-- **Environment** (:func:`distributed_settings`): ``JAX_COORDINATOR_ADDRESS`` (host:port
+- **Environment** (`distributed_settings`): ``JAX_COORDINATOR_ADDRESS`` (host:port
   of process 0, the variable ``jax.distributed.initialize()`` reads itself),
   ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID``; or, without them, a SLURM job step of
   several tasks (``srun``), whose variables ``jax.distributed.initialize()`` reads.
-- **One machine** (:func:`run_processes`): N copies of the command, process 0 on the
+- **One machine** (`run_processes`): N copies of the command, process 0 on the
   terminal (progress bar, summary) and the others silent. They are not bound to CPUs:
   on a machine others use too, bound processes ran slower than unbound ones
   (benchmarks/bench_distributed.py). The first process to fail ends the others (SIGTERM, then SIGKILL
-  after :data:`GRACE` seconds); one line says which process failed and why, and
+  after `GRACE` seconds); one line says which process failed and why, and
   temporary files the run left beside its outputs are removed, so an existing output
   keeps its old bytes.
 
 A process that fails after ``jax.distributed.initialize()`` ends with ``os._exit``
-(:func:`end_process`): a normal interpreter exit would wait in JAX's shutdown barrier
+(`end_process`): a normal interpreter exit would wait in JAX's shutdown barrier
 for peers that are blocked in a collective, until the heartbeat timeout (100 s) aborts
 it.
 """
@@ -89,7 +89,7 @@ def distributed_settings(env: Mapping[str, str] | None = None) -> dict | None:
 
 
 def initialize_from_environment() -> bool:
-    """``jax.distributed.initialize()`` as :func:`distributed_settings` says, with gloo
+    """``jax.distributed.initialize()`` as `distributed_settings` says, with gloo
     collectives for CPU devices; call it before any other JAX call. Returns whether
     this process is one of several."""
     settings = distributed_settings()
@@ -117,8 +117,8 @@ def end_process(status: int) -> None:
 
     The teardown (finalising modules, JAX's client and its threads) costs 0.25 s on 2
     cores after any command and does nothing a command needs: its outputs are written,
-    fsynced and moved into place (:func:`diffcam.io.atomic_output`) before this runs,
-    and the functions registered with :mod:`atexit` (FFTW's wisdom, logging) run
+    fsynced and moved into place (`diffcam.io.atomic_output`) before this runs,
+    and the functions registered with `atexit` (FFTW's wisdom, logging) run
     first. After an interrupt (status 130) the teardown is also unsafe: XLA's threads
     may still run the interrupted computation, and tearing the interpreter down under
     them crashed with SIGSEGV in about one run of five (an interrupted ``diffcam
@@ -138,7 +138,7 @@ def end_process(status: int) -> None:
 
 def report_error(command: str, message: str) -> None:
     """Say what went wrong in one line: on stderr, prefixed by the process index in a
-    run of several processes; under :func:`run_processes`, in a file it reads (it
+    run of several processes; under `run_processes`, in a file it reads (it
     prints one line for the whole run)."""
     folder = os.environ.get(ERRORS)
     if folder:  # run_processes started this process, and set its JAX_PROCESS_ID
@@ -163,7 +163,7 @@ def free_port() -> int:
 def worker_env(address: str, count: int, rank: int) -> dict[str, str]:
     """The environment of process ``rank`` of ``count`` whose process 0 listens at
     ``address`` (host:port): this process's, with the variables
-    :func:`distributed_settings` reads."""
+    `distributed_settings` reads."""
     return dict(os.environ, **{ADDRESS: address, COUNT: str(count), RANK: str(rank)})
 
 
@@ -179,7 +179,7 @@ def _start(argv: Sequence[str], count: int, errors: str) -> list[subprocess.Pope
 
 
 def _stop(procs: list[subprocess.Popen]) -> None:
-    """SIGTERM every running process, SIGKILL what still runs :data:`GRACE` s later."""
+    """SIGTERM every running process, SIGKILL what still runs `GRACE` s later."""
     for p in procs:
         if p.poll() is None:
             p.send_signal(signal.SIGTERM)
@@ -226,7 +226,7 @@ def run_processes(command: str, argv: Sequence[str], count: int,
     Returns:
         0 when every process succeeds; else 2, with one line on stderr (Ctrl-C and
         SIGTERM reach the caller as ``KeyboardInterrupt`` and
-        :class:`~diffcam.io.Terminated`, after the processes are ended).
+        `Terminated`, after the processes are ended).
     """
 
     before = {p for o in outputs for p in temporary_files(o)}

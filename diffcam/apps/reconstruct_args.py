@@ -1,6 +1,6 @@
-"""The command line of ``diffcam reconstruct`` (:func:`add_reconstruct`): its options,
+"""The command line of ``diffcam reconstruct`` (`add_reconstruct`): its options,
 their defaults and help, built without loading the solvers; the command itself is
-:func:`diffcam.apps.reconstruct_cli.cmd_reconstruct`, loaded when it runs."""
+`diffcam.apps.reconstruct_cli.cmd_reconstruct`, loaded when it runs."""
 
 from __future__ import annotations
 
@@ -16,13 +16,13 @@ ADMM-TV has converged by 100 (correlation 0.998 with a 200-step FISTA reference,
 same at 300); Richardson–Lucy needs about 1000 (0.996; at 150 the fingers are not
 resolved, 0.959)."""
 ITERATIONS_3D = {"admm": 60, "rl": 300}
-"""The same for ``--3d``: ADMM-TV with :data:`diffcam.reconstruct.admm.VOLUME` 60 (the
+"""The same for ``--3d``: ADMM-TV with `diffcam.reconstruct.admm.VOLUME` 60 (the
 shipped USAF capture, 44 planes of 270 × 320: the measurements behind the choice are in
 docs/volume.md); Richardson–Lucy 300."""
 
 
 def _cmd_reconstruct(args) -> int:
-    """:func:`diffcam.apps.reconstruct_cli.cmd_reconstruct`, its module loaded now."""
+    """`diffcam.apps.reconstruct_cli.cmd_reconstruct`, its module loaded now."""
     return apps.reconstruct_cli.cmd_reconstruct(args)
 
 

@@ -47,7 +47,7 @@ def _reporter(quiet: bool):
 
 def _pick_plane(raw, source: PsfSource, args, say) -> np.ndarray:
     """The one PSF of a 2-D reconstruction: by --depth, --plane or a focus sweep (the
-    plane whose PSF leaves the least data misfit, :func:`diffcam.reconstruct.focus_sweep`)."""
+    plane whose PSF leaves the least data misfit, `diffcam.reconstruct.focus_sweep`)."""
 
     psfs = source.psfs
     if psfs.ndim == 2 or source.colour:
@@ -79,8 +79,8 @@ def _unit_norm(a) -> tuple[np.ndarray, float]:
 
 
 def _iterations(args) -> int:
-    """``--iterations``, or the method's measured default (:data:`ITERATIONS`,
-    :data:`ITERATIONS_3D`)."""
+    """``--iterations``, or the method's measured default (`ITERATIONS`,
+    `ITERATIONS_3D`)."""
     if args.iterations is None:
         return (ITERATIONS_3D if args.three_d else ITERATIONS).get(args.method, 1)
     return args.iterations
@@ -133,8 +133,8 @@ class VolumePaths(NamedTuple):
 
 
 def volume_paths(out) -> VolumePaths:
-    """``OUT.tif`` and its companions (:class:`VolumePaths`), each checked writable
-    (:func:`diffcam.io.check_output_path`) before any work."""
+    """``OUT.tif`` and its companions (`VolumePaths`), each checked writable
+    (`diffcam.io.check_output_path`) before any work."""
 
     out = check_output_path(out, suffixes=(".tif", ".tiff"))
     paths = VolumePaths(out, *(out.with_name(f"{out.stem}_{name}.png") for name in
@@ -145,9 +145,9 @@ def volume_paths(out) -> VolumePaths:
 
 
 def _solve_3d(raw, psfs, args):
-    """The volume and its :class:`~diffcam.reconstruct.Reconstruction`; ADMM-TV solves
+    """The volume and its `Reconstruction`; ADMM-TV solves
     for the raw scaled to unit L2 norm (the scale the weights of
-    :data:`diffcam.reconstruct.admm.VOLUME` are for) and the volume is scaled back to counts."""
+    `diffcam.reconstruct.admm.VOLUME` are for) and the volume is scaled back to counts."""
 
     if args.method == "rl":
         rec = richardson_lucy_3d(raw, psfs, _iterations(args), progress=not args.quiet)
@@ -233,7 +233,7 @@ def _volume_info(args, rec, seconds: float, widths) -> dict:
 def _background_summary(background, degree) -> dict | None:
     """The fitted sensor background (``--background``) in the raw's units (as read,
     less any dark level): its coefficients on the polynomials ``P_i(y) P_j(x)``
-    (:func:`diffcam.reconstruct.admm.legendre_terms`), mean, least and largest value;
+    (`diffcam.reconstruct.admm.legendre_terms`), mean, least and largest value;
     ``None`` without one."""
     if background is None:
         return None
@@ -247,7 +247,7 @@ def _background_summary(background, degree) -> dict | None:
 
 def cmd_reconstruct(args) -> int:
     """``diffcam reconstruct``, its command line read
-    (:mod:`diffcam.apps.reconstruct_args`)."""
+    (`diffcam.apps.reconstruct_args`)."""
     say = _reporter(args.quiet)
     return _run_3d(args, say) if args.three_d else _run_2d(args, say)
 

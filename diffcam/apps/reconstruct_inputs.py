@@ -24,7 +24,7 @@ DARK_RING = 6        # pixels: width of the frame-border band whose median is th
 WORKING_SIZE = 480
 """Pixels on the longer side up to which ``reconstruct`` works at the capture's own
 resolution by default; larger captures are box-averaged by the least integer factor
-that brings them there (:func:`working_factor`). The defaults (iterations, ADMM-TV's
+that brings them there (`working_factor`). The defaults (iterations, ADMM-TV's
 ``tau``) were measured on captures of 400 and 480 pixels per side; on the tutorial hand
 at its full 1200 × 1600 they leave the fine detail unresolved (docs/scene_psf.md)."""
 
@@ -119,7 +119,7 @@ def dark_arg(text: str):
 
 def subtract_dark(images, level, what: str, say=print):
     """``images`` minus ``level`` (counts, or ``"auto"``: the border median,
-    :func:`diffcam.io.border_dark_level`); clipping noise below 0 is reported through
+    `diffcam.io.border_dark_level`); clipping noise below 0 is reported through
     ``say`` as one line."""
     import warnings
 
@@ -143,8 +143,8 @@ def subtract_dark(images, level, what: str, say=print):
 
 def match_envelope(raw: np.ndarray, psfs: np.ndarray, mode: str, say):
     """The PSF stack with each plane's vertical footprint matched to the capture's
-    (``mode`` ``"auto"``: :func:`diffcam.io.envelope_widths` then
-    :func:`diffcam.io.apply_envelope`), and the widths used (pixels; ``None`` for
+    (``mode`` ``"auto"``: `diffcam.io.envelope_widths` then
+    `diffcam.io.apply_envelope`), and the widths used (pixels; ``None`` for
     ``mode`` ``"none"``)."""
     if mode == "none":
         return psfs, None
@@ -235,7 +235,7 @@ def lit_pixels(images: np.ndarray) -> np.ndarray:
 
 
 def check_not_swapped(raw: np.ndarray, psfs: np.ndarray, args) -> None:
-    """Warn (stderr) when the raw lights fewer effective pixels (:func:`lit_pixels`)
+    """Warn (stderr) when the raw lights fewer effective pixels (`lit_pixels`)
     than its least spread PSF: by Young's inequality a capture ``Σ_z h_z * x_z`` of
     non-negative scenes lights at least as many as the least spread of its PSFs, so the
     two files are likely swapped. On the shipped pairs (hand, USAF volume, seven
@@ -252,7 +252,7 @@ def check_not_swapped(raw: np.ndarray, psfs: np.ndarray, args) -> None:
 
 def working_factor(shape, requested: int | None, say) -> int:
     """``requested`` (``--downsample``), or by default the least factor that brings the
-    capture's longer side to :data:`WORKING_SIZE` pixels or fewer, said through ``say``."""
+    capture's longer side to `WORKING_SIZE` pixels or fewer, said through ``say``."""
     if requested is not None:
         return requested
     ny, nx = shape[-2:]

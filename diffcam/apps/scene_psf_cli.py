@@ -1,5 +1,5 @@
 """``diffcam calibrate-psf``: the camera's PSF from raw captures of scenes whose ground
-truth is known (:func:`diffcam.calibrate.scene_psf.fit_psf_from_scenes`).
+truth is known (`diffcam.calibrate.scene_psf.fit_psf_from_scenes`).
 
     diffcam data scenes -o scenes
     diffcam calibrate-psf scenes/raw_*.tif --truth scenes/truth_*.tif -o psf.tif
@@ -29,7 +29,7 @@ CHANNEL_ORDERS = ("RGB", "BGR")
 
 def read_pairs(raws, truths, channel_order: str) -> tuple[np.ndarray, np.ndarray]:
     """The raw and truth files as ``(k, c, ny, nx)`` arrays (RGB for colour), checked
-    (:func:`diffcam.calibrate.scene_psf.check_scene_pairs`)."""
+    (`diffcam.calibrate.scene_psf.check_scene_pairs`)."""
 
     if len(raws) != len(truths):
         raise DiffcamError(f"{len(raws)} raw file(s) but {len(truths)} --truth file(s); "

@@ -4,7 +4,7 @@ writes them beside the volume (``docs/cli_reconstruct.md``).
 
 Every function takes a volume ``(nz, ny, nx)`` (plane 0 nearest) and a list of one
 label per plane, and returns a matplotlib figure (Agg backend) for
-:func:`diffcam.apps.cli.save_figure`.
+`diffcam.apps.cli.save_figure`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ __all__ = ["depth_map_figure", "projections_figure", "montage_figure", "DEPTH_FR
 
 DEPTH_FRACTION = 0.2
 """Depth map: pixels whose max projection is below this share of its 99.5th percentile
-are masked (no object there), :func:`diffcam.evaluate.volume.depth_map`."""
+are masked (no object there), `diffcam.evaluate.volume.depth_map`."""
 
 
 def _pyplot():
@@ -34,8 +34,9 @@ def _ticks(nz: int) -> np.ndarray:
 
 
 def depth_map_figure(volume, labels: list[str], bar_label: str = "plane"):
-    """The depth map (brightest plane per pixel, :func:`~diffcam.evaluate.volume.
-    depth_map`) coloured by plane, with a colour bar labelled by ``labels``."""
+    """The depth map (brightest plane per pixel,
+    `depth_map`) coloured by plane, with a colour bar
+    labelled by ``labels``."""
     plt = _pyplot()
     nz, ny, nx = np.shape(volume)
     width = 6.0

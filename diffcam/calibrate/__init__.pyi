@@ -1,6 +1,8 @@
-"""Stub of :mod:`diffcam.calibrate`: its public names and the modules they come from.
+"""Stub of [`diffcam.calibrate`][diffcam.calibrate]: its public names and the modules they
+come from.
 
-diffcam/calibrate/__init__.py imports each on first use (:mod:`diffcam.core.lazy`)."""
+diffcam/calibrate/__init__.py imports each on first use
+([`diffcam.core.lazy`][diffcam.core.lazy])."""
 
 from diffcam.calibrate.captures import (CaptureOptions, PreparedCaptures, SyntheticSensor,
                                         centre_on_axis, centroid,

@@ -5,18 +5,18 @@ Preprocessing (paper Section 3.2) of a raw near/far pair, in order:
 1. saturated pixels are found on the raw counts (a mask for the least-squares fit;
    a capture saturated everywhere is an error);
 2. the background (sensor bias, dark frame or level) is subtracted with
-   :func:`diffcam.io.subtract_background` (small negatives clipped with a warning,
+   `diffcam.io.subtract_background` (small negatives clipped with a warning,
    large ones an error);
 3. exposure differences are divided out (counts per unit exposure; an exposure series
-   is merged into one high-dynamic-range image, :func:`merge_exposures`), then each
+   is merged into one high-dynamic-range image, `merge_exposures`), then each
    image is min–max normalised;
 4. the far capture is centred (its intensity centroid moved to index N//2) and interpolated
    from the sensor pitch to the Fourier-lens pitch λf/(N·dx); the near capture from the
-   sensor pitch to the diffuser-grid pitch dx (:func:`diffcam.model.sensor.resample`).
+   sensor pitch to the diffuser-grid pitch dx (`diffcam.model.sensor.resample`).
 
-Synthetic captures (:func:`synthetic_captures`) run the forward model at the
+Synthetic captures (`synthetic_captures`) run the forward model at the
 computational pitch, integrate over sensor pixels, and add shot noise, a background
-and quantisation with :mod:`diffcam.model.sensor`.
+and quantisation with `diffcam.model.sensor`.
 """
 
 from __future__ import annotations
@@ -85,8 +85,9 @@ def resample_capture(image: Float[Array, "my mx"], sensor_pitch: float, pitch, s
     a speckle spans about two samples, and area-averaging sensor pixels onto it drops the
     RAAR figure from 1.0 to 0.84 on the paper's Fig. 3 problem). Outside its frame the
     capture is zero: the frame is zero-extended before the (FFT, periodic) spline
-    prefilter, as :func:`diffcam.evaluate.magnify_psf` does, so light at one edge never
-    leaks into the opposite one and the same pitch and shape return the capture.
+    prefilter, as [`diffcam.evaluate.magnify_psf`][diffcam.evaluate.baseline.magnify_psf]
+    does, so light at one edge never leaks into the opposite one and the same pitch and
+    shape return the capture.
     """
     real_array("capture", image)
     check_field(image, "capture")
@@ -134,7 +135,7 @@ def merge_exposures(raws: Float[Array, "k ny nx"], exposures, *, background=0.0,
         raws: (k, ny, nx) raw counts.
         exposures: k exposure times (any common unit).
         background: level or dark frame (counts), subtracted with
-            :func:`diffcam.io.subtract_background`.
+            [`diffcam.io.subtract_background`][diffcam.io.preprocessing.subtract_background].
         saturation: raw count at or above which a pixel is saturated.
 
     Returns:
@@ -180,7 +181,8 @@ def _clean(raw, name, background, exposure, saturation):
 
 
 class CaptureOptions(Options):
-    """How :func:`prepare_captures` cleans the raw captures.
+    """How [`prepare_captures`][diffcam.calibrate.captures.prepare_captures] cleans the raw
+    captures.
 
     Attributes:
         background: per capture (near, far), a level or a dark frame (counts).
@@ -198,7 +200,8 @@ class CaptureOptions(Options):
 
 
 class SyntheticSensor(Options):
-    """The sensor :func:`synthetic_captures` records with.
+    """The sensor [`synthetic_captures`][diffcam.calibrate.captures.synthetic_captures]
+    records with.
 
     Attributes:
         photons: electrons at the brightest pixel of each capture.
@@ -217,21 +220,23 @@ class SyntheticSensor(Options):
 def prepare_captures(near_raw, far_raw, geometry: CalibrationGeometry, shape, *,
                      sensor_pitch: float, options: CaptureOptions | None = None,
                      **overrides) -> PreparedCaptures:
-    """Raw near and far captures → :class:`PreparedCaptures` on the ``shape`` grid.
+    """Raw near and far captures →
+    [`PreparedCaptures`][diffcam.calibrate.captures.PreparedCaptures] on the ``shape`` grid.
 
     Args:
         near_raw, far_raw: raw sensor images (counts), one channel each; either may be
-            a (k, ny, nx) exposure series, merged by :func:`merge_exposures`.
+            a (k, ny, nx) exposure series, merged by
+            [`merge_exposures`][diffcam.calibrate.captures.merge_exposures].
         geometry: the set-up (diffuser pitch dx, λ, f, near distance), SI units.
         shape: ``(ny, nx)`` of the calibration grid (the near capture at pitch dx, the
             far one at λf/(N·dx)); wide enough for the captures' content.
         sensor_pitch: camera pixel pitch, metres.
-        options: :class:`CaptureOptions` (background, exposure, saturation, centre);
-            keywords named after its fields replace them.
+        options: [`CaptureOptions`][diffcam.calibrate.captures.CaptureOptions] (background,
+            exposure, saturation, centre); keywords named after its fields replace them.
 
-    Warns (:class:`~diffcam.core.errors.GeometryWarning`) when the far capture's speckle
-    is ≳ 2× finer or coarser than the near capture predicts at the Fourier-lens pitch
-    (:func:`~diffcam.calibrate.near_far.check_far_speckle`): f, λ or ``sensor_pitch``
+    Warns ([`GeometryWarning`][diffcam.core.errors.GeometryWarning]) when the far capture's
+    speckle is ≳ 2× finer or coarser than the near capture predicts at the Fourier-lens
+    pitch (`check_far_speckle`): f, λ or ``sensor_pitch``
     is wrong, and the retrieval would return a confident wrong phase.
     """
     o = CaptureOptions.of(options, **overrides)
@@ -257,18 +262,18 @@ def synthetic_captures(phase: Float[Array, "ny nx"], aperture: Float[Array, "ny 
                        **overrides) -> tuple[np.ndarray, np.ndarray]:
     """Raw near and far captures of a diffuser, as a camera would record them.
 
-    The forward model (:func:`calibration_intensities`) runs on the phase's grid; each
-    intensity is integrated over sensor pixels of ``sensor_pitch`` (m) on
-    ``sensor_shape``, scaled to ``photons`` electrons at its brightest pixel, given
-    Poisson shot noise, a uniform ``background`` (fraction of full scale), and quantised
-    to ``bit_depth`` bits with the brightest mean signal plus background at 95 % of full
-    scale. ``far_exposures`` (relative times, e.g. ``(1, 30, 1000)``) records the far
-    field as an exposure series instead: exposure t collects t·``photons`` at the peak and
-    saturates.
+    The forward model
+    ([`calibration_intensities`][diffcam.calibrate.near_far.calibration_intensities]) runs
+    on the phase's grid; each intensity is integrated over sensor pixels of ``sensor_pitch``
+    (m) on ``sensor_shape``, scaled to ``photons`` electrons at its brightest pixel, given
+    Poisson shot noise, a uniform ``background`` (fraction of full scale), and quantised to
+    ``bit_depth`` bits with the brightest mean signal plus background at 95 % of full scale.
+    ``far_exposures`` (relative times, e.g. ``(1, 30, 1000)``) records the far field as an
+    exposure series instead: exposure t collects t·``photons`` at the peak and saturates.
 
     The sensor (``photons``, ``bit_depth``, ``background``, ``far_exposures``) is a
-    :class:`SyntheticSensor` given as ``options``; keywords named after its fields
-    replace them.
+    [`SyntheticSensor`][diffcam.calibrate.captures.SyntheticSensor] given as ``options``;
+    keywords named after its fields replace them.
 
     Returns:
         ``(near_counts, far_counts)`` float arrays of digital numbers (far: (k, ny, nx)

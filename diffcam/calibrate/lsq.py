@@ -26,11 +26,11 @@ normalised to unit mean:
 
 Solvers (``solver=``) are objects: any optimistix minimiser or least-squares solver
 (``optx.LBFGS(rtol=0, atol=0)``, ``optx.GaussNewton(..., linear_solver=lx.LSMR(...))``),
-or :class:`JaxoptLBFGS` (jaxopt, optional, imported lazily); the names in
-:data:`SOLVERS` are shortcuts for the usual ones. Each runs a fixed number of steps
+or `JaxoptLBFGS` (jaxopt, optional, imported lazily); the names in
+`SOLVERS` are shortcuts for the usual ones. Each runs a fixed number of steps
 inside one ``lax.scan`` and records the loss ½Σr² after every step; the result's
 ``stats["status"]`` says whether the loss converged, was still falling, or stalled
-(then a :class:`ConvergenceWarning` says what to try).
+(then a `ConvergenceWarning` says what to try).
 
 Everything the fit depends on is a pytree (the forward model, the phase grid, the data,
 the start, the regularisation weights), compiled once by ``eqx.filter_jit`` per
@@ -98,7 +98,7 @@ SOLVERS = tuple(_SOLVERS)
 
 
 def solver_object(solver):
-    """The solver object for ``solver`` (an object, or a name in :data:`SOLVERS`)."""
+    """The solver object for ``solver`` (an object, or a name in `SOLVERS`)."""
     if isinstance(solver, str):
         if solver not in SOLVERS:
             raise DiffcamError(f"solver must be one of {SOLVERS} or an optimistix solver "
@@ -168,7 +168,7 @@ class PhaseGrid(eqx.Module):
 def near_far_model(aperture: Float[Array, "ny nx"], geometry: CalibrationGeometry
                    ) -> NearFarModel:
     """θd (full grid) → (near, far) intensities in energy units: the
-    :class:`~diffcam.calibrate.near_far.NearFarModel` of ``geometry``."""
+    [`NearFarModel`][diffcam.calibrate.near_far.NearFarModel] of ``geometry``."""
     return NearFarModel.build(aperture, geometry)
 
 
@@ -342,7 +342,7 @@ def fit_status(start: float, history: np.ndarray) -> str:
 
 
 def warn_if_stalled(result: RetrievalResult, init) -> RetrievalResult:
-    """Issue a :class:`ConvergenceWarning` when a fit started cold (``init`` "flat" or
+    """Issue a `ConvergenceWarning` when a fit started cold (``init`` "flat" or
     "random") stalled: that is where least squares stagnates in a local minimum. (A warm
     start that levels off is being polished, and its plateau is the data's noise floor.)"""
     cold = isinstance(init, str) and init in ("flat", "random")
@@ -367,19 +367,20 @@ class FitOptions(Options):
     """How a least-squares fit runs (the settings shared by every fit in diffcam).
 
     Attributes:
-        loss: one of :data:`LOSSES` (see the module docstring).
-        solver: an optimistix solver object, :class:`JaxoptLBFGS`, or a name in
-            :data:`SOLVERS`.
+        loss: one of `LOSSES` (see the module docstring).
+        solver: an optimistix solver object, `JaxoptLBFGS`, or a name in
+            `SOLVERS`.
         iterations: solver steps.
         smoothness, tv: regularisation weights (per unit residual², dimensionless, ≥ 0).
         fit_background: fit the per-image background b_k (else b_k = 0).
         coarse: phase unknowns every ``coarse`` samples, upsampled (cubic).
         key: ``jax.random`` key of a ``"random"`` start.
         warm_start_iterations: RAAR iterations of the ``"raar"`` start of
-            :func:`retrieve_lsq`.
+            [`retrieve_lsq`][diffcam.calibrate.lsq.retrieve_lsq].
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
-        progress: a progress bar for fits over 2 s (:mod:`diffcam.core.progress`;
-            ``DIFFCAM_PROGRESS=0`` turns every bar off).
+        progress: a progress bar for fits over 2 s
+            ([`diffcam.core.progress`][diffcam.core.progress]; ``DIFFCAM_PROGRESS=0`` turns
+            every bar off).
     """
 
     loss: str = "weighted_intensity"
@@ -411,24 +412,26 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
               options: FitOptions = FitOptions(), extra0=None) -> RetrievalResult:
     """Fit the phase (and per-image scale and background) to measured intensities.
 
-    The engine under :func:`retrieve_lsq` and :func:`diffcam.calibrate.fit_to_psfs`.
+    The engine under [`retrieve_lsq`][diffcam.calibrate.lsq.retrieve_lsq] and
+    [`diffcam.calibrate.fit_to_psfs`][diffcam.calibrate.psf_fit.fit_to_psfs].
 
     Args:
         model: an ``equinox.Module``, ``model(phase, extra) -> tuple`` of K predicted
             intensities from the full-grid phase (radians) and the extra fitted
             parameters (a pytree, e.g. geometry; ``None`` without ``extra0``); pure and
-            differentiable (e.g. :class:`~diffcam.calibrate.near_far.NearFarModel`).
+            differentiable (e.g. [`NearFarModel`][diffcam.calibrate.near_far.NearFarModel]).
         measured: K measured intensities, shapes matching ``model``'s outputs.
         theta0: starting unknowns, shape ``phase_grid.param_shape`` (radians).
         phase_grid: the phase parameterisation.
         support: (ny, nx) mask where the regularisers act (default: everywhere).
         masks: K weight images (0 = ignore, e.g. saturated pixels), or ``None``.
-        options: :class:`FitOptions` (loss, solver, iterations, regularisation,
-            progress).
+        options: [`FitOptions`][diffcam.calibrate.lsq.FitOptions] (loss, solver, iterations,
+            regularisation, progress).
         extra0: starting extra parameters passed to ``model`` (fitted too).
 
     Returns:
-        :class:`RetrievalResult`; ``stats["status"]`` is :func:`fit_status` of the run.
+        [`RetrievalResult`][diffcam.calibrate.result.RetrievalResult]; ``stats["status"]``
+        is `fit_status` of the run.
     """
     loss, solver, iterations = options.loss, options.solver, options.iterations
     smoothness, tv, fit_background = options.smoothness, options.tv, options.fit_background
@@ -478,17 +481,19 @@ def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
     """Diffuser phase from near/far intensities by least squares through the forward model.
 
     Args:
-        near, far: intensities as for :func:`diffcam.calibrate.retrieve_projections`.
+        near, far: intensities as for
+            [`diffcam.calibrate.retrieve_projections`][diffcam.calibrate.projections.retrieve_projections].
         geometry: the set-up, SI units.
         aperture: the diffuser-plane amplitude C (ny, nx) (e.g.
-            :func:`diffcam.optics.elements.circular_aperture`).
+            [`diffcam.optics.elements.circular_aperture`][diffcam.optics.elements.circular_aperture]).
         init: ``"raar"`` (default: ``warm_start_iterations`` RAAR projections from a flat
             start, which puts the fit in the right basin: from a flat start a 128² near/far
             fit can stall at a phase Pearson of 0.82, from 30 RAAR iterations it reaches
             1.000), ``"flat"``, ``"random"`` (with ``key``) or a full-grid phase (radians).
         masks: ``(near_mask, far_mask)`` weights, 0 at saturated or bad pixels.
-        options: :class:`FitOptions`; keyword ``**overrides`` replace its fields
-            (``loss=``, ``iterations=``, ``coarse=``, ``key=``, ``far_pitch=``, ...).
+        options: [`FitOptions`][diffcam.calibrate.lsq.FitOptions]; keyword ``**overrides``
+            replace its fields (``loss=``, ``iterations=``, ``coarse=``, ``key=``,
+            ``far_pitch=``, ...).
     """
     opts = FitOptions.of(options, **overrides)
     check_captures(near, far)

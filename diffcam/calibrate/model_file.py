@@ -2,17 +2,17 @@
 
 diffcam writes two kinds of camera model, both ``.npz`` with their provenance inside:
 
-- a **phase file** (``diffcam calibrate``, :func:`~diffcam.calibrate.save_phase`): the
+- a **phase file** (``diffcam calibrate``, `save_phase`): the
   diffuser phase θd in SI units (grid pitch, wavelength, aperture, how it was
   retrieved). It gives the PSF at any source depth z1 once the diffuser-to-sensor
   distance z2 is given (``diffcam psf PHASE --z1 … --z2 …``);
-- a **stack fit** (``diffcam fit``, :meth:`~diffcam.calibrate.StackFit.save`): the
+- a **stack fit** (``diffcam fit``, `save`): the
   field, distance and magnification law fitted to measured planes of a PSF stack, the
   given planes, the fit's history and options. It gives the planes of that stack by
   index (``diffcam predict FIT``); its planes fix z2·M(z1), not z2 and z1 apart.
 
-:func:`model_kind` tells them apart from the file's contents (not its name);
-:func:`load_model` reads either. ``diffcam psf``, ``predict``, ``compare`` and
+`model_kind` tells them apart from the file's contents (not its name);
+`load_model` reads either. ``diffcam psf``, ``predict``, ``compare`` and
 ``reconstruct`` all take a model file this way, and each says in one line what to do
 with the other kind when it needs depths or plane indices that the file cannot give.
 """
@@ -36,7 +36,8 @@ MODEL_FILES = "a phase file from `diffcam calibrate` or a stack fit from `diffca
 def model_kind(path: str | os.PathLike) -> str | None:
     """``"phase"``, ``"stack-fit"``, or ``None`` for anything else (another suffix, a
     missing file, an ``.npz`` of other arrays). Reads the zip directory, and for a
-    stack fit its metadata entry; a damaged ``.npz`` raises :class:`DiffcamError`."""
+    stack fit its metadata entry; a damaged ``.npz`` raises
+    [`DiffcamError`][diffcam.core.errors.DiffcamError]."""
     path = Path(path)
     if path.suffix.lower() != ".npz" or not path.is_file():
         return None
@@ -54,7 +55,8 @@ def model_kind(path: str | os.PathLike) -> str | None:
 
 
 def load_model(path: str | os.PathLike) -> PhaseFile | StackFit:
-    """The camera model in ``path``: a :class:`PhaseFile` or a :class:`StackFit`.
+    """The camera model in ``path``: a [`PhaseFile`][diffcam.calibrate.phase_io.PhaseFile]
+    or a [`StackFit`][diffcam.calibrate.stack_result.StackFit].
 
     Raises:
         DiffcamError: a file of neither kind (one line naming both), or a damaged or
@@ -69,7 +71,7 @@ def load_model(path: str | os.PathLike) -> PhaseFile | StackFit:
 
 
 def load_stack_model(path: str | os.PathLike) -> StackFit:
-    """:func:`load_model` for what renders planes by index (``diffcam predict``,
+    """`load_model` for what renders planes by index (``diffcam predict``,
     ``compare`` against a stack): a phase file is refused with the command that
     renders it at depths instead."""
     model = load_model(path)

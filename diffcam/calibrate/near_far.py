@@ -6,12 +6,12 @@ Two captures of the same diffuser under a plane wave through the aperture C:
 
 - the **near field**, at ``near_distance`` behind the diffuser (the paper puts the
   diffuser on the sensor's cover glass: 0.5 mm of glass ≈ 0.33 mm of free space, see
-  :func:`glass_equivalent_distance`; 0 means "at the diffuser"), pitch ``dx``;
+  `glass_equivalent_distance`; 0 means "at the diffuser"), pitch ``dx``;
 - the **far field**, at the back focal plane of a Fourier lens of focal length ``f``
   (paper Eq. 13), on the Fourier-lens grid of pitch λf/(N·dx) per axis.
 
 Both captures must already be on these grids (``diffcam.calibrate.captures`` resamples
-a sensor image onto them). :class:`NearFarModel` predicts them from θd: plane-wave
+a sensor image onto them). `NearFarModel` predicts them from θd: plane-wave
 illumination through the aperture C, the thin diffuser e^{jθd} (Eq. 5), then (near) free
 space by ``near_distance`` with the angular spectrum and (far) the Fourier lens (Eq. 13).
 """
@@ -78,8 +78,10 @@ class CalibrationGeometry(eqx.Module):
 class NearFarModel(eqx.Module):
     """θd → (near, far) intensities, each in energy units (each sums to Σ|C|²): the far
     field is the unitary centred DFT of the diffuser field, which differs from
-    :func:`diffcam.optics.lens.fourier_lens` by the constant
-    (N·dy·dx/(λf))² in intensity (:func:`calibration_intensities` applies it).
+    [`diffcam.optics.lens.fourier_lens`][diffcam.optics.lens.fourier_lens] by the constant
+    (N·dy·dx/(λf))² in intensity
+    ([`calibration_intensities`][diffcam.calibrate.near_far.calibration_intensities] applies
+    it).
 
     Attributes:
         aperture: amplitude transmission C on the calibration grid (ny, nx).
@@ -111,7 +113,8 @@ def calibration_intensities(phase: Float[Array, "... ny nx"], aperture: Float[Ar
                             geometry: "CalibrationGeometry"
                             ) -> tuple[Float[Array, "... ny nx"], Float[Array, "... ny nx"]]:
     """Near-field intensity (pitch dx) and far-field intensity (pitch λf/(N·dx)) in W/m²
-    for a unit-intensity plane wave: :class:`NearFarModel` in physical units.
+    for a unit-intensity plane wave:
+    [`NearFarModel`][diffcam.calibrate.near_far.NearFarModel] in physical units.
 
     Propagation is circular on the given grid, so pad the diffuser into a grid wide
     enough for the near-field spread and at least twice the aperture (the far field is
@@ -165,7 +168,7 @@ def _radius_quantile(power: np.ndarray, q: float) -> float:
 
 def _speckle_radii(near, far) -> tuple[float, float]:
     """Lag radii (samples of dx) holding 90 % of |DFT(far·Hann window)|² and of the near
-    intensity's autocorrelation, lag 0 left out (see :func:`far_speckle_ratio`). A uniform
+    intensity's autocorrelation, lag 0 left out (see `far_speckle_ratio`). A uniform
     stray-light level is taken off both: the far capture's window-weighted mean, the near
     capture's median (the grid is mostly outside the aperture)."""
     near = np.asarray(near, np.float64)
@@ -180,7 +183,7 @@ def _speckle_radii(near, far) -> tuple[float, float]:
 
 def far_speckle_ratio(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]) -> float:
     """How wide the far capture's speckle says the lit diffuser is, over how wide the near
-    capture shows it (dimensionless; ≈ :data:`SPECKLE_RATIO_TYPICAL` at the right pitch).
+    capture shows it (dimensionless; ≈ `SPECKLE_RATIO_TYPICAL` at the right pitch).
 
     The DFT of the far intensity is the autocorrelation of the diffuser field, which
     vanishes at lags beyond the lit width D of the diffuser: speckle grain λf/D. The near
@@ -195,9 +198,9 @@ def far_speckle_ratio(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]) -
 def check_far_speckle(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
                       geometry: CalibrationGeometry, *, sensor_pitch: float | None = None,
                       stacklevel: int = 2) -> float:
-    """Warn (:class:`~diffcam.core.errors.GeometryWarning`) if the far capture's speckle is
-    ≳ 2× finer or coarser than the near capture predicts (:func:`far_speckle_ratio`
-    outside :data:`SPECKLE_RATIO_RANGE`): the far pitch λf/(N·dx), hence f, λ or the
+    """Warn (`GeometryWarning`) if the far capture's speckle is
+    ≳ 2× finer or coarser than the near capture predicts (`far_speckle_ratio`
+    outside `SPECKLE_RATIO_RANGE`): the far pitch λf/(N·dx), hence f, λ or the
     sensor pitch (m), is wrong. Returns the ratio."""
     check_captures(near, far)
     measured, predicted = _speckle_radii(near, far)
@@ -209,7 +212,7 @@ def check_far_speckle(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
 
 
 def _speckle_message(ratio, predicted, geometry, shape, sensor_pitch) -> str:
-    """The GeometryWarning of :func:`check_far_speckle`: measured and expected grain (m and
+    """The GeometryWarning of `check_far_speckle`: measured and expected grain (m and
     samples of the far grid) and what to check."""
     pitch = geometry.far_pitch(shape)[1]
     factor = ratio / SPECKLE_RATIO_TYPICAL   # ≈ (pitch assumed)/(pitch of the data)

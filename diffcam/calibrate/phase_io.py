@@ -5,9 +5,9 @@ use it: the grid pitch, the wavelength it is a phase at, the aperture, and how i
 obtained. ``diffcam calibrate`` writes one; ``diffcam psf`` and ``diffcam compare``
 read it.
 
-Writing is atomic (:func:`diffcam.io.atomic_output`): a failed or interrupted save
+Writing is atomic (`diffcam.io.atomic_output`): a failed or interrupted save
 leaves an existing file byte for byte as it was. Reading turns every damaged file into
-one :class:`~diffcam.core.errors.DiffcamError` line naming the file.
+one `DiffcamError` line naming the file.
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ class PhaseFile:
 def save_phase(path: str | os.PathLike, phase_file: PhaseFile) -> None:
     """Write ``phase_file`` to ``path`` (``.npz``; the round trip is exact).
 
-    The path is checked first (:func:`diffcam.io.check_output_path`), then the phase
+    The path is checked first
+    ([`diffcam.io.check_output_path`][diffcam.io.writing.check_output_path]), then the phase
     and the metadata are validated and serialised, and only then is anything written,
     atomically: an existing file at ``path`` is either untouched or wholly replaced.
 
@@ -102,7 +103,7 @@ def save_phase(path: str | os.PathLike, phase_file: PhaseFile) -> None:
 
 
 def load_phase(path: str | os.PathLike) -> PhaseFile:
-    """Read a phase file written by :func:`save_phase`.
+    """Read a phase file written by [`save_phase`][diffcam.calibrate.phase_io.save_phase].
 
     Raises:
         DiffcamError: a missing, truncated or corrupt file, one without the phase or

@@ -30,29 +30,31 @@ def retrieve_phase(near, far, geometry: CalibrationGeometry, aperture, *,
                    **overrides) -> RetrievalResult:
     """Diffuser phase from near/far intensities: projections (RAAR, 300 iterations,
     ``restarts`` random starts), then a least-squares polish (``refine``; ``None`` skips
-    it). The polish uses plain intensity residuals by default (:data:`POLISH`, 100
+    it). The polish uses plain intensity residuals by default (`POLISH`, 100
     L-BFGS steps): after the projections it is already in the right basin, and on noisy
     synthetic captures it matched captured PSFs better than the weighted loss (registered
     Pearson 0.95 against 0.946 in the CLI test).
 
     Args:
         near, far: intensities on the calibration grid (see
-            :func:`diffcam.calibrate.prepare_captures`).
+            [`diffcam.calibrate.prepare_captures`][diffcam.calibrate.captures.prepare_captures]).
         geometry: the set-up, SI units.
         aperture: diffuser-plane amplitude C (ny, nx).
-        projections: :class:`~diffcam.calibrate.ProjectionOptions` of the first stage
-            (default: RAAR, 300 iterations, 4 random starts; with ``planes`` one flat
-            start); ``**overrides`` replace its fields (``iterations=``, ``restarts=``,
-            ``key=`` (default ``jax.random.key(0)``), ``far_pitch=``, ``planes=``: extra
-            intensities, :class:`~diffcam.calibrate.DefocusedPlane`, e.g. a captured PSF
-            through :func:`~diffcam.calibrate.psf_plane`, that break the twin and let
-            strongly scattering diffusers converge).
-        refine: :class:`~diffcam.calibrate.FitOptions` of the polish, or ``None``.
+        projections: [`ProjectionOptions`][diffcam.calibrate.projections.ProjectionOptions]
+            of the first stage (default: RAAR, 300 iterations, 4 random starts; with
+            ``planes`` one flat start); ``**overrides`` replace its fields (``iterations=``,
+            ``restarts=``, ``key=`` (default ``jax.random.key(0)``), ``far_pitch=``,
+            ``planes=``: extra intensities,
+            [`DefocusedPlane`][diffcam.calibrate.planes.DefocusedPlane], e.g. a captured PSF
+            through [`psf_plane`][diffcam.calibrate.planes.psf_plane], that break the twin
+            and let strongly scattering diffusers converge).
+        refine: [`FitOptions`][diffcam.calibrate.lsq.FitOptions] of the polish, or ``None``.
         masks: ``(near_mask, far_mask)``, 0 at saturated pixels (least-squares stage).
 
     Returns:
-        :class:`RetrievalResult` of the last stage (``history`` its error history);
-        ``stats["stages"]`` holds each stage's stats and history.
+        [`RetrievalResult`][diffcam.calibrate.result.RetrievalResult] of the last stage
+        (``history`` its error history); ``stats["stages"]`` holds each stage's stats and
+        history.
     """
     t0 = time.perf_counter()
     first_options = ProjectionOptions.of(projections, **overrides)

@@ -5,12 +5,12 @@ scattering diffuser (a random phase spanning many 2π) the near/far projections 
 far from it. One more intensity at a known distance behind the diffuser under a plane
 wave, a *defocused plane*, removes both problems: RAAR with the far-field and plane
 projections averaged converges on the paper's Fig. 6 random diffuser where near/far
-alone stall (see :mod:`diffcam.calibrate.projections`).
+alone stall (see `diffcam.calibrate.projections`).
 
 A captured PSF is such a plane. By the Fresnel scaling theorem (docs/design.md), the PSF of a
 point at z1 on a sensor z2 behind the diffuser is, up to a constant, the plane-wave
 intensity z_eff = z1·z2/(z1 + z2) behind the diffuser magnified by M = (z1 + z2)/z1:
-:func:`psf_plane` undoes the magnification onto the diffuser grid.
+`psf_plane` undoes the magnification onto the diffuser grid.
 """
 
 from __future__ import annotations
@@ -51,7 +51,8 @@ class DefocusedPlane(NamedTuple):
 
 
 def psf_plane(psf: Float[Array, "cy cx"], camera: Camera, z1: float) -> DefocusedPlane:
-    """A captured on-axis PSF at depth ``z1`` as a :class:`DefocusedPlane`.
+    """A captured on-axis PSF at depth ``z1`` as a
+    [`DefocusedPlane`][diffcam.calibrate.planes.DefocusedPlane].
 
     Args:
         psf: the PSF on ``camera.out_shape`` at pitch ``camera.dx``, registered to the
@@ -61,7 +62,7 @@ def psf_plane(psf: Float[Array, "cy cx"], camera: Camera, z1: float) -> Defocuse
 
     Returns:
         The plane z_eff = z1·z2/(z1 + z2) behind the diffuser on ``camera.shape``: the PSF
-        demagnified by M = (z1 + z2)/z1 (:func:`diffcam.model.sensor.resample`, cubic,
+        demagnified by M = (z1 + z2)/z1 (`diffcam.model.sensor.resample`, cubic,
         the PSF zero outside its frame, so no light wraps across it), masked to the part of
         the grid the capture covers.
     """

@@ -16,7 +16,7 @@ Projections (Marchesini 2007 notation, P_S the near-amplitude projection):
 - ``"raar"``  relaxed averaged alternating reflections (Luke 2005)
               u ← β u + β P_S(2 P_M u − u) + (1 − 2β) P_M u
 
-Extra intensity planes (``planes=``, :mod:`diffcam.calibrate.planes`, e.g. a captured
+Extra intensity planes (``planes=``, `diffcam.calibrate.planes`, e.g. a captured
 PSF) each add a projection P_k: propagate to the plane, impose its amplitude where it was
 measured, propagate back. P_M then averages P_far and the P_k (averaged projections),
 and the schemes above run unchanged: on the Fig. 6 random diffuser, whose phase spans
@@ -161,19 +161,22 @@ class ProjectionOptions(Options):
         beta: HIO / RAAR relaxation, in (0, 1].
         restarts: independent random starts, run batched with ``vmap`` (memory grows
             with it); the run with the smallest final error is returned. ``None``: 1 here;
-            in :func:`~diffcam.calibrate.retrieve_phase` 4, or 1 with extra planes.
+            in [`retrieve_phase`][diffcam.calibrate.pipeline.retrieve_phase] 4, or 1 with
+            extra planes.
         init: ``"random"``, ``"flat"`` or a diffuser-plane phase (ny, nx), radians (the
             starting field is the near amplitude times e^{j·init}, carried to the near
             plane when ``near_distance > 0``). ``None``: ``"flat"`` with extra planes and
             one start (it converges; random starts can stall on a slightly inconsistent
             plane), else ``"random"``.
         key: ``jax.random`` key for random starts.
-        planes: extra intensities, :class:`~diffcam.calibrate.DefocusedPlane` (a
-            captured PSF through :func:`~diffcam.calibrate.psf_plane`): each adds a
-            projection (one FFT pair) averaged with the far-field one; they break the
-            twin and un-stall strongly scattering diffusers.
+        planes: extra intensities,
+            [`DefocusedPlane`][diffcam.calibrate.planes.DefocusedPlane] (a captured PSF
+            through [`psf_plane`][diffcam.calibrate.planes.psf_plane]): each adds a
+            projection (one FFT pair) averaged with the far-field one; they break the twin
+            and un-stall strongly scattering diffusers.
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
-        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
+        progress: a progress bar for runs over 2 s
+            ([`diffcam.core.progress`][diffcam.core.progress]).
     """
 
     method: str = "raar"
@@ -211,12 +214,14 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
         far: far-field intensity at the Fourier-lens pitch λf/(N·dx) (any scale; it is
             matched to the near field's energy).
         geometry: the set-up, SI units.
-        options: :class:`ProjectionOptions` (method, iterations, beta, restarts, init,
-            key, extra planes, far_pitch, progress); ``**overrides`` replace its fields
-            (``method=``, ``iterations=``, ``key=``, ``planes=``, ...).
+        options: [`ProjectionOptions`][diffcam.calibrate.projections.ProjectionOptions]
+            (method, iterations, beta, restarts, init, key, extra planes, far_pitch,
+            progress); ``**overrides`` replace its fields (``method=``, ``iterations=``,
+            ``key=``, ``planes=``, ...).
 
     Returns:
-        :class:`RetrievalResult`; ``stats["restart_errors"]`` holds each run's final error.
+        [`RetrievalResult`][diffcam.calibrate.result.RetrievalResult];
+        ``stats["restart_errors"]`` holds each run's final error.
     """
     check_captures(near, far)
     shape = np.shape(near)
@@ -279,16 +284,21 @@ def _plane_operands(planes, near_amp, geometry, near_distance):
 
 def gerchberg_saxton(near, far, geometry, **options) -> RetrievalResult:
     """Gerchberg–Saxton between near and far amplitudes (paper Fig. 4); see
-    :func:`retrieve_projections` for the arguments. Stagnates from random starts: use
-    :func:`raar` or :func:`hio` (or restarts) when the error history flattens early."""
+    [`retrieve_projections`][diffcam.calibrate.projections.retrieve_projections] for the
+    arguments. Stagnates from random starts: use
+    [`raar`][diffcam.calibrate.projections.raar] or
+    [`hio`][diffcam.calibrate.projections.hio] (or restarts) when the error history flattens
+    early."""
     return retrieve_projections(near, far, geometry, method="gs", **options)
 
 
 def hio(near, far, geometry, **options) -> RetrievalResult:
-    """Fienup's hybrid input–output; arguments as :func:`retrieve_projections`."""
+    """Fienup's hybrid input–output; arguments as
+    [`retrieve_projections`][diffcam.calibrate.projections.retrieve_projections]."""
     return retrieve_projections(near, far, geometry, method="hio", **options)
 
 
 def raar(near, far, geometry, **options) -> RetrievalResult:
-    """Relaxed averaged alternating reflections; arguments as :func:`retrieve_projections`."""
+    """Relaxed averaged alternating reflections; arguments as
+    [`retrieve_projections`][diffcam.calibrate.projections.retrieve_projections]."""
     return retrieve_projections(near, far, geometry, method="raar", **options)

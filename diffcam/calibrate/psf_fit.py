@@ -1,9 +1,9 @@
 """Fitting the diffuser phase to captured PSFs through paper Eq. 7, then predicting
 PSFs at other depths.
 
-The model of PSF k is s_k·PSF(θd; z1_k, z2) + b_k (:func:`diffcam.model.point_spread.psf`), fitted
-together with optional near/far captures (:func:`diffcam.calibrate.lsq.near_far_model`)
-by :func:`diffcam.calibrate.lsq.fit_phase`. A PSF is a defocused, magnified intensity
+The model of PSF k is s_k·PSF(θd; z1_k, z2) + b_k (`diffcam.model.point_spread.psf`), fitted
+together with optional near/far captures (`diffcam.calibrate.lsq.near_far_model`)
+by `diffcam.calibrate.lsq.fit_phase`. A PSF is a defocused, magnified intensity
 of the diffuser field, so it also breaks the conjugate-twin ambiguity of near/far
 data.
 
@@ -149,15 +149,16 @@ def _depth_law(depth) -> DepthLaw:
 
 
 class PsfFitOptions(FitOptions):
-    """How :func:`fit_to_psfs` runs: the fields of
-    :class:`~diffcam.calibrate.lsq.FitOptions`, and
+    """How [`fit_to_psfs`][diffcam.calibrate.psf_fit.fit_to_psfs] runs: the fields of
+    [`FitOptions`][diffcam.calibrate.lsq.FitOptions], and
 
     Attributes:
-        depth: a :class:`DepthLaw` (or its kind): which distances are fitted.
+        depth: a [`DepthLaw`][diffcam.calibrate.psf_fit.DepthLaw] (or its kind): which
+            distances are fitted.
         init: ``"flat"``, ``"random"`` (with ``key``) or a phase on the camera grid.
         sensor_pitch: pixel pitch of the measured PSFs (m) when it is coarser than the
             camera's grid: the model then integrates each PSF over those pixels
-            (:func:`diffcam.model.sensor.bin_pixels`), so the phase can live on a finer
+            (`diffcam.model.sensor.bin_pixels`), so the phase can live on a finer
             grid than binned data.
     """
 
@@ -175,24 +176,27 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
         psfs: K measured PSFs (k, cy, cx) on ``camera.out_shape`` at the camera's pitch
             (or on pixels of ``sensor_pitch``), registered to the optical axis (any scale
             and background: both are fitted).
-        camera: the :class:`~diffcam.model.camera.Camera`: grid, pitch dx, λ, z2 (the start
-            value when the depth law fits z2), aperture.
+        camera: the [`Camera`][diffcam.model.camera.Camera]: grid, pitch dx, λ, z2 (the
+            start value when the depth law fits z2), aperture.
         z1: depths of the PSFs, metres, (k,): known values, or start values.
         near_far: optional ``(near, far, geometry)``: calibration intensities on the
             camera grid (``camera.shape``, pitch ``camera.dx``; far at the Fourier-lens
-            pitch) and their :class:`CalibrationGeometry` (``dx`` the camera's).
+            pitch) and their
+            [`CalibrationGeometry`][diffcam.calibrate.near_far.CalibrationGeometry] (``dx``
+            the camera's).
         masks: K (or K + 2 with near/far) weight images, 0 at saturated pixels.
-        spectrum: broadband light as in :func:`diffcam.model.point_spread.psf`.
-        options: :class:`PsfFitOptions` (or a
-            :class:`~diffcam.calibrate.lsq.FitOptions`; default loss
+        spectrum: broadband light as in
+            [`diffcam.model.point_spread.psf`][diffcam.model.point_spread.psf].
+        options: [`PsfFitOptions`][diffcam.calibrate.psf_fit.PsfFitOptions] (or a
+            [`FitOptions`][diffcam.calibrate.lsq.FitOptions]; default loss
             ``"weighted_intensity"``: each residual over √(y + ȳ), y the measured intensity
             and ȳ its mean, which keeps the dim tails of a far field in the fit);
             ``**overrides`` replace its fields (``depth=``, ``init=``, ``sensor_pitch=``,
             ``coarse=``, ``key=``, ``iterations=``, ...).
 
     Returns:
-        :class:`RetrievalResult`; ``stats`` adds ``z1`` and ``z2`` (m), ``zeta1`` and
-        ``zeta2`` (λz/dx²) and ``depth_model``.
+        [`RetrievalResult`][diffcam.calibrate.result.RetrievalResult]; ``stats`` adds ``z1``
+        and ``z2`` (m), ``zeta1`` and ``zeta2`` (λz/dx²) and ``depth_model``.
     """
     opts = PsfFitOptions.of(options, **overrides)
     depth, init, sensor_pitch = _depth_law(opts.depth), opts.init, opts.sensor_pitch
@@ -270,7 +274,7 @@ def predict_psfs(phase: Float[Array, "ny nx"], camera: Camera, z1, *, z2=None,
                  spectrum=None, sensor_pitch=None) -> np.ndarray:
     """PSFs (nz, cy, cx), unit sum, of a (retrieved) phase at depths ``z1`` (m), with an
     optional fitted ``z2`` (m), integrated over pixels of ``sensor_pitch`` (m) if given;
-    :func:`diffcam.model.stack.psf_stack` underneath."""
+    [`diffcam.model.stack.psf_stack`][diffcam.model.stack.psf_stack] underneath."""
     if z2 is not None:
         camera = eqx.tree_at(lambda c: c.z2, camera, jnp.asarray(z2, camera.z2.dtype))
     stack = psf_stack(phase, camera, np.asarray(z1, np.float64), spectrum=spectrum,
@@ -285,9 +289,11 @@ def resolve_twin(phase: Float[Array, "ny nx"], reference_psf: Float[Array, "cy c
 
     Near and far intensities cannot tell them apart; one captured PSF at depth ``z1``
     (metres; ``camera.out_shape``, any scale) can: the candidate whose PSF matches it
-    better (registered Pearson, :func:`diffcam.evaluate.metrics.psf_fidelity`) is returned, with
-    ``True`` if that was the twin. For a fit that also refines the phase against the
-    PSF, use :func:`fit_to_psfs` with ``init=phase``.
+    better (registered Pearson,
+    [`diffcam.evaluate.metrics.psf_fidelity`][diffcam.evaluate.metrics.psf_fidelity]) is
+    returned, with ``True`` if that was the twin. For a fit that also refines the phase
+    against the PSF, use [`fit_to_psfs`][diffcam.calibrate.psf_fit.fit_to_psfs] with
+    ``init=phase``.
     """
 
     twin = twin_phase(jnp.asarray(phase))

@@ -8,9 +8,9 @@ non-negative least-squares problem over all pairs ``k``, per colour channel::
 
     min_{h >= 0, c}  Σ_k ½ ||crop(x_k * h) + c - b_k||²
 
-solved by FISTA (:func:`diffcam.reconstruct.nonnegative_least_squares`) with every
+solved by FISTA (`diffcam.reconstruct.nonnegative_least_squares`) with every
 convolution an FFT product (the scenes play the part of the PSF in
-:func:`diffcam.reconstruct.convolution_model`'s crop model). The offset is eliminated
+`diffcam.reconstruct.convolution_model`'s crop model). The offset is eliminated
 exactly: the residual's mean per channel (over pairs and pixels) is projected out at
 every step, and ``c`` is that mean at the end.
 
@@ -19,7 +19,7 @@ Registration between the lensed frame and the sensor frame:
 * **shift** — absorbed by ``h`` (a shifted scene is a shifted PSF); the fitted PSF's
   position carries it;
 * **flips** — not absorbed: the four flips of the scenes are tried with a short fit each
-  and the one that explains the raws best is kept (:class:`ScenePsfOptions`);
+  and the one that explains the raws best is kept (`ScenePsfOptions`);
 * **gain and offset per channel** — the gain is the PSF's scale, the offset ``c``;
 * **the monitor's dark surround** — the scene is zero outside the lensed frame (the
   crop model pads it with zeros).
@@ -57,11 +57,11 @@ both (a 180° rotation)."""
 
 
 class ScenePsfOptions(Options):
-    """How :func:`fit_psf_from_scenes` runs.
+    """How [`fit_psf_from_scenes`][diffcam.calibrate.scene_psf.fit_psf_from_scenes] runs.
 
     Attributes:
         iterations: FISTA iterations of the final fit (the regularisation: early stop).
-        flip: one of :data:`FLIPS`, or ``"auto"`` to try each.
+        flip: one of `FLIPS`, or ``"auto"`` to try each.
         search_iterations: FISTA iterations of each trial fit when ``flip="auto"``.
     """
 
@@ -83,7 +83,7 @@ class ScenePsf(NamedTuple):
         psf: ``(c, ny, nx)`` non-negative PSF per channel, sensor units per unit of
             scene, optical axis at ``(ny//2, nx//2)`` (the sensor's shape).
         offset: ``(c,)`` dark offset of the raws, sensor units.
-        flip: the flip of the scenes (:data:`FLIPS`) into the sensor frame.
+        flip: the flip of the scenes (`FLIPS`) into the sensor frame.
         residual: ``(iterations,)`` relative misfit ``||b - c - A h|| / ||b - c̄||``
             of the final fit (the offset-free parts).
         flip_residuals: final relative misfit of each trial flip (empty if not searched).
@@ -164,7 +164,7 @@ def check_scene_pairs(raws, truths) -> tuple[np.ndarray, np.ndarray]:
 
 
 def flip_scene(scene: Float[ArrayLike, "... ny nx"], flip: str) -> np.ndarray:
-    """``scene`` flipped into the sensor frame (``flip`` one of :data:`FLIPS`)."""
+    """``scene`` flipped into the sensor frame (``flip`` one of `FLIPS`)."""
     scene = np.asarray(scene)
     if "y" in flip:
         scene = scene[..., ::-1, :]
@@ -204,18 +204,19 @@ def fit_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
 
     Args:
         raws: raw captures, each ``(c, ny, nx)`` (channels first, as
-            :func:`diffcam.io.read_image` gives them) or ``(ny, nx)``, sensor units,
-            background subtracted or not (the offset is fitted).
+            [`diffcam.io.read_image`][diffcam.io.reading.read_image] gives them) or
+            ``(ny, nx)``, sensor units, background subtracted or not (the offset is fitted).
         truths: the scene of each raw on the sensor grid, same shape, non-negative
             (a lensed photograph registered to the sensor up to a shift and a flip).
-        options: :class:`ScenePsfOptions`; ``overrides`` replace its fields.
+        options: [`ScenePsfOptions`][diffcam.calibrate.scene_psf.ScenePsfOptions];
+            ``overrides`` replace its fields.
         progress: progress bars for runs over 2 s.
 
     Returns:
-        :class:`ScenePsf`.
+        [`ScenePsf`][diffcam.calibrate.scene_psf.ScenePsf].
 
     Raises:
-        DiffcamError: see :func:`check_scene_pairs`; bad options.
+        DiffcamError: see `check_scene_pairs`; bad options.
     """
     options = ScenePsfOptions.of(options, **overrides)
     raws, truths = check_scene_pairs(raws, truths)

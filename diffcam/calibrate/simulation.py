@@ -1,5 +1,5 @@
 """The paper's simulated calibration (Section 3.1): the cameraman diffuser and its exact
-near/far intensities (:func:`diffcam.calibrate.near_far.calibration_intensities`)."""
+near/far intensities (`diffcam.calibrate.near_far.calibration_intensities`)."""
 
 from __future__ import annotations
 
@@ -46,7 +46,8 @@ PAPER_APERTURE_RADIUS = 1.2e-3
 
 
 class PaperSimulation(NamedTuple):
-    """The paper's Fig. 3 problem on an N×N grid (see :func:`paper_simulation`)."""
+    """The paper's Fig. 3 problem on an N×N grid (see
+    [`paper_simulation`][diffcam.calibrate.simulation.paper_simulation])."""
 
     phase: Float[Array, "n n"]      # θd on the grid (radians; 0 outside the diffuser)
     aperture: Float[Array, "n n"]   # circular aperture C
@@ -87,7 +88,7 @@ def _disc(radius: float):
 
 
 class StackSimulation(Options):
-    """The camera and sensor of :func:`measured_stack_simulation` (lengths in metres).
+    """The camera and sensor of `measured_stack_simulation` (lengths in metres).
 
     Attributes:
         z2: diffuser → sensor distance.
@@ -125,14 +126,14 @@ class StackSimulation(Options):
 def measured_stack_simulation(n_planes: int = 12, *, options: StackSimulation | None = None,
                               **overrides) -> tuple[np.ndarray, np.ndarray]:
     """A PSF stack as a camera would measure it, made by a higher-fidelity model than
-    the stack model that fits it (:func:`diffcam.calibrate.fit_stack`: monochromatic,
+    the stack model that fits it (`diffcam.calibrate.fit_stack`: monochromatic,
     thin phase, 2× oversampled, a point source): a ``grid``² field at ``dx`` behind a
     random 30 µm diffuser (``deflection`` 1.5°, aperture radius 0.2·grid·dx), three
     wavelengths (515/532/549 nm, weights ½/1/½), a point or disc source,
     ``n_planes`` depths from ``z1_near`` to ``z1_far``
     equally spaced in 1/z1, integrated over ``binning``×``binning`` pixels, Poisson
     noise at a peak of ``photons`` and a dark level of ``dark`` counts
-    (:class:`StackSimulation`; keywords named after its fields replace them).
+    (`StackSimulation`; keywords named after its fields replace them).
 
     Returns:
         (float32 counts (n_planes, grid/(2·binning), grid/(2·binning)), z1 in m).
@@ -241,7 +242,7 @@ def high_fidelity_captures(phase, aperture_radius: float, geometry: CalibrationG
 
     Returns:
         ``(near, far)`` on the calibration grid and its far-field pitch, float32, scaled
-        as :func:`diffcam.calibrate.near_far.calibration_intensities` (W/m² for a unit
+        as `diffcam.calibrate.near_far.calibration_intensities` (W/m² for a unit
         plane wave, up to the noise).
     """
     import dataclasses

@@ -1,21 +1,22 @@
-"""Fit the wave model of a PSF stack to a few measured planes (:func:`fit_stack`).
+"""Fit the wave model of a PSF stack to a few measured planes (`fit_stack`).
 
 A DiffuserCam PSF stack is a set of caustics of one diffuser for point sources at
 depths equally spaced in 1/z1. Given a few of its planes (two or more), the fitted
-model (:class:`diffcam.calibrate.stack_model.StackModel`) predicts the others
-(:meth:`diffcam.calibrate.stack_result.StackFit.predict`) better than the scaling
-baseline (:func:`diffcam.evaluate.registration.scaling_baseline`), which magnifies the
+model (`diffcam.calibrate.stack_model.StackModel`) predicts the others
+(`diffcam.calibrate.stack_result.StackFit.predict`) better than the scaling
+baseline (`diffcam.evaluate.registration.scaling_baseline`), which magnifies the
 nearest measured plane.
 
-The fit (:func:`fit_stack`): register the reference plane (the first given one) with
+The fit (`fit_stack`): register the reference plane (the first given one) with
 the given plane farthest from it; for each candidate ζ_ref run Gerchberg–Saxton between
 the given planes, take the least-squares spline coefficients of its field, and keep
 the best start; then Adam (optax) with per-group step sizes on
 Σ_k (1 − Pearson over the training pixels of plane k). A fraction of the pixels of every
 given plane (fixed seed) is held out for validation; the parameters with the best
 validation Pearson are kept, and the fit stops when validation has not improved for
-``patience`` steps, at ``max_steps`` or at the time budget. Planes that are not given
-never enter.
+``patience`` steps or at ``max_steps``: the same steps, and the same model, on any
+machine and under any load (a wall-clock ``time_budget`` is an option). Planes that are
+not given never enter.
 
 What is identifiable: ζ = λ·z_eff/dx² (and the magnification law, the centre, the
 blur). z2 and the absolute magnification are not: under the Fresnel scaling theorem a
@@ -78,22 +79,25 @@ scale. Two planes can leave the fit near its start (docs/stack_fit.md)."""
 
 
 class StackFitOptions(Options):
-    """How :func:`fit_stack` runs. Lengths in fine samples (1/``oversample`` pixel).
+    """How [`fit_stack`][diffcam.calibrate.stack_fit.fit_stack] runs. Lengths in fine
+    samples (1/``oversample`` pixel).
 
     Attributes:
         max_steps: Adam steps at most.
         patience: stop after this many steps without a better validation Pearson.
-        time_budget: wall-clock limit of the fit, s (registration, initialisation,
-            compilation and steps; checked after every step, so a fit may end about one
-            step later); ``math.inf`` for none.
+        time_budget: an optional wall-clock limit of the fit, s (registration,
+            initialisation, compilation and steps; checked after every step, so a fit
+            may end about one step later). ``None`` (the default) or ``math.inf``: none,
+            so the steps taken, and the model, do not depend on the machine's speed or
+            load.
         validation_fraction: share of each given plane's pixels held out (0 < f < 0.5).
         seed: the validation split's and the GS start's seed.
         zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²).
             ``None``: the far-source value o²·λ·z2/pitch² when ``pixel_pitch``,
-            ``wavelength`` and ``z2`` are given to :func:`fit_stack`, else
-            o²·:data:`ZETA_START` (4 pixel², the shipped stack's scale). With several,
-            each start descends ``scan_steps`` steps and the best validation Pearson is
-            kept.
+            ``wavelength`` and ``z2`` are given to
+            [`fit_stack`][diffcam.calibrate.stack_fit.fit_stack], else o²·`ZETA_START` (4
+            pixel², the shipped stack's scale). With several, each start descends
+            ``scan_steps`` steps and the best validation Pearson is kept.
         scan_steps: steps each candidate of a ζ scan descends before one is chosen
             (the ranking of the starts themselves can differ from the ranking after
             descent: docs/stack_fit.md).
@@ -110,7 +114,7 @@ class StackFitOptions(Options):
         amplitude_blur: std of the blur of the reference plane that gives the starting
             amplitude envelope, fine samples.
         dark_ring: width of the frame-border ring whose median is the dark level
-            (:func:`prepare_planes`), pixels.
+            ([`prepare_planes`][diffcam.calibrate.stack_inputs.prepare_planes]), pixels.
         saturation: pixel value at or above which a given pixel is saturated (input
             units): ``"auto"`` is 0.999 × the full scale of an integer input and no
             check for float input; ``None`` skips the check. Saturated pixels raise.
@@ -125,7 +129,7 @@ class StackFitOptions(Options):
 
     max_steps: int = 400
     patience: int = 40
-    time_budget: float = 55.0
+    time_budget: float | None = None
     validation_fraction: float = 0.1
     seed: int = 0
     zetas: tuple[float, ...] | None = eqx.field(
@@ -168,7 +172,8 @@ class StackFitOptions(Options):
         if self.optimiser not in OPTIMISERS:
             raise DiffcamError(f"optimiser must be one of {OPTIMISERS}, got "
                                f"{self.optimiser!r}.")
-        if not real_number("time_budget", self.time_budget, "seconds > 0") > 0:
+        if self.time_budget is not None and \
+                not real_number("time_budget", self.time_budget, "seconds > 0") > 0:
             raise DiffcamError(f"time_budget must be > 0 s, got {self.time_budget!r}.")
         zetas = (ZETA_START,) if self.zetas is None else self.zetas
         what = "positive distances (fine samples², λ·z_eff/dx_fine²)"
@@ -296,7 +301,7 @@ def _evaluate(model, data):
 
 _ADAM = optax.scale_by_adam(b1=0.9, b2=0.999, eps=1e-12)
 """Adam's direction; each parameter group then takes its own step size
-(:func:`_step_sizes`). One transformation for every fit: the step compiles once per
+(`_step_sizes`). One transformation for every fit: the step compiles once per
 model geometry."""
 
 
@@ -335,7 +340,7 @@ def _adam(model: StackModel, data: _Data, opts: StackFitOptions):
 
 def _optimistix(model: StackModel, data: _Data, opts: StackFitOptions):
     """``opts.optimiser`` from optimistix on the same loss, over the parameter groups
-    with a non-zero step size, as ``advance`` (:func:`_adam`)."""
+    with a non-zero step size, as ``advance`` (`_adam`)."""
     spec = jax.tree.map(lambda size: bool(size > 0), _step_sizes(model, opts))
     params, static = eqx.partition(model, spec)
     solver = _OPTIMISTIX[opts.optimiser](rtol=1e-9, atol=1e-9)
@@ -369,14 +374,17 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     """Fit the wave model to the given planes of a PSF stack.
 
     Only ``stack[planes]`` is read: the other planes never enter (predict them with
-    :meth:`StackFit.predict` and score them against the baseline).
+    [`StackFit.predict`][diffcam.calibrate.stack_result.StackFit.predict] and score them
+    against the baseline).
 
     Args:
         stack: (n_planes, ny, nx) array (any gain and dark level: each given plane is
-            prepared by :func:`prepare_planes`), or ``{plane index: (ny, nx) image}``.
+            prepared by [`prepare_planes`][diffcam.calibrate.stack_inputs.prepare_planes]),
+            or ``{plane index: (ny, nx) image}``.
         planes: two or more distinct plane indices; the first is the reference.
-        options: :class:`StackFitOptions`; keywords named after its fields replace them
-            (``saturation=``, ``progress=``, ``max_steps=``, ...).
+        options: [`StackFitOptions`][diffcam.calibrate.stack_fit.StackFitOptions]; keywords
+            named after its fields replace them (``saturation=``, ``progress=``,
+            ``max_steps=``, ...).
         pixel_pitch, wavelength, z2: optional physical inputs, metres; together they
             start the distance (``zetas``); they turn ζ into z2·M(t) and, with z2, into
             z1(t) in ``identifiable``.
@@ -384,8 +392,9 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
             (the anchor is the given plane farthest from the reference).
 
     Returns:
-        :class:`StackFit`. A :class:`StackFitWarning` is issued when the kept model is
-        worse than the scaling baseline on the validation pixels.
+        [`StackFit`][diffcam.calibrate.stack_result.StackFit]. A
+        [`StackFitWarning`][diffcam.calibrate.stack_fit.StackFitWarning] is issued when the
+        kept model is worse than the scaling baseline on the validation pixels.
 
     Raises:
         DiffcamError: before any compute, for planes out of range, fewer than 2 planes,
@@ -434,7 +443,7 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
 def _zetas(opts: StackFitOptions, phys: dict) -> tuple[float, ...]:
     """The ζ_ref candidates: as given, else the far-source value o²·λ·z2/pitch² (fine
     samples²; M ≥ 1 makes the true one larger by M(ref)) when the physical inputs
-    allow it, else :data:`ZETA_START` pixel²."""
+    allow it, else `ZETA_START` pixel²."""
     if opts.zetas is not None:
         return opts.zetas
     if None in (phys["pixel_pitch"], phys["wavelength"], phys["z2"]):
@@ -470,7 +479,7 @@ class _Run(NamedTuple):
 
 def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -> _Run:
     """The optimiser from ``model`` until validation stalls, ``max_steps`` or the time
-    budget (counted from ``t0``, perf_counter seconds)."""
+    budget if one is set (counted from ``t0``, perf_counter seconds)."""
     advance = (_adam if opts.optimiser == "adam" else _optimistix)(model, data, opts)
     best_val, best_model, best_step = -np.inf, model, 0
     train_hist, val_hist = [], []
@@ -492,7 +501,7 @@ def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -
             if k - best_step >= opts.patience:
                 reason = f"no validation improvement for {opts.patience} steps"
                 break
-            if time.perf_counter() - t0 > opts.time_budget:
+            if opts.time_budget is not None and time.perf_counter() - t0 > opts.time_budget:
                 reason = f"time budget ({opts.time_budget:g} s)"
                 break
     return _Run(best_model, best_step, float(best_val), train_hist, val_hist, reason)
@@ -501,7 +510,7 @@ def _descend(model: StackModel, data: _Data, opts: StackFitOptions, t0: float) -
 def _light_magnification(frames, planes, anchor, model: StackModel,
                          opts: StackFitOptions) -> float | None:
     """M(reference) from the reference's and the anchor's light (inverse-square law,
-    :func:`magnification_from_light`), or None where the light does not follow it."""
+    `magnification_from_light`), or None where the light does not follow it."""
     light = plane_light(np.stack([frames[0], frames[planes.index(anchor)]]), opts.dark_ring)
     try:
         return magnification_from_light(*light, float(model.magnification(anchor)))

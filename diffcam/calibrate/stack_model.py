@@ -1,5 +1,5 @@
 """The wave model of a measured PSF stack: one band-limited diffuser-side field, seen
-by every plane through the Fresnel scaling theorem (:class:`StackModel`).
+by every plane through the Fresnel scaling theorem (`StackModel`).
 
 All lengths are in **pixels** and plane indices, since a real stack rarely records its
 pitch or depths:
@@ -9,7 +9,7 @@ pitch or depths:
   m0 = √(s_min·s_max) relative to the reference), so every given plane is rendered
   through the same resampling. g is band-limited: a cubic B-spline with one complex
   coefficient every ``stride`` (2) fine samples, i.e. one per pixel (sampled by
-  :func:`diffcam.model.spline.spline_sample`), times a fixed raised-cosine taper at the
+  `diffcam.model.spline.spline_sample`), times a fixed raised-cosine taper at the
   grid edge (no energy can wrap around the FFT);
 * plane t sees g propagated (Fresnel transfer function) by ζ(t) = ζ_ref·s(t)^(−κ) and
   magnified by s(t) = M(t)/M(ref) about a fitted centre, M linear in the plane index.
@@ -22,7 +22,7 @@ pitch or depths:
 Forward, per plane: G = FFT(g) once; u_t = IFFT(G·e^{−jπζ(t)(fx² + fy²)}) (f in cycles
 per fine sample, so ζ is in fine samples²: ζ = λ·z_eff/dx_fine²); u_t sampled at the
 fine sensor grid magnified by s(t)/m0 by the engine's separable cubic B-spline
-(:func:`~diffcam.model.spline.spline_sample`, its prefilter folded into the transfer
+(`spline_sample`, its prefilter folded into the transfer
 function, zero outside), as the scaling-theorem PSF samples its field; |·|²; blur (FFT,
 zero-padded); bin.
 """
@@ -78,10 +78,10 @@ def fresnel_kernel(grid, zeta):
 
 
 def spline_kernel(grid, zeta):
-    """:func:`fresnel_kernel` times the cubic B-spline prefilter: its product with the
+    """`fresnel_kernel` times the cubic B-spline prefilter: its product with the
     field's spectrum has as inverse FFT the spline coefficients of the propagated field,
-    which :func:`~diffcam.model.spline.spline_sample` then samples anywhere (the scaling
-    theorem's path in :mod:`diffcam.model.point_spread`)."""
+    which `spline_sample` then samples anywhere (the scaling
+    theorem's path in `diffcam.model.point_spread`)."""
     hy, hx = fresnel_number_factors(grid, zeta)
     by, bx = bspline_prefilter(grid[0])[:, None], bspline_prefilter(grid[1])[None, :]
     return (hy * by) * (hx * bx)
@@ -165,7 +165,8 @@ class StackModel(eqx.Module):
         return spline_sample(spline_sample(u, qy, -2), qx, -1)
 
     def render_plane(self, spec, t) -> Float[Array, "h w"]:
-        """Pixel image of plane ``t`` (arbitrary gain) from ``spec`` = :meth:`spectrum`."""
+        """Pixel image of plane ``t`` (arbitrary gain) from ``spec`` =
+        [`spectrum`][diffcam.calibrate.stack_model.StackModel.spectrum]."""
         o, (h, w) = self.oversample, self.frame
         u = ifft2(spec * spline_kernel(self.grid, self.distance(t)))
         v = self._sample(u, self.magnification(t))
@@ -244,7 +245,7 @@ def identifiable(phys: dict, model: StackModel, n_planes: int | None,
     M(t) = z2·M(t)/z2 and z1(t) = z2/(M(t) − 1).
 
     ``light_magnification``, M(reference) from the given planes' light
-    (:func:`~diffcam.evaluate.registration.magnification_from_light`), fixes M(t) and
+    (`magnification_from_light`), fixes M(t) and
     z1(t)/z2 = 1/(M(t) − 1) over the stack without any physical input; with z2, z1(t).
     """
     zeta_px = model.zeta_pixels

@@ -1,18 +1,18 @@
-"""A fitted PSF-stack model (:class:`StackFit`): prediction of any plane, and its file.
+"""A fitted PSF-stack model (`StackFit`): prediction of any plane, and its file.
 
-Prediction (:meth:`StackFit.predict`) is the rendered plane plus the part of the
+Prediction (`StackFit.predict`) is the rendered plane plus the part of the
 measured planes the model does not reproduce, carried along by the model's own
 magnification law. For each given plane k, least squares gives raw_k = a_k·render(k) +
 b_k + R_k; plane t is predicted as (Σ_k w_k a_k)·render(t) + Σ_k w_k·T_{k→t}(R_k), T
 the magnification by s(t)/s(k) about the fitted centre (cubic B-splines, zero outside),
 w_k linear in t between the two given planes that bracket t (1 at its own plane), and
 the nearest given plane's weight 1 outside the given range
-(:func:`diffcam.evaluate.registration.bracket_weights`). At a given plane this is the
+(`diffcam.evaluate.registration.bracket_weights`). At a given plane this is the
 measurement; elsewhere the model supplies the change between planes, the residual the
 sub-pixel detail the field cannot interpolate at unseen pixels. ``residual=False``
 renders the model alone.
 
-The file (:meth:`StackFit.save`, :func:`load_stack_fit`) is one ``.npz``: the model's
+The file (`StackFit.save`, `load_stack_fit`) is one ``.npz``: the model's
 arrays, the prepared given planes, and a JSON metadata entry with a format version.
 """
 
@@ -42,12 +42,12 @@ FORMAT_VERSION = 3
 _ARRAYS = ("field_real", "field_imag", "log_zeta", "log_s", "centre", "log_sigma", "kappa")
 
 MAX_PLANES = 4096
-"""Most planes one :meth:`StackFit.predict` call returns (a 270×320 frame: 1.4 GB);
+"""Most planes one `StackFit.predict` call returns (a 270×320 frame: 1.4 GB);
 raise it for the session by assigning to this constant."""
 
 
 KAPPA_LIMIT = 10
-"""Largest |κ| of the depth law ζ(t) = ζ_ref·s(t)^(−κ) that :meth:`StackFit.predict`
+"""Largest |κ| of the depth law ζ(t) = ζ_ref·s(t)^(−κ) that `StackFit.predict`
 renders and a fit file may hold (1 is the scaling theorem's; a κ of 10⁶ overflows)."""
 
 
@@ -62,7 +62,7 @@ def _check_count(n: int) -> None:
 
 def _magnifications(model: StackModel, planes) -> np.ndarray:
     """s(t) = M(t)/M(reference) of ``planes`` in float64 on the host (the law of
-    :meth:`StackModel.magnification`, without a JAX dispatch per plane)."""
+    `StackModel.magnification`, without a JAX dispatch per plane)."""
     return relative_magnification_at(np.asarray(planes, np.float64),
                                      float(np.exp(float(model.log_s))), model.reference,
                                      model.anchor)
@@ -79,13 +79,14 @@ def _plane_index(t) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class StackFit:
-    """The result of :func:`fit_stack`.
+    """The result of [`fit_stack`][diffcam.calibrate.stack_fit.fit_stack].
 
     Attributes:
-        model: the fitted :class:`StackModel` (at the best validation step).
+        model: the fitted [`StackModel`][diffcam.calibrate.stack_model.StackModel] (at the
+            best validation step).
         planes: the given planes (the reference first).
         n_planes: planes in the stack (``None`` if unknown), the default of
-            :meth:`predict`.
+            [`predict`][diffcam.calibrate.stack_result.StackFit.predict].
         registration: M(anchor)/M(reference) and the fixed point (pixels).
         history: mean training Pearson of the given planes, per step.
         validation: mean validation Pearson, per step (of the model before the step).
@@ -98,12 +99,15 @@ class StackFit:
         zeta_scan: ``{ζ candidate (fine samples²): validation Pearson of its GS start}``.
         identifiable: what the data fix: ζ_ref in pixel units; with the pixel pitch and
             wavelength z2·M at the reference plane and over the stack (m), with z2 too
-            the magnifications and z1 over the stack (:func:`_identifiable`).
+            the magnifications and z1 over the stack (`_identifiable`).
         physical: the physical inputs given (pixel pitch, wavelength, z2; m or None).
-        options: the :class:`StackFitOptions` as a dict.
+        options: the [`StackFitOptions`][diffcam.calibrate.stack_fit.StackFitOptions] as a
+            dict.
         seconds: wall time of the fit, s.
-        measured: the given planes as fitted (:func:`prepare_planes`), in ``planes``
-            order, float32 (P, H, W): the residuals :meth:`predict` carries come from
+        measured: the given planes as fitted
+            ([`prepare_planes`][diffcam.calibrate.stack_inputs.prepare_planes]), in
+            ``planes`` order, float32 (P, H, W): the residuals
+            [`predict`][diffcam.calibrate.stack_result.StackFit.predict] carries come from
             them (``None`` in files of format 1: rendering only).
     """
 
@@ -131,8 +135,9 @@ class StackFit:
 
     def predict(self, planes=None, *, kappa: float | None = None, residual: bool = True,
                 light: bool = False) -> np.ndarray:
-        """Predicted planes, each normalised to unit mean (like :func:`prepare_planes`),
-        or carrying its light.
+        """Predicted planes, each normalised to unit mean (like
+        [`prepare_planes`][diffcam.calibrate.stack_inputs.prepare_planes]), or carrying its
+        light.
 
         Args:
             planes: plane indices (any ints, also outside the measured range), a count
@@ -192,7 +197,7 @@ class StackFit:
         return ((_magnifications(self.model, ts) * m_ref - 1.0) / (m_ref - 1.0)) ** 2
 
     def _plane_list(self, planes) -> list[int]:
-        """The planes to predict, checked: whole numbers, at most :data:`MAX_PLANES`,
+        """The planes to predict, checked: whole numbers, at most `MAX_PLANES`,
         none beyond where the fitted magnification law reaches zero."""
         if planes is None:
             if self.n_planes is None:
@@ -254,7 +259,8 @@ class StackFit:
     def save(self, path: str | os.PathLike) -> Path:
         """Write the fit to one ``.npz`` file (arrays and a JSON metadata entry with a
         format version), atomically: a temporary file in the same folder, then
-        ``os.replace``. Read it back with :func:`load_stack_fit`."""
+        ``os.replace``. Read it back with
+        [`load_stack_fit`][diffcam.calibrate.stack_result.load_stack_fit]."""
         path = check_output_path(path, suffixes=(".npz",))
         m = self.model
         meta = {
@@ -286,7 +292,8 @@ class StackFit:
 
 
 def load_stack_fit(path: str | os.PathLike) -> StackFit:
-    """Read a :class:`StackFit` written by :meth:`StackFit.save`.
+    """Read a [`StackFit`][diffcam.calibrate.stack_result.StackFit] written by
+    [`StackFit.save`][diffcam.calibrate.stack_result.StackFit.save].
 
     Raises:
         DiffcamError: missing, corrupt or truncated file, not a stack-fit file, another
@@ -363,8 +370,8 @@ def _real(path, field: str, value, low: float, high: float) -> float:
 
 
 def _model_from(data, g: dict, path) -> StackModel:
-    """The :class:`StackModel` of a fit file, every value checked against the ranges a
-    fit produces and its arrays against its recorded geometry (:func:`_check_model`)."""
+    """The `StackModel` of a fit file, every value checked against the ranges a
+    fit produces and its arrays against its recorded geometry (`_check_model`)."""
     side = math.isqrt(core_grid.MAX_GRID_SAMPLES)
     frame = g["frame"]
     if not isinstance(frame, list) or len(frame) != 2:

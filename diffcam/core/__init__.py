@@ -1,7 +1,9 @@
-"""Foundations every stage shares: the centred grid convention (:mod:`.grid`), errors and
-input checks (:mod:`.errors`), lengths with units at the command-line edge
-(:mod:`.units`), the one seam between the physics and the FFT backend
-(:mod:`.backend`), and e^{jθ} at the cost of a few products (:mod:`.phasor`)."""
+"""Foundations every stage shares: the centred grid convention
+([`diffcam.core.grid`][diffcam.core.grid]), errors and input checks
+([`diffcam.core.errors`][diffcam.core.errors]), lengths with units at the command-line edge
+([`diffcam.core.units`][diffcam.core.units]), the one seam between the physics and the FFT
+backend ([`diffcam.core.backend`][diffcam.core.backend]), and e^{jθ} at the cost of a few
+products ([`diffcam.core.phasor`][diffcam.core.phasor])."""
 
 from diffcam.core.lazy import attach_stub
 

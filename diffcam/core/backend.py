@@ -1,35 +1,40 @@
 """The one seam between the physics and the FFT backend.
 
-Every transform in diffcam goes through :func:`fft2`, :func:`ifft2`, :func:`rfft2` and
-:func:`irfft2` (over the last two axes, batched over leading ones, numpy's conventions),
-and every propagation step through :func:`transfer_step`. Two backends stand behind them:
+Every transform in diffcam goes through [`fft2`][diffcam.core.backend.fft2],
+[`ifft2`][diffcam.core.backend.ifft2], [`rfft2`][diffcam.core.backend.rfft2] and
+[`irfft2`][diffcam.core.backend.irfft2] (over the last two axes, batched over leading ones,
+numpy's conventions), and every propagation step through
+[`transfer_step`][diffcam.core.backend.transfer_step]. Two backends stand behind them:
 
 - ``"xla"``: ``jnp.fft``; the default, and the only one on GPU/TPU;
 - ``"fftw"`` (CPU): FFTW on its own threads through XLA FFI custom calls
-  (:mod:`diffcam.core.fftw`; needs FFTW, e.g. ``pip install 'diffcam[fftw]'``, and a
-  C++ compiler once).
+  ([`diffcam.core.fftw`][diffcam.core.fftw]; needs FFTW, e.g.
+  ``pip install 'diffcam[fftw]'``, and a C++ compiler once).
 
-``"auto"`` takes FFTW on CPU when it loads, else XLA. Choose with :func:`set_fft` or the
-environment (``DIFFCAM_FFT=xla|auto|fftw``, ``DIFFCAM_FFT_THREADS=n``);
-:func:`fft_backend` says which one runs. The choice is made when a function is traced:
-:func:`set_fft` clears JAX's caches so that jitted functions trace again. FFTW is not
-the default: it is GPL and measures a plan for every new shape (``docs/fft.md``;
-``python -m benchmarks.bench_fft`` times both).
+``"auto"`` takes FFTW on CPU when it loads, else XLA. Choose with
+[`set_fft`][diffcam.core.backend.set_fft] or the environment (``DIFFCAM_FFT=xla|auto|fftw``,
+``DIFFCAM_FFT_THREADS=n``); [`fft_backend`][diffcam.core.backend.fft_backend] says which one
+runs. The choice is made when a function is traced:
+[`set_fft`][diffcam.core.backend.set_fft] clears JAX's caches so that jitted functions trace
+again. FFTW is not the default: it is GPL and measures a plan for every new shape
+(``docs/fft.md``; ``python -m benchmarks.bench_fft`` times both).
 
 Also here, and only here, are the CPU scheduling aids for XLA's FFT. XLA splits a large
 elementwise fusion over its thread pool and continues on whichever pool thread finishes
 last, where a following FFT runs at one core's speed (the FFT rule, ``docs/design.md``,
 "The backend seam"). None of the aids changes a result; each is differentiable and
 ``vmap``-able, and with FFTW or off the CPU each reduces to the plain expression
-(:func:`separable_factor` stays on CPU: it is not about the FFT):
+([`separable_factor`][diffcam.core.backend.separable_factor] stays on CPU: it is not about
+the FFT):
 
-- :func:`transfer_step` writes the product between the two FFTs in place, in row
-  blocks, which XLA never splits; it is a linear primitive whose reverse rule runs the
-  same program on the conjugated cotangent;
-- :func:`separable_factor` computes the 1-D factors of separable kernels in a loop, which XLA
-  neither splits nor fuses into the N² product that consumes them;
-- :func:`staged` runs a computation whose FFT follows a large product as two jitted
-  calls, so the FFT starts a call of its own.
+- [`transfer_step`][diffcam.core.backend.transfer_step] writes the product between the two
+  FFTs in place, in row blocks, which XLA never splits; it is a linear primitive whose
+  reverse rule runs the same program on the conjugated cotangent;
+- [`separable_factor`][diffcam.core.backend.separable_factor] computes the 1-D factors of
+  separable kernels in a loop, which XLA neither splits nor fuses into the N² product that
+  consumes them;
+- [`staged`][diffcam.core.backend.staged] runs a computation whose FFT follows a large
+  product as two jitted calls, so the FFT starts a call of its own.
 
 What each aid saves: ``python -m benchmarks.bench_propagate`` and
 ``python -m benchmarks.bench_psf``.
@@ -76,7 +81,7 @@ def set_fft(backend: str = "xla", *, threads: int | None = None,
         threads: FFTW's threads (default ``$DIFFCAM_FFT_THREADS``, else every CPU this
             process may use).
         planning: FFTW's planning effort, ``"measure"``, ``"patient"`` or
-            ``"estimate"`` (:func:`diffcam.core.fftw.configure`).
+            ``"estimate"`` ([`diffcam.core.fftw.configure`][diffcam.core.fftw.configure]).
 
     Clears JAX's compilation caches, so that jitted functions trace again with this
     choice.
@@ -171,7 +176,8 @@ def fft2(u: Array, norm: str | None = None) -> Array:
 
 
 def ifft2(u: Array, norm: str | None = None) -> Array:
-    """Inverse of :func:`fft2` (``1/(ny·nx)`` unless ``norm`` says otherwise)."""
+    """Inverse of [`fft2`][diffcam.core.backend.fft2] (``1/(ny·nx)`` unless ``norm`` says
+    otherwise)."""
     if not _fftw_in_use():
         return jnp.fft.ifft2(u, axes=_AXES, norm=norm)
     u = _as_complex(u)
@@ -189,7 +195,8 @@ def rfft2(u: Array, s=None) -> Array:
 
 
 def irfft2(u: Array, s=None) -> Array:
-    """Inverse of :func:`rfft2` onto the real shape ``s`` (default: an even width)."""
+    """Inverse of [`rfft2`][diffcam.core.backend.rfft2] onto the real shape ``s`` (default:
+    an even width)."""
     if not _fftw_in_use():
         return jnp.fft.irfft2(u, s=s, axes=_AXES)
     u = _as_complex(u)
@@ -227,9 +234,10 @@ def transfer_step(u: Array, H: Array) -> Array:
 
 
 def transfer_step_with_spectrum(u: Array, H: Array) -> tuple[Array, Array]:
-    """:func:`transfer_step` and the spectrum ``fft2(u) · H`` it went through: for a
-    caller that donates both field-sized arrays back as the next call's buffers, so
-    that no fresh, page-faulted buffer is allocated per call (:mod:`diffcam.model.stack`)."""
+    """[`transfer_step`][diffcam.core.backend.transfer_step] and the spectrum
+    ``fft2(u) · H`` it went through: for a caller that donates both field-sized arrays back
+    as the next call's buffers, so that no fresh, page-faulted buffer is allocated per call
+    (`diffcam.model.stack`)."""
     if not _xla_fft_on_cpu():
         spectrum = fft2(u) * H
         return ifft2(spectrum), spectrum
@@ -353,12 +361,12 @@ STAGED_FROM = 192 * 192  # samples of the first argument from which staged() spl
 def staged(first: Callable, second: Callable, static_argnames=()) -> Callable:
     """``second(first(*args), *args)`` as one callable that is jitted once per shape.
 
-    With XLA's FFT on CPU, and a first argument of at least :data:`STAGED_FROM`
-    samples, the two halves run as two jitted calls, so that ``second``'s FFTs start a
-    program of their own (the FFT rule); elsewhere as one. Below that size a second
-    dispatch costs more than the rule (one PSF at 128²: 0.72 ms split, 0.41 fused;
-    ``benchmarks/bench_overhead.py``). ``static_argnames`` name keyword arguments of
-    ``second`` that fix shapes or code paths.
+    With XLA's FFT on CPU, and a first argument of at least
+    [`STAGED_FROM`][diffcam.core.backend.STAGED_FROM] samples, the two halves run as two
+    jitted calls, so that ``second``'s FFTs start a program of their own (the FFT rule);
+    elsewhere as one. Below that size a second dispatch costs more than the rule (one PSF at
+    128²: 0.72 ms split, 0.41 fused; ``benchmarks/bench_overhead.py``). ``static_argnames``
+    name keyword arguments of ``second`` that fix shapes or code paths.
     """
     fused = jax.jit(lambda *a, **k: second(first(*a), *a, **k),
                     static_argnames=static_argnames)
@@ -381,7 +389,7 @@ def in_chunks(fn: Callable, items_per_chunk: Callable[..., int | None]) -> Calla
     one batched FFT over them: 32 PSFs at 1024² took 3.7× the time and 2.8× the memory
     of the same PSFs one after another (``python -m benchmarks.bench_peers``). Here a
     ``vmap`` — a user's ``jax.jit(jax.vmap(psf))`` — becomes the loop
-    :func:`diffcam.model.stack.psf_stack` runs: working memory is one chunk's.
+    `diffcam.model.stack.psf_stack` runs: working memory is one chunk's.
 
     ``items_per_chunk(in_batched, *args)`` gives the chunk (items computed together,
     vmapped inside the loop), or ``None`` for JAX's own batching of ``fn`` where that

@@ -12,7 +12,7 @@ _warned: set[str] = set()
 
 
 def warn_once(old: str, message: str) -> None:
-    """A :class:`DeprecationWarning` with ``message``, the first time ``old`` is used."""
+    """A `DeprecationWarning` with ``message``, the first time ``old`` is used."""
     if old not in _warned:
         _warned.add(old)
         warnings.warn(message, DeprecationWarning, stacklevel=3)
@@ -27,6 +27,6 @@ def renamed(new: Callable, old: str) -> Callable:
                        f"will be removed.")
         return new(*args, **kwargs)
 
-    alias.__doc__ = f"Deprecated name of :func:`{new.__module__}.{new.__qualname__}`."
+    alias.__doc__ = f"Deprecated name of `{new.__module__}.{new.__qualname__}`."
     alias.__name__ = alias.__qualname__ = old.rpartition(".")[2]
     return alias

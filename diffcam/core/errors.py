@@ -76,7 +76,7 @@ class _NoJax:
 
 
 def _jax_types() -> tuple[type, type]:
-    """``(jax.Array, jax.core.Tracer)``, or :class:`_NoJax` twice before JAX is loaded."""
+    """``(jax.Array, jax.core.Tracer)``, or `_NoJax` twice before JAX is loaded."""
     jax = sys.modules.get("jax")
     return (_NoJax, _NoJax) if jax is None else (jax.Array, jax.core.Tracer)
 

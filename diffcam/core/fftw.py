@@ -2,11 +2,11 @@
 differentiation.
 
 XLA's CPU FFT runs its library (ducc0) on one thread in common cases (an FFT that
-follows another operation: :mod:`diffcam.core.backend`); called directly, the same
-class of library is up to 2x faster at 4096² on two cores. This module runs the 2-D
-transforms of :mod:`diffcam.core.backend` through FFTW instead, as XLA FFI custom calls
-(``fftw_ffi.cc``, a small C++ file compiled on first use with the machine's C++
-compiler into diffcam's cache folder) on FFTW's own threads.
+follows another operation: [`diffcam.core.backend`][diffcam.core.backend]); called directly,
+the same class of library is up to 2x faster at 4096² on two cores. This module runs the 2-D
+transforms of [`diffcam.core.backend`][diffcam.core.backend] through FFTW instead, as XLA
+FFI custom calls (``fftw_ffi.cc``, a small C++ file compiled on first use with the machine's
+C++ compiler into diffcam's cache folder) on FFTW's own threads.
 
 FFTW itself comes from pyFFTW's wheel (``pip install 'diffcam[fftw]'``, which ships
 FFTW's shared libraries) or from the system (``libfftw3f`` and ``libfftw3``, e.g.
@@ -30,7 +30,8 @@ Their transposes (JAX's, not conjugated), which give reverse mode::
     c2rᵀ(c)    = w · conj(r2c(c))           stand for two, 1 at k = 0 (and nx/2, even nx)
 
 Forward mode applies each primitive to the tangent; ``vmap`` moves the mapped axis to
-the front. Use it through :mod:`diffcam.core.backend`, which picks the backend.
+the front. Use it through [`diffcam.core.backend`][diffcam.core.backend], which picks the
+backend.
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ def _fftw_files(precision: int) -> tuple[str, str | None]:
 
 def _compile() -> Path:
     """The FFI library built from ``fftw_ffi.cc`` for this jaxlib: compiled once into
-    :func:`cache_folder` (written under a temporary name and moved into place)."""
+    `cache_folder` (written under a temporary name and moved into place)."""
     include = jax.ffi.include_dir()
     key = hashlib.sha256(_SOURCE.read_bytes() + jax.__version__.encode()
                          + include.encode()).hexdigest()[:16]
@@ -161,7 +162,7 @@ OPENMP_SPIN = 30_000
 
 @contextlib.contextmanager
 def _openmp_spin():
-    """``GOMP_SPINCOUNT`` = :data:`OPENMP_SPIN` while FFTW's OpenMP runtime loads (it
+    """``GOMP_SPINCOUNT`` = `OPENMP_SPIN` while FFTW's OpenMP runtime loads (it
     reads the variable once, then), unless the user set it or ``OMP_WAIT_POLICY``. The
     environment is restored after, so child processes do not inherit it. A runtime
     already loaded by another library keeps its settings."""
@@ -225,8 +226,8 @@ class _Backend:
 @functools.cache
 def load() -> _Backend:
     """Compile (first time only), load and register the FFTW backend, with the wisdom
-    kept from earlier runs; raises :class:`DiffcamError` saying what is missing and
-    what to do."""
+    kept from earlier runs; raises [`DiffcamError`][diffcam.core.errors.DiffcamError] saying
+    what is missing and what to do."""
     backend = _Backend()
     _configure(backend, _threads(None), "measure")
     for precision in (0, 1):
@@ -265,7 +266,7 @@ def environment_threads() -> int | None:
 
 def _threads(threads: int | None) -> int:
     """``threads`` checked (a positive int, not a bool), or ``$DIFFCAM_FFT_THREADS``
-    (:func:`environment_threads`), or the CPUs this process may use."""
+    (`environment_threads`), or the CPUs this process may use."""
     if threads is None:
         threads = environment_threads()
         return _cpus() if threads is None else threads

@@ -5,10 +5,11 @@ pair for rectangular pixels). The coordinate of index ``i`` along an axis of ``n
 samples is ``(i - n//2) * dx``, so index ``n//2`` is the optical axis, for even and
 odd ``n`` alike. Spatial axes are always the last two; leading axes are batch.
 
-Frequency grids come in two orders: :func:`fft_freqs` is the natural order of
-``jnp.fft.fft`` (used to build transfer functions that multiply ``fft2(field)`` with no
-shift at all: a convolution kernel is translation invariant, so a centred field stays
-centred), and :func:`centred_freqs` is the order of :func:`fft2c` outputs.
+Frequency grids come in two orders: [`fft_freqs`][diffcam.core.grid.fft_freqs] is the
+natural order of ``jnp.fft.fft`` (used to build transfer functions that multiply
+``fft2(field)`` with no shift at all: a convolution kernel is translation invariant, so a
+centred field stays centred), and [`centred_freqs`][diffcam.core.grid.centred_freqs] is the
+order of [`fft2c`][diffcam.core.grid.fft2c] outputs.
 """
 
 from __future__ import annotations
@@ -42,10 +43,10 @@ __all__ = [
 ]
 
 MAX_GRID_SAMPLES = 2 ** 28
-"""Largest propagation grid (samples, padding included) that a :class:`Camera` or a
-propagator accepts: 16384², 2 GiB per complex64 field. A mistyped pad or shape is
-refused before anything is allocated; raise it for the session by assigning to
-``diffcam.core.grid.MAX_GRID_SAMPLES``."""
+"""Largest propagation grid (samples, padding included) that a
+[`Camera`][diffcam.model.camera.Camera] or a propagator accepts: 16384², 2 GiB per complex64
+field. A mistyped pad or shape is refused before anything is allocated; raise it for the
+session by assigning to ``diffcam.core.grid.MAX_GRID_SAMPLES``."""
 
 _AXES = (-2, -1)
 
@@ -118,7 +119,8 @@ def fft2c(field: Array) -> Array:
 
 
 def ifft2c(spectrum: Array) -> Array:
-    """Inverse of :func:`fft2c` (``ifft2`` normalisation, ``1/(ny*nx)``)."""
+    """Inverse of [`fft2c`][diffcam.core.grid.fft2c] (``ifft2`` normalisation,
+    ``1/(ny*nx)``)."""
     return jnp.fft.fftshift(ifft2(jnp.fft.ifftshift(spectrum, axes=_AXES)),
                             axes=_AXES)
 
@@ -155,7 +157,8 @@ def check_grid_size(shape: Sequence[int], pad: Any = 0, what: str = "the propaga
                     ) -> tuple[int, int]:
     """The padded ``(ny, nx)`` of a grid of ``shape[-2:]`` plus ``pad`` per side, after
     checking that ``pad`` is whole and ≥ 0 and that the grid holds at most
-    :data:`MAX_GRID_SAMPLES` samples (before anything of that size is allocated)."""
+    [`MAX_GRID_SAMPLES`][diffcam.core.grid.MAX_GRID_SAMPLES] samples (before anything of
+    that size is allocated)."""
     py, px = int_pair(pad, "pad")
     if py < 0 or px < 0:
         raise DiffcamError(f"pad must be ≥ 0 samples per side, got {pad!r}.")
@@ -178,7 +181,8 @@ def pad_by(field: Array, pad) -> Array:
 
 
 def crop_to(field: Array, shape: Sequence[int]) -> Array:
-    """Centred crop of the last two axes to ``shape[-2:]`` (inverse of :func:`pad_to`)."""
+    """Centred crop of the last two axes to ``shape[-2:]`` (inverse of
+    [`pad_to`][diffcam.core.grid.pad_to])."""
     ny, nx = field.shape[-2:]
     my, mx = shape[-2], shape[-1]
     if my > ny or mx > nx:

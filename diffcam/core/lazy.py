@@ -19,8 +19,8 @@ A submodule that no stub line names (``diffcam.calibrate.pipeline``) is imported
 first attribute access as well; a package without a stub (``diffcam.core``) gets only
 that, so ``diffcam.core.grid.MAX_GRID_SAMPLES`` works after a bare ``import diffcam``.
 
-:func:`module_constant` reads such a limit without importing its module (the command
-line's ``--help`` shows the limits, and loads no JAX).
+[`module_constant`][diffcam.core.lazy.module_constant] reads such a limit without importing
+its module (the command line's ``--help`` shows the limits, and loads no JAX).
 """
 
 from __future__ import annotations

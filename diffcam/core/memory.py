@@ -14,17 +14,19 @@ Jupyter kernel's ``env``:
 
     GLIBC_TUNABLES=glibc.malloc.hugetlb=1 diffcam demo
 
-:data:`KEEP` also keeps freed blocks in the process (one malloc arena, no ``mmap`` for
-blocks, no heap trimming), so that once the heap has grown a call faults no page:
+[`KEEP`][diffcam.core.memory.KEEP] also keeps freed blocks in the process (one malloc arena,
+no ``mmap`` for blocks, no heap trimming), so that once the heap has grown a call faults no
+page:
 
     GLIBC_TUNABLES=glibc.malloc.hugetlb=1:glibc.malloc.arena_max=1:glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=17179869184 python run.py
 
 The price: the heap grows by about one block per call for the first calls (XLA's
 aligned requests do not fit a freed block of their own size), and the process keeps its
 largest footprint until it exits. It suits a long run of one size, such as a fit of
-many gradient steps. Neither setting changes a result; :func:`status` (printed by
-``diffcam -v``) says which is in use. What they save: ``python -m
-benchmarks.bench_fft`` and ``python -m benchmarks.bench_grad`` (``docs/fft.md``).
+many gradient steps. Neither setting changes a result;
+[`status`][diffcam.core.memory.status] (printed by ``diffcam -v``) says which is in use.
+What they save: ``python -m benchmarks.bench_fft`` and ``python -m benchmarks.bench_grad``
+(``docs/fft.md``).
 """
 
 from __future__ import annotations
@@ -83,8 +85,9 @@ def _tunables() -> dict[str, str]:
 
 def huge_pages() -> str:
     """``"on"``: large blocks get huge pages (the kernel gives them to every large
-    mapping, or this process started with :data:`TUNABLE`); ``"off"``: they could, with
-    :data:`TUNABLE` set before Python starts; ``"unavailable"``: not on this system."""
+    mapping, or this process started with [`TUNABLE`][diffcam.core.memory.TUNABLE]);
+    ``"off"``: they could, with [`TUNABLE`][diffcam.core.memory.TUNABLE] set before Python
+    starts; ``"unavailable"``: not on this system."""
     mode = _thp_mode()
     if mode is None or mode == "never":
         return "unavailable"
@@ -97,8 +100,8 @@ def huge_pages() -> str:
 
 
 def keeps_memory() -> bool:
-    """True when this process started with :data:`KEEP` (or stricter): freed blocks
-    stay in the process for the next call (glibc only)."""
+    """True when this process started with [`KEEP`][diffcam.core.memory.KEEP] (or stricter):
+    freed blocks stay in the process for the next call (glibc only)."""
     if _glibc_version() is None:
         return False
     t = _tunables()

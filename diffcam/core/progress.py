@@ -1,17 +1,19 @@
 """Progress reports for long loops: one place for every long-running computation.
 
-A jitted loop calls :func:`tick` with its iteration index once per iteration; the call
-is a ``jax.debug.callback`` to a module-level function, so it is compiled once and does
-not depend on any bar. On the host, the tick advances the innermost bar opened by
-:func:`progress_bar` around the call, if any; without one it does nothing. A solver
-called under a caller's ``jit`` runs after its ``progress_bar`` block has closed, so it
-shows nothing. Host loops open a bar with :func:`new_bar` and advance it themselves.
+A jitted loop calls [`tick`][diffcam.core.progress.tick] with its iteration index once per
+iteration; the call is a ``jax.debug.callback`` to a module-level function, so it is
+compiled once and does not depend on any bar. On the host, the tick advances the innermost
+bar opened by [`progress_bar`][diffcam.core.progress.progress_bar] around the call, if any;
+without one it does nothing. A solver called under a caller's ``jit`` runs after its
+``progress_bar`` block has closed, so it shows nothing. Host loops open a bar with
+[`new_bar`][diffcam.core.progress.new_bar] and advance it themselves.
 
-On a terminal a tqdm bar appears for runs longer than :data:`DELAY` seconds; elsewhere
-(a log file, a pipe, CI) a plain line every :data:`LINE_EVERY` seconds and one at the
-end, so runs shorter than that stay silent. ``progress=False`` on
-the public functions, or ``DIFFCAM_PROGRESS=0`` in the environment, turns them off.
-A tick costs a few microseconds per iteration (``docs/real_data.md``).
+On a terminal a tqdm bar appears for runs longer than [`DELAY`][diffcam.core.progress.DELAY]
+seconds; elsewhere (a log file, a pipe, CI) a plain line every
+[`LINE_EVERY`][diffcam.core.progress.LINE_EVERY] seconds and one at the end, so runs shorter
+than that stay silent. ``progress=False`` on the public functions, or ``DIFFCAM_PROGRESS=0``
+in the environment, turns them off. A tick costs a few microseconds per iteration
+(``docs/real_data.md``).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ def enabled(progress: bool = True) -> bool:
 
 
 def _advance(k) -> None:
-    """Host side of :func:`tick`: set the innermost bar to ``max(k) + 1`` iterations (a
+    """Host side of `tick`: set the innermost bar to ``max(k) + 1`` iterations (a
     batched solve ticks once per problem; the bar counts iterations, not problems)."""
     if _BARS:
         bar = _BARS[-1]
@@ -57,7 +59,8 @@ def tick(k: jax.Array) -> None:
 @contextmanager
 def progress_bar(total: int, desc: str, progress: bool = True,
                  unit: str = "it") -> Iterator[None]:
-    """A tqdm bar of ``total`` steps that :func:`tick` advances while the block runs.
+    """A tqdm bar of ``total`` steps that [`tick`][diffcam.core.progress.tick] advances
+    while the block runs.
 
     The block must wait for the computation (``jax.block_until_ready``), since JAX
     dispatches asynchronously. With ``progress`` false (or ``DIFFCAM_PROGRESS=0``) it
@@ -78,8 +81,8 @@ def progress_bar(total: int, desc: str, progress: bool = True,
 def new_bar(total: int, desc: str, unit: str = "it", progress: bool = True):
     """A progress bar of ``total`` steps with tqdm's ``update``, ``set_postfix``,
     ``close`` and ``n``, also a context manager: a tqdm bar when stderr is a terminal,
-    else :class:`PlainProgress` lines. ``progress`` false (or ``DIFFCAM_PROGRESS=0``)
-    gives a bar that shows nothing."""
+    else [`PlainProgress`][diffcam.core.progress.PlainProgress] lines. ``progress`` false
+    (or ``DIFFCAM_PROGRESS=0``) gives a bar that shows nothing."""
     show = enabled(progress)
     if show and sys.stderr.isatty():
         from tqdm.auto import tqdm
@@ -90,7 +93,8 @@ def new_bar(total: int, desc: str, unit: str = "it", progress: bool = True):
 
 class PlainProgress:
     """Progress for a log: ``desc: n/total unit, t s`` on stderr at most every
-    :data:`LINE_EVERY` seconds, and a last line on :meth:`close` if any was printed."""
+    [`LINE_EVERY`][diffcam.core.progress.LINE_EVERY] seconds, and a last line on
+    [`close`][diffcam.core.progress.PlainProgress.close] if any was printed."""
 
     def __init__(self, total: int, desc: str, unit: str = "it", show: bool = True):
         self.total, self.desc, self.unit, self.show = int(total), desc, unit, show

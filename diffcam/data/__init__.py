@@ -1,14 +1,18 @@
 """Built-in measured data (Waller Lab, BSD-3-Clause; see PROVENANCE.md beside this file).
 
-* :func:`load_tutorial_pair` — DiffuserCam tutorial PSF and raw capture of a hand,
-  300x400 (box-averaged by 4 from 1200x1600).
-* :func:`load_psf_stack_3d` — the 44-plane DiffuserCam 3-D PSF stack, 270x320, values
-  as LCAV normalised them (one global min-max over the stack, so 0 … 1).
-* :func:`load_raw_3d` — the raw 3-D capture (a tilted USAF target) that goes with it.
-* :func:`load_scene_pairs` — seven colour DiffuserCam captures with the lensed
-  photograph of each scene (Lensless Learning), 135x240 RGB (box-averaged by 2).
-* :func:`export_captures` — write either set as the image files a camera gives
-  (``diffcam data``), for the command line's real-data walkthrough (docs/real_data.md).
+* [`load_tutorial_pair`][diffcam.data.load_tutorial_pair] — DiffuserCam tutorial PSF and raw
+  capture of a hand, 300x400 (box-averaged by 4 from 1200x1600).
+* [`load_psf_stack_3d`][diffcam.data.load_psf_stack_3d] — the 44-plane DiffuserCam 3-D PSF
+  stack, 270x320, values as LCAV normalised them (one global min-max over the stack, so 0 …
+  1).
+* [`load_raw_3d`][diffcam.data.load_raw_3d] — the raw 3-D capture (a tilted USAF target)
+  that goes with it.
+* [`load_scene_pairs`][diffcam.data.load_scene_pairs] — seven colour DiffuserCam captures
+  with the lensed photograph of each scene (Lensless Learning), 135x240 RGB (box-averaged by
+  2).
+* [`export_captures`][diffcam.data.export_captures] — write either set as the image files a
+  camera gives (``diffcam data``), for the command line's real-data walkthrough
+  (docs/real_data.md).
 
 The arrays are NumPy float32 in sensor counts unless said otherwise.
 """
@@ -68,7 +72,7 @@ def load_tutorial_pair(*, subtract_background: bool = True,
             (2 gives 150x200, the tutorial's ADMM size is 300x400 = 1).
 
     Returns:
-        :class:`TutorialPair`; 300x400 at ``downsample_by=1``.
+        [`TutorialPair`][diffcam.data.TutorialPair]; 300x400 at ``downsample_by=1``.
     """
     d = _npz("tutorial.npz")
     psf, image, level = d["psf"], d["image"], float(d["dark_level"])
@@ -100,8 +104,8 @@ def load_raw_3d(*, subtract_bias: bool = True, downsample_by: int = 1) -> np.nda
     """The raw 3-D capture ``example_raw.png`` (a tilted USAF target), float32 counts.
 
     Args:
-        subtract_bias: subtract :data:`IMAGE_BIAS_3D` (100 counts); the pixels one
-            count below it are clipped to 0.
+        subtract_bias: subtract [`IMAGE_BIAS_3D`][diffcam.data.IMAGE_BIAS_3D] (100 counts);
+            the pixels one count below it are clipped to 0.
         downsample_by: lateral box averaging.
 
     Returns:
@@ -153,7 +157,7 @@ def load_scene_pairs(*, downsample_by: int = 1) -> ScenePairs:
 
 
 CAPTURES = ("hand", "usaf3d", "scenes")
-"""The built-in capture sets :func:`export_captures` writes."""
+"""The built-in capture sets [`export_captures`][diffcam.data.export_captures] writes."""
 
 
 def _capture_files(name: str) -> dict[str, np.ndarray]:
@@ -184,17 +188,19 @@ def export_captures(name: str, folder, *, overwrite: bool = False) -> list[Path]
       ``psfs/psf00.tif`` … ``psf43.tif`` (16-bit, the stack's normalised values × 65535;
       plane 0 nearest the camera);
     * ``"scenes"``: ``raw_imNN.tif`` and ``truth_imNN.tif`` for the seven pairs of
-      :func:`load_scene_pairs`, float32 RGB TIFFs (135 × 240 × 3).
+      [`load_scene_pairs`][diffcam.data.load_scene_pairs], float32 RGB TIFFs (135 × 240 ×
+      3).
 
-    All files are written together (:func:`diffcam.io.atomic_output`); an existing file
-    is an error unless ``overwrite``.
+    All files are written together
+    ([`diffcam.io.atomic_output`][diffcam.io.writing.atomic_output]); an existing file is an
+    error unless ``overwrite``.
 
     Returns:
         The paths written.
 
     Raises:
         DiffcamError: an unknown name, a folder that cannot be one
-            (:func:`diffcam.io.make_output_folder`), or files that exist (without
+            (`diffcam.io.make_output_folder`), or files that exist (without
             ``overwrite``).
     """
     import tifffile

@@ -1,6 +1,8 @@
-"""Stub of :mod:`diffcam.evaluate`: its public names and the modules they come from.
+"""Stub of [`diffcam.evaluate`][diffcam.evaluate]: its public names and the modules they
+come from.
 
-diffcam/evaluate/__init__.py imports each on first use (:mod:`diffcam.core.lazy`)."""
+diffcam/evaluate/__init__.py imports each on first use
+([`diffcam.core.lazy`][diffcam.core.lazy])."""
 
 from diffcam.evaluate.baseline import magnify_psf, relative_magnification
 from diffcam.evaluate.metrics import (mse, pearson, phase_scores, psf_fidelity, psnr,

@@ -1,6 +1,6 @@
 """The magnification baseline (Xie et al.; the paper's "scaling method"): one PSF, other
 depths. (Not to be confused with the Fresnel scaling theorem, which the model uses:
-:func:`diffcam.optics.propagation.magnification`.)
+`diffcam.optics.propagation.magnification`.)
 
 A PSF measured at ``z1_ref`` predicts the PSF at ``z1`` by magnifying it about its
 centre by
@@ -44,7 +44,7 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
     """Predict PSFs at depths ``z1`` from ``psf_ref`` measured at ``z1_ref``.
 
     **Outside its frame the reference is taken to be zero.** For ``kind="cubic"``
-    :func:`diffcam.model.sensor.resample` zero-pads the frame before its periodic (FFT)
+    `diffcam.model.sensor.resample` zero-pads the frame before its periodic (FFT)
     spline prefilter: unpadded, light at one edge would leak into the opposite edge.
     With the padding, m = 1 returns the
     reference unchanged even when it has signal at the frame edge, a shrunk PSF (m < 1)
@@ -59,7 +59,7 @@ def magnify_psf(psf_ref: Float[Array, "ny nx"], dx, z1_ref, z1, z2, centre=(0.0,
         z2: diffuser-to-sensor distance, metres.
         centre: ``(y0, x0)`` the magnification keeps fixed, metres from the grid
             centre: the image of the aperture centre (0, 0 for an on-axis source).
-        kind: resampling of :func:`diffcam.model.sensor.resample`: ``"cubic"`` (default;
+        kind: resampling of `diffcam.model.sensor.resample`: ``"cubic"`` (default;
             point-sampled PSFs, e.g. simulated) or ``"area"`` (pixel-integrated ones).
 
     Returns:
@@ -135,8 +135,8 @@ scale_psf = renamed(magnify_psf, "diffcam.evaluate.baseline.scale_psf")
 
 
 def scale_factor(z1, z1_ref, z2):
-    """Deprecated: :func:`relative_magnification` takes ``(z1_ref, z1, z2)``, the order of
-    :func:`magnify_psf`."""
+    """Deprecated: `relative_magnification` takes ``(z1_ref, z1, z2)``, the order of
+    `magnify_psf`."""
     warnings.warn("diffcam.evaluate.baseline.scale_factor(z1, z1_ref, z2) is now "
                   "relative_magnification(z1_ref, z1, z2)", DeprecationWarning, stacklevel=2)
     return relative_magnification(z1_ref, z1, z2)

@@ -5,8 +5,8 @@ axes and broadcast over leading batch axes, so a stack of PSFs is scored in one 
 ``align="scale"`` or ``"affine"`` first fits ``a·estimate (+ b)`` to the reference by
 least squares: use it when the two images carry arbitrary exposure or normalisation.
 
-The composite scores (:func:`ssim`, :func:`registration_shift`, :func:`psf_fidelity`,
-:func:`phase_scores`) check their inputs, then run as one compiled program: called
+The composite scores (`ssim`, `registration_shift`, `psf_fidelity`,
+`phase_scores`) check their inputs, then run as one compiled program: called
 eagerly, op by op, they cost 10–30 ms a call and up to 2 s for the first, against
 1.5–4 ms and one compilation (256², and 96² stacks for ``psf_fidelity``).
 """
@@ -34,7 +34,7 @@ _SPACE = (-2, -1)
 
 
 def _check_pair(a, b, name_a="estimate", name_b="reference"):
-    """``a`` and ``b`` as real float arrays (:func:`~diffcam.core.errors.real_array`:
+    """``a`` and ``b`` as real float arrays (`real_array`:
     integers converted, complex refused), checked: image axes of one shape, finite."""
     a, b = real_array(name_a, a), real_array(name_b, b)
     sa, sb = np.shape(a), np.shape(b)
@@ -81,7 +81,7 @@ def align_to(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... n
 
 
 def _fit(estimate, reference, mode, mask):
-    """:func:`align_to` after its checks (the traced path: a = 0 where undefined)."""
+    """`align_to` after its checks (the traced path: a = 0 where undefined)."""
     w = 1.0 if mask is None else mask
     unit = _peak(reference)       # the means below are sums: of unit-peak values
     reference = reference / unit
@@ -98,7 +98,7 @@ def _fit(estimate, reference, mode, mask):
 
 def _flat(estimate, mode, mask):
     """The estimate's part that a fits (minus its mean for ``"affine"``), and where it
-    is nothing but rounding (a few ulps of the estimate's mean, which :func:`_peak`
+    is nothing but rounding (a few ulps of the estimate's mean, which `_peak`
     would blow up to ±1): there every a fits equally well."""
     estimate = estimate / _peak(estimate)     # a absorbs the scale; the mean is a sum
     de = estimate if mode == "scale" else estimate - _mean(estimate, mask)
@@ -108,13 +108,13 @@ def _flat(estimate, mode, mask):
 
 @partial(jax.jit, static_argnames="mode")
 def _flat_mask(estimate, mode, mask):
-    """Where :func:`_flat` finds nothing to fit, as one program (eagerly, op by op, the
+    """Where `_flat` finds nothing to fit, as one program (eagerly, op by op, the
     check takes seconds of dispatch and compilation on a loaded machine)."""
     return _flat(estimate, mode, mask)[1]
 
 
 def _check_alignable(estimate, mode, mask) -> None:
-    """A DiffcamError if the fit of :func:`align_to` is undefined for any element of a
+    """A DiffcamError if the fit of `align_to` is undefined for any element of a
     concrete ``estimate``."""
     if not is_concrete(estimate, mask):
         return
@@ -247,7 +247,7 @@ def _separable_filter(x, weights):
 
 
 class SsimOptions(Options):
-    """Settings of :func:`ssim`, scikit-image's ``structural_similarity`` defaults.
+    """Settings of `ssim`, scikit-image's ``structural_similarity`` defaults.
 
     Attributes:
         win_size: side of the uniform window, samples (odd, ≥ 3).
@@ -296,7 +296,7 @@ def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx
     Matches ``skimage.metrics.structural_similarity`` for the same ``data_range`` and
     options (uniform 7×7 window, sample covariance, reflected edges, the border of
     half a window excluded from the mean). ``data_range`` defaults to the reference's
-    max − min. ``options``: :class:`SsimOptions`, whose fields may also be given as
+    max − min. ``options``: `SsimOptions`, whose fields may also be given as
     keywords (``win_size=11``); ``gaussian_weights=True, use_sample_covariance=False``
     gives Wang et al.'s original definition.
     """
@@ -317,7 +317,7 @@ def ssim(estimate: Float[Array, "... ny nx"], reference: Float[Array, "... ny nx
 
 @partial(jax.jit, static_argnames=("weights", "K1", "K2", "use_sample_covariance", "align"))
 def _ssim(estimate, reference, dr, weights, K1, K2, use_sample_covariance, align):
-    """:func:`ssim` after its checks, one program (eagerly, op by op, it took 14 ms a
+    """`ssim` after its checks, one program (eagerly, op by op, it took 14 ms a
     call at 256², against about 1 ms)."""
     win = len(weights)
     ny, nx = reference.shape[-2:]
@@ -390,7 +390,7 @@ def phase_pearson(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... 
 
 def phase_mse(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... ny nx"], *,
               mask=None) -> Float[Array, "..."]:
-    """Mean of wrap(θest − θtrue − d)² over ``mask`` (rad²), d from :func:`phase_offset`."""
+    """Mean of wrap(θest − θtrue − d)² over ``mask`` (rad²), d from `phase_offset`."""
     r2 = _phase_residual(estimate, truth, mask) ** 2
     if mask is None:
         return jnp.mean(r2, axis=_SPACE)
@@ -412,7 +412,7 @@ def phase_scores(estimate: Float[Array, "... ny nx"], truth: Float[Array, "... n
 
 @jax.jit
 def _phase_scores(estimate, truth, mask):
-    """:func:`phase_scores` after its checks, one program (eagerly, 12 ms a call at
+    """`phase_scores` after its checks, one program (eagerly, 12 ms a call at
     256²)."""
     mse_twin = phase_mse(twin_phase(estimate), truth, mask=mask)
     mse_est = phase_mse(estimate, truth, mask=mask)
@@ -471,7 +471,7 @@ def registration_shift(moving: Float[Array, "... ny nx"], reference: Float[Array
 
 @partial(jax.jit, static_argnames="upsample")
 def _registration_shift(moving, reference, upsample):
-    """:func:`registration_shift` after its checks, one program (eagerly it took 15 ms a
+    """`registration_shift` after its checks, one program (eagerly it took 15 ms a
     call at 256², and 1.5 s for the first)."""
     a = fft2(reference)
     b = fft2(moving)
@@ -506,9 +506,10 @@ def psf_fidelity(model: Float[Array, "... ny nx"], measured: Float[Array, "... n
                  register: bool = True, upsample: int = 20) -> dict:
     """Pearson and SSIM of a modelled PSF against a measured one, per leading index.
 
-    The model is moved onto the measurement by :func:`registration_shift` (if
+    The model is moved onto the measurement by `registration_shift` (if
     ``register``), both are min–max normalised to [0, 1] (as the paper normalises its
-    captures), then scored with :func:`pearson` and :func:`ssim` (``data_range=1``).
+    captures), then scored with [`pearson`][diffcam.evaluate.metrics.pearson] and
+    [`ssim`][diffcam.evaluate.metrics.ssim] (``data_range=1``).
 
     Returns:
         ``{"pearson": (...), "ssim": (...), "shift": (..., 2)}``; ``shift`` in pixels
@@ -530,7 +531,7 @@ def psf_fidelity(model: Float[Array, "... ny nx"], measured: Float[Array, "... n
 
 @partial(jax.jit, static_argnames=("register", "upsample"))
 def _fidelity(model, measured, register, upsample):
-    """:func:`psf_fidelity` after its checks, as one program: called eagerly, its
+    """`psf_fidelity` after its checks, as one program: called eagerly, its
     registration, shift and scores ran op by op (2.2 s for the first call on a pair
     of 96² stacks, 28 ms for each call after it, against 1.5 ms compiled)."""
     model, measured = jnp.broadcast_arrays(model, measured)

@@ -5,11 +5,11 @@ fixed point (Fresnel scaling theorem: a source at z1 magnifies the diffuser's pa
 M = (z1 + z2)/z1 about the point the optical axis meets the sensor). That point is not
 the frame centre in real data (a cropped or shifted sensor), so it is fitted.
 
-- :func:`register_magnification` — fixed point and relative magnification between two
+- `register_magnification` — fixed point and relative magnification between two
   planes (Pearson maximised over both, cubic splines);
-- :func:`scaling_baseline` — every plane as the nearest given plane magnified by
+- `scaling_baseline` — every plane as the nearest given plane magnified by
   M(t)/M(k) about that point, M linear in the plane index t. This is the baseline every
-  stack prediction (:func:`diffcam.calibrate.fit_stack`) is compared with.
+  stack prediction (`diffcam.calibrate.fit_stack`) is compared with.
 
 Everything here is in **pixel units** (pixel k's centre at coordinate k, (y, x) order)
 and plane indices; NumPy/SciPy, outside ``jit``. Planes equally spaced in 1/z1 (the
@@ -70,7 +70,7 @@ def magnify_about(image, magnification: float, centre, *, prefiltered: bool = Fa
         image: (ny, nx) float image.
         magnification: dimensionless (> 0).
         centre: (y, x), pixels.
-        prefiltered: ``image`` is already :func:`spline_coefficients` of the image
+        prefiltered: ``image`` is already `spline_coefficients` of the image
             (saves the prefilter when one image is magnified many times).
     """
     coef = np.asarray(image, np.float64) if prefiltered else spline_coefficients(image)
@@ -161,7 +161,8 @@ def register_magnification(a, b) -> Registration:
         a, b: (ny, nx) images of the same shape, background-subtracted (any gain).
 
     Returns:
-        :class:`Registration` (M(b)/M(a), fixed point in pixels, Pearson).
+        [`Registration`][diffcam.evaluate.registration.Registration] (M(b)/M(a), fixed point
+        in pixels, Pearson).
 
     Raises:
         ShapeError: not two 2-D images of one shape.
@@ -236,7 +237,8 @@ def magnification_from_light(light_a: float, light_b: float, magnification: floa
 
     Args:
         light_a, light_b: total light of the two planes, any common unit (> 0).
-        magnification: M(b)/M(a), from :func:`register_magnification`.
+        magnification: M(b)/M(a), from
+            [`register_magnification`][diffcam.evaluate.registration.register_magnification].
 
     Raises:
         DiffcamError: when the light does not follow the law for a source in front of
@@ -294,13 +296,14 @@ def scaling_baseline(given: Mapping[int, np.ndarray], planes: int | Sequence[int
 
     ``blend=True`` is an ablation for judging the stack model (not the baseline a user
     would use): between two given planes, both are magnified to t and mixed with
-    :func:`bracket_weights`, the weights the model's prediction uses for its residuals.
+    `bracket_weights`, the weights the model's prediction uses for its residuals.
 
     The law comes from the two given planes farthest apart (the first and the last
-    index), registered with :func:`register_magnification` unless ``registration``
-    (of the last given plane relative to the first) is passed. Cubic B-splines, zero
-    outside the frame; ties go to the lower given plane. Gain and offset are those of
-    the given plane (compare by Pearson).
+    index), registered with
+    [`register_magnification`][diffcam.evaluate.registration.register_magnification] unless
+    ``registration`` (of the last given plane relative to the first) is passed. Cubic
+    B-splines, zero outside the frame; ties go to the lower given plane. Gain and offset are
+    those of the given plane (compare by Pearson).
 
     Args:
         given: ``{plane index: (ny, nx) image}``, at least two planes.

@@ -3,8 +3,8 @@
 A flat target tilted along x puts each column of the scene at one depth. In the x–z
 maximum projection of a good volume the light of each column peaks at one plane, the
 peaks lie on a line (the tilt), and the peak is thin along depth. Haze and speckle put
-light outside the target. :func:`ridge_measures` reports these numbers;
-:func:`target_box` finds the target in a max projection, so that several volumes of
+light outside the target. `ridge_measures` reports these numbers;
+`target_box` finds the target in a max projection, so that several volumes of
 one capture are judged on the same box.
 
 All functions take NumPy-convertible arrays and return plain Python numbers (they
@@ -40,7 +40,7 @@ class Box(NamedTuple):
 
 
 class Ridge(NamedTuple):
-    """The depth ridge of a tilted target (:func:`ridge_measures`).
+    """The depth ridge of a tilted target (`ridge_measures`).
 
     Attributes:
         slope: planes per column of the line through the per-column peak planes.
@@ -119,7 +119,7 @@ def ridge_measures(volume, box: Box | None = None) -> Ridge:
 
     Args:
         volume: ``(nz, ny, nx)`` non-negative volume, plane 0 nearest.
-        box: the target (:func:`target_box`); default: found in this volume's max
+        box: the target (`target_box`); default: found in this volume's max
             projection. Judge several volumes of one capture on one box.
     """
     v = _check_volume(volume)
@@ -137,7 +137,7 @@ def ridge_measures(volume, box: Box | None = None) -> Ridge:
 
 
 def _box_in(box, shape) -> Box:
-    """``box`` as a :class:`Box` of whole pixels inside a frame of ``shape``, at least
+    """``box`` as a `Box` of whole pixels inside a frame of ``shape``, at least
     one row and two columns."""
     ny, nx = shape
     values = tuple(box) if isinstance(box, (tuple, list, np.ndarray)) else ()

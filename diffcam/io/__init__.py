@@ -14,15 +14,16 @@ order (LenslessPiCam-style, as the DiffuserCam tutorial does it)::
     psfs = apply_envelope(psfs, envelope_widths(image, psfs))   # volumes: footprints
 
 Everything here is NumPy (files are read once, outside ``jit``); the results go to the
-JAX solvers in :mod:`diffcam.reconstruct`.
+JAX solvers in [`diffcam.reconstruct`][diffcam.reconstruct].
 
 Both directions are guarded at this edge. Readers turn every damaged, truncated or
-oversized file into one :class:`~diffcam.core.errors.DiffcamError` line naming the file
-and the problem, and they check the size a header declares against
-:data:`MAX_READ_BYTES` before allocating anything. Writers check the output path with
-:func:`check_output_path` before any work starts and write through
-:func:`atomic_output`: a temporary file beside the target, fsynced and moved into place
-with ``os.replace``, so an existing file is either untouched or wholly replaced.
+oversized file into one [`DiffcamError`][diffcam.core.errors.DiffcamError] line naming the
+file and the problem, and they check the size a header declares against
+[`MAX_READ_BYTES`][diffcam.io.MAX_READ_BYTES] before allocating anything. Writers check the
+output path with [`check_output_path`][diffcam.io.writing.check_output_path] before any work
+starts and write through [`atomic_output`][diffcam.io.writing.atomic_output]: a temporary
+file beside the target, fsynced and moved into place with ``os.replace``, so an existing
+file is either untouched or wholly replaced.
 """
 
 

@@ -42,10 +42,11 @@ def border_dark_level(images, ring: int = 6) -> np.ndarray:
 
 
 def plane_light(images, ring: int = 6) -> np.ndarray:
-    """The light of each frame: its sum after the :func:`border_dark_level` (input
-    units, shape ``images.shape[:-2]``; ``ring`` 0: no dark level), the quantity the
-    inverse-square law relates across a PSF stack's planes
-    (:func:`diffcam.evaluate.registration.magnification_from_light`)."""
+    """The light of each frame: its sum after the
+    [`border_dark_level`][diffcam.io.preprocessing.border_dark_level] (input units, shape
+    ``images.shape[:-2]``; ``ring`` 0: no dark level), the quantity the inverse-square law
+    relates across a PSF stack's planes
+    ([`diffcam.evaluate.registration.magnification_from_light`][diffcam.evaluate.registration.magnification_from_light])."""
     a = np.asarray(real_array("images", images), np.float64)
     dark = border_dark_level(a, ring)[..., None, None] if ring else 0.0
     return (a - dark).sum(axis=(-2, -1))
@@ -71,11 +72,12 @@ def subtract_background(image: np.ndarray, background, *,
     Args:
         image: ``(..., ny, nx)`` counts.
         background: a scalar (a sensor bias, e.g. DiffuserCam's ``image_bias = 100``), a
-            per-channel level from :func:`dark_level` of shape ``(...)``, or a dark frame
-            of the image's shape.
+            per-channel level from [`dark_level`][diffcam.io.preprocessing.dark_level] of
+            shape ``(...)``, or a dark frame of the image's shape.
         tolerance: negatives down to ``-tolerance · max(result)`` are noise: they are
-            clipped with a :class:`BackgroundWarning`. Deeper ones mean the background
-            is wrong and raise.
+            clipped with a
+            [`BackgroundWarning`][diffcam.io.preprocessing.BackgroundWarning]. Deeper ones
+            mean the background is wrong and raise.
 
     Returns:
         float32 array, non-negative.
@@ -111,7 +113,8 @@ def saturation_mask(capture: Capture, level: float | None = None) -> np.ndarray:
     """Boolean mask of saturated pixels (True where a pixel reached the sensor's ceiling).
 
     Args:
-        capture: a :class:`Capture` (its ``full_scale`` sets the default level).
+        capture: a [`Capture`][diffcam.io.reading.Capture] (its ``full_scale`` sets the
+            default level).
         level: counts at or above which a pixel is saturated; default
             ``0.999 · full_scale`` (65470 for 16-bit files, so a 12-bit sensor's
             ``4095·16 = 65520`` counts as saturated). Required for float data.
@@ -167,7 +170,7 @@ def envelope_widths(image: np.ndarray, psfs: np.ndarray, samples: int = 5) -> np
     plane's light: the envelope scales with the plane's magnification). ``σ`` is the
     one whose apodised planes explain the capture's row profile (its sum over columns)
     best as a sum of non-negative 1-D convolutions (least squares,
-    :func:`scipy.optimize.nnls`, the crop model's valid part), found by a bounded
+    `scipy.optimize.nnls`, the crop model's valid part), found by a bounded
     search over 0.1 to 10 times the plane height on ``samples`` planes spread evenly
     over the stack. The profiles are binned to at most 100 rows for the fit (on the
     shipped capture σ moves by 0.4 % against the unbinned fit, and the fit takes 0.4 s).
@@ -179,7 +182,8 @@ def envelope_widths(image: np.ndarray, psfs: np.ndarray, samples: int = 5) -> np
         samples: planes in the fit (at least 1, at most ``nz``).
 
     Returns:
-        float64 ``(nz,)``, pixels: ``σ_z`` per plane (:func:`apply_envelope`).
+        float64 ``(nz,)``, pixels: ``σ_z`` per plane
+        ([`apply_envelope`][diffcam.io.preprocessing.apply_envelope]).
     """
     samples = whole_number("samples", samples, 1)
     profile, planes, centres = _profiles(image, psfs)
@@ -212,7 +216,8 @@ def apply_envelope(psfs: np.ndarray, widths) -> np.ndarray:
 
     Args:
         psfs: ``(nz, my, mx)`` non-negative PSF stack.
-        widths: ``(nz,)`` pixels, ``σ_z`` (:func:`envelope_widths`).
+        widths: ``(nz,)`` pixels, ``σ_z``
+            ([`envelope_widths`][diffcam.io.preprocessing.envelope_widths]).
 
     Returns:
         float32 ``(nz, my, mx)``.

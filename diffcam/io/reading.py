@@ -1,7 +1,7 @@
 """Reading captures and PSF stacks: PNG, TIFF, ``.npy``, MATLAB ``.mat`` and ``.npz``,
-every damaged, truncated or oversized file one :class:`~diffcam.core.errors.DiffcamError`
+every damaged, truncated or oversized file one `DiffcamError`
 line naming the file, with the size a header declares checked against
-:data:`diffcam.io.MAX_READ_BYTES` before anything is allocated."""
+`diffcam.io.MAX_READ_BYTES` before anything is allocated."""
 
 from __future__ import annotations
 
@@ -57,10 +57,10 @@ def read_image(path: str | os.PathLike, *, channel_order: str | None = None,
             needs it.
         max_bytes: refuse an image whose header declares more than this many bytes
             (counted as float32, or the file's type if wider); default
-            :data:`MAX_READ_BYTES`. Checked before any pixel is read.
+            [`MAX_READ_BYTES`][diffcam.io.MAX_READ_BYTES]. Checked before any pixel is read.
 
     Returns:
-        :class:`Capture` with the channel axis moved first.
+        [`Capture`][diffcam.io.reading.Capture] with the channel axis moved first.
 
     Raises:
         DiffcamError: missing, empty, corrupt, truncated, oversized or unsupported
@@ -98,14 +98,15 @@ def as_rgb(capture: Capture) -> np.ndarray:
 
 
 def read_rgb(path: str | os.PathLike, *, channel_order: str | None = None) -> np.ndarray:
-    """:func:`read_image` then :func:`as_rgb`: float32 ``(3, ny, nx)``, R, G, B
+    """[`read_image`][diffcam.io.reading.read_image] then
+    [`as_rgb`][diffcam.io.reading.as_rgb]: float32 ``(3, ny, nx)``, R, G, B
     (``channel_order`` is the file's, e.g. ``"BGR"``)."""
     return as_rgb(read_image(path, channel_order=channel_order))
 
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
-"""Suffixes of the single-plane images diffcam reads (:func:`read_image`), and that a
-folder or glob of PSFs may hold."""
+"""Suffixes of the single-plane images diffcam reads
+([`read_image`][diffcam.io.reading.read_image]), and that a folder or glob of PSFs may hold."""
 
 
 def natural_key(path) -> list:
@@ -115,9 +116,9 @@ def natural_key(path) -> list:
 
 
 def image_files(source: str | os.PathLike) -> list[Path] | None:
-    """The single-plane image files (:data:`IMAGE_SUFFIXES`) of a folder or a glob
-    pattern, in natural order (``psf_9`` before ``psf_10``); ``None`` when ``source`` is
-    neither (one file).
+    """The single-plane image files ([`IMAGE_SUFFIXES`][diffcam.io.reading.IMAGE_SUFFIXES])
+    of a folder or a glob pattern, in natural order (``psf_9`` before ``psf_10``); ``None``
+    when ``source`` is neither (one file).
 
     Raises:
         DiffcamError: an empty folder, or a pattern matching no file.
@@ -143,11 +144,12 @@ def read_psf_stack(paths: Sequence[str | os.PathLike], *,
                    max_bytes: int | None = None) -> np.ndarray:
     """Read one PSF per file (sorted as given) into a float32 stack ``(nz, my, mx)``.
 
-    ``max_bytes`` bounds each file, as in :func:`read_image`.
+    ``max_bytes`` bounds each file, as in [`read_image`][diffcam.io.reading.read_image].
 
     Raises:
         ShapeError: if the files differ in shape or hold colour/stacks.
-        DiffcamError: a file cannot be read (see :func:`read_image`).
+        DiffcamError: a file cannot be read (see
+            [`read_image`][diffcam.io.reading.read_image]).
     """
     if isinstance(paths, (str, bytes, os.PathLike)):
         raise DiffcamError(f"read_psf_stack takes a list of files, one per depth, got the "
@@ -176,7 +178,8 @@ def read_mat_stack(path: str | os.PathLike, key: str | None = None, *,
         key: variable name; default the only non-metadata variable (DiffuserCam calls
             it ``psf``).
         max_bytes: refuse a variable declaring more bytes than this (see
-            :func:`read_image`); default :data:`MAX_READ_BYTES`.
+            [`read_image`][diffcam.io.reading.read_image]); default
+            [`MAX_READ_BYTES`][diffcam.io.MAX_READ_BYTES].
 
     Raises:
         DiffcamError: missing, corrupt, truncated or oversized files, a missing or
@@ -232,8 +235,8 @@ def read_npz(path: str | os.PathLike, keys: Sequence[str], *, what: str = "an .n
     """Read the arrays ``keys`` from an ``.npz`` file, with every failure a DiffcamError.
 
     Pickled (object) arrays are refused. Each member's declared (uncompressed) size is
-    checked against ``max_bytes`` (default :data:`MAX_READ_BYTES`) before it is read, so
-    a damaged header or a zip bomb cannot allocate more.
+    checked against ``max_bytes`` (default [`MAX_READ_BYTES`][diffcam.io.MAX_READ_BYTES])
+    before it is read, so a damaged header or a zip bomb cannot allocate more.
 
     Args:
         path: the file.
@@ -335,7 +338,8 @@ def _fmt_bytes(n: int) -> str:
 
 def check_read_size(path, what: str, shape, dtype, max_bytes: int | None = None) -> None:
     """Refuse to read ``shape``×``dtype`` declared by a header of ``path`` when it exceeds
-    ``max_bytes`` (default :data:`MAX_READ_BYTES`): a DiffcamError saying how big."""
+    ``max_bytes`` (default [`MAX_READ_BYTES`][diffcam.io.MAX_READ_BYTES]): a DiffcamError
+    saying how big."""
     _check_declared(Path(path), what, shape, dtype, _limit(max_bytes))
 
 

@@ -1,5 +1,5 @@
-"""Writing outputs atomically: :func:`check_output_path` before any work, then
-:func:`atomic_output` (a temporary file beside the target, fsynced and moved into place
+"""Writing outputs atomically: `check_output_path` before any work, then
+`atomic_output` (a temporary file beside the target, fsynced and moved into place
 with ``os.replace``), so an existing file is either untouched or wholly replaced, with
 SIGTERM and SIGINT handled on the way."""
 
@@ -37,7 +37,7 @@ def check_output_path(path: str | os.PathLike, *,
         suffixes: if given, the accepted file name endings, e.g. ``(".npz",)``.
 
     Returns:
-        ``path`` as a :class:`~pathlib.Path`.
+        ``path`` as a `Path`.
 
     Raises:
         DiffcamError: naming the path and what is wrong with it.
@@ -120,20 +120,21 @@ def atomic_output(*paths: str | os.PathLike) -> Iterator:
     temporary files are removed and the targets keep their old bytes.
 
     SIGTERM: while the block runs in the main thread and SIGTERM has its default
-    action, a SIGTERM raises :class:`Terminated` inside the block instead of killing the
-    process at once; the temporary files are removed, the default action is restored
-    and the signal is raised again, so the process still ends as killed by SIGTERM. A
-    SIGTERM that arrives while the files are being moved into place waits until they
-    are (several targets are replaced one after another in that window, so only a hard
-    kill can fall between them). Nothing is installed outside the block; a handler of the caller's is left
-    alone. A hard kill (SIGKILL, power loss) can leave a temporary ``.name.tmp-*``
-    file, never a half-written target.
+    action, a SIGTERM raises [`Terminated`][diffcam.io.writing.Terminated] inside the block
+    instead of killing the process at once; the temporary files are removed, the default
+    action is restored and the signal is raised again, so the process still ends as killed
+    by SIGTERM. A SIGTERM that arrives while the files are being moved into place waits
+    until they are (several targets are replaced one after another in that window, so only a
+    hard kill can fall between them). Nothing is installed outside the block; a handler of
+    the caller's is left alone. A hard kill (SIGKILL, power loss) can leave a temporary
+    ``.name.tmp-*`` file, never a half-written target.
 
     New files get the permissions ``0o666 & ~umask``, like any file ``open`` creates.
 
     Raises:
-        DiffcamError: a target cannot be written (:func:`check_output_path`), before
-            the block runs.
+        DiffcamError: a target cannot be written
+            ([`check_output_path`][diffcam.io.writing.check_output_path]), before the block
+            runs.
     """
     if not paths:
         raise DiffcamError("atomic_output needs at least one output path.")
@@ -170,11 +171,13 @@ def atomic_output(*paths: str | os.PathLike) -> Iterator:
 
 
 class Terminated(SystemExit):
-    """SIGTERM arrived while :func:`atomic_output` was writing.
+    """SIGTERM arrived while [`atomic_output`][diffcam.io.writing.atomic_output] was
+    writing.
 
     A ``SystemExit`` (exit status 143, as a shell reports SIGTERM), so ``except
-    Exception`` does not swallow it. :func:`atomic_output` re-raises the signal itself
-    once its temporary files are gone, so this is seen only if that signal is blocked.
+    Exception`` does not swallow it. [`atomic_output`][diffcam.io.writing.atomic_output]
+    re-raises the signal itself once its temporary files are gone, so this is seen only if
+    that signal is blocked.
     """
 
     def __init__(self) -> None:
@@ -182,7 +185,7 @@ class Terminated(SystemExit):
 
 
 class _TermGuard:
-    """SIGTERM as :class:`Terminated` for the duration of one :func:`atomic_output`."""
+    """SIGTERM as `Terminated` for the duration of one `atomic_output`."""
 
     def __init__(self) -> None:
         self.deferring = False  # cleaning up or committing: record, do not raise
@@ -208,7 +211,7 @@ class _TermGuard:
             raise Terminated()
 
     def _again(self) -> None:
-        """Python dropped the :class:`Terminated` raised by :meth:`_handle`: as if the
+        """Python dropped the `Terminated` raised by `_handle`: as if the
         signal had not come yet, and it comes again."""
         self.received = self.deferring = False
         _send_again(signal.SIGTERM)
@@ -223,7 +226,7 @@ class _TermGuard:
 @contextlib.contextmanager
 def interrupts_as_keyboard_interrupt() -> Iterator[None]:
     """SIGINT raises ``KeyboardInterrupt`` as Python's default handler does, and a
-    ``KeyboardInterrupt`` that Python drops is delivered again (:func:`_redeliver_dropped`).
+    ``KeyboardInterrupt`` that Python drops is delivered again (`_redeliver_dropped`).
     Installed only from the main thread and only over Python's default handler."""
     main = threading.current_thread() is threading.main_thread()
     if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
@@ -290,9 +293,9 @@ def _create_temp(target: Path, *, probe: bool = False) -> tuple[int, Path]:
 
 
 def temporary_files(target: str | os.PathLike) -> set[Path]:
-    """The temporary files :func:`atomic_output` has beside ``target`` now: a hard-killed
-    writer leaves its own behind, and whoever ran it (a launcher of several processes)
-    removes the ones that were not there before."""
+    """The temporary files [`atomic_output`][diffcam.io.writing.atomic_output] has beside
+    ``target`` now: a hard-killed writer leaves its own behind, and whoever ran it (a
+    launcher of several processes) removes the ones that were not there before."""
     target = Path(os.path.realpath(target))
     hex8 = "[0-9a-f]" * 8  # secrets.token_hex(4), as _create_temp names them
     pattern = f".{glob.escape(target.stem)}.tmp-{hex8}{glob.escape(target.suffix)}"

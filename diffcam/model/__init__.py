@@ -1,11 +1,13 @@
 """Stage 2 — the camera model: the PSF at any depth (paper Eqs. 7–8) and its sensor.
 
-- :mod:`.camera` — :class:`Camera` (fixed geometry and traced physical numbers),
-  :class:`HeightMap`, :class:`Spectrum`, random diffusers;
-- :mod:`.point_spread` — the PSF of a point source (direct, or by the Fresnel scaling theorem);
-- :mod:`.stack` — PSF stacks over depths and positions: chunked, sharded, streamed,
+- `diffcam.model.camera` — [`Camera`][diffcam.model.camera.Camera] (fixed geometry and
+  traced physical numbers), [`HeightMap`][diffcam.model.camera.HeightMap],
+  [`Spectrum`][diffcam.model.camera.Spectrum], random diffusers;
+- `diffcam.model.point_spread` — the PSF of a point source (direct, or by the Fresnel
+  scaling theorem);
+- `diffcam.model.stack` — PSF stacks over depths and positions: chunked, sharded, streamed,
   saved and loaded;
-- :mod:`.sensor` — pixel integration, resampling, noise, saturation, quantisation.
+- `diffcam.model.sensor` — pixel integration, resampling, noise, saturation, quantisation.
 """
 
 from diffcam.core.lazy import attach_stub

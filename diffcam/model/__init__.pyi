@@ -1,6 +1,8 @@
-"""Stub of :mod:`diffcam.model`: its public names and the modules they come from.
+"""Stub of [`diffcam.model`][diffcam.model]: its public names and the modules they come
+from.
 
-diffcam/model/__init__.py imports each on first use (:mod:`diffcam.core.lazy`)."""
+diffcam/model/__init__.py imports each on first use
+([`diffcam.core.lazy`][diffcam.core.lazy])."""
 
 from diffcam.model.camera import Camera, HeightMap, Spectrum, random_diffuser, with_method
 from diffcam.model.field import (FieldPSF, chief_rays, field_psf, load_field_psf,

@@ -1,13 +1,13 @@
 """The diffuser camera as data: fixed geometry and the physical numbers users fit.
 
-- :class:`Camera` — grid, padding, crop and method (static: they fix shapes and code
+- `Camera` — grid, padding, crop and method (static: they fix shapes and code
   paths) beside wavelength, z2, pitch and aperture (array leaves: differentiable,
   ``vmap``-able, changed without recompiling);
-- :class:`HeightMap` — a diffuser given by its surface height (θd scales with 1/λ);
-- :class:`Spectrum` — broadband light;
-- :func:`random_diffuser` — a random phase screen like the paper's Fig. 6.
+- `HeightMap` — a diffuser given by its surface height (θd scales with 1/λ);
+- `Spectrum` — broadband light;
+- `random_diffuser` — a random phase screen like the paper's Fig. 6.
 
-The PSF these describe is :func:`diffcam.model.point_spread.psf` (paper Eq. 7).
+The PSF these describe is `diffcam.model.point_spread.psf` (paper Eq. 7).
 """
 
 from __future__ import annotations
@@ -199,7 +199,7 @@ class Spectrum(NamedTuple):
 
 
 def diffuser_phase(diffuser, wavelength, reference_wavelength) -> Float[Array, "ny nx"]:
-    """θd at ``wavelength`` (m) from a :class:`HeightMap` or a phase array (radians).
+    """θd at ``wavelength`` (m) from a `HeightMap` or a phase array (radians).
 
     A phase array is taken as given at ``reference_wavelength`` (m) and scaled by
     reference_wavelength/wavelength: a dispersion-free thin element.

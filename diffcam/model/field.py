@@ -19,16 +19,16 @@ spline through the positions ``c_p``) gives ``w_k(y, x)``, and the sensor image 
     b = crop( Σ_k g_k ∗ (w_k · x) ),
 
 a sum of ``K`` shift-invariant convolutions of the scene weighted across the field
-(:func:`diffcam.reconstruct.operators.field_model` builds the operator). In 3-D every
+(`diffcam.reconstruct.operators.field_model` builds the operator). In 3-D every
 depth has its own kernels and weights, and the sensor sums over depths. ``K`` is the
 smallest rank whose relative model error ``||H - H_K||_F / ||H||_F`` (the discarded
 singular values) is within a stated tolerance.
 
 Coordinates: positions are in sensor pixels relative to the optical axis (index
-``n//2``, :mod:`diffcam.core.grid`), ``(y, x)``; the object grid of a reconstruction is
+``n//2``, `diffcam.core.grid`), ``(y, x)``; the object grid of a reconstruction is
 on the same pixels, so the weight ``w_k`` at object pixel ``c_p`` is ``α_{p,k}``.
 A source at ``(y1, x1, z1)`` has its chief ray at ``−(y1, x1)·z2/z1`` on the sensor
-(:func:`chief_rays`).
+(`chief_rays`).
 """
 
 from __future__ import annotations
@@ -94,8 +94,8 @@ def register(psfs: Float[Array, "*depth npos my mx"],
 class FieldPSF(eqx.Module):
     """A field-dependent PSF as ``K`` kernels with weights at the field positions.
 
-    Build it with :func:`field_psf`; turn it into a forward model with
-    :func:`diffcam.reconstruct.operators.field_model`.
+    Build it with `field_psf`; turn it into a forward model with
+    `diffcam.reconstruct.operators.field_model`.
 
     Attributes:
         kernels: ``(K, [nz,] my, mx)`` the registered kernels ``g_k`` (optical axis at
@@ -161,14 +161,14 @@ def field_psf(psfs: ArrayLike, positions: ArrayLike, *, tolerance: float = 1e-2,
             set per depth), on one common scale, optical axis at ``(my//2, mx//2)``.
         positions: ``([nz,] npos, 2)`` or ``(npos, 2)`` (shared by every depth) chief
             rays of the PSFs, sensor pixels ``(y, x)`` from the axis (see
-            :func:`chief_rays`).
+            `chief_rays`).
         tolerance: the relative model error ``||H - H_K||_F / ||H||_F`` of the
             registered stack that the rank must reach (at every depth).
         rank: ``K`` itself (static; then ``tolerance`` is not used and the function is
             jit-compatible and differentiable in ``psfs`` and ``positions``).
 
     Returns:
-        :class:`FieldPSF`; its :meth:`FieldPSF.error` is the model error of the rank
+        `FieldPSF`; its `FieldPSF.error` is the model error of the rank
         chosen.
     """
     check_field(psfs, "psfs")
@@ -210,7 +210,7 @@ def _registered_svd(psfs, positions):
 
 @partial(jax.jit, static_argnames=("rank", "shape"))
 def _truncated(u, s, vt, positions, *, rank, shape):
-    """The :class:`FieldPSF` of the first ``rank`` singular triplets."""
+    """The `FieldPSF` of the first ``rank`` singular triplets."""
     singular_values = s
     u, s, vt = u[..., :rank], s[..., :rank], vt[..., :rank, :]
     # each kernel's weights: unit rms over the positions, non-negative on average
@@ -294,7 +294,7 @@ def thin_plate_weights(positions: Float[Array, "*depth npos 2"],
                        object_shape: Sequence[int]) -> Float[Array, "k *depth oy ox"]:
     """The thin-plate spline through ``values`` at ``positions`` (pixels ``(y, x)`` from
     the axis) on every pixel of an object grid ``(oy, ox)`` centred on the axis
-    (:mod:`diffcam.core.grid`); one row of the grid at a time, so memory is
+    (`diffcam.core.grid`); one row of the grid at a time, so memory is
     ``ox × npos`` per row. Beyond the positions it continues as a plane."""
     oy, ox = (int(n) for n in object_shape[-2:])
     x = jnp.arange(ox, dtype=positions.dtype) - ox // 2
@@ -311,9 +311,9 @@ def thin_plate_weights(positions: Float[Array, "*depth npos 2"],
 # ---------------------------------------------------------------------------- files
 
 def save_field_psf(path: str | os.PathLike, model: FieldPSF, **metadata) -> None:
-    """Write a :class:`FieldPSF` to ``.npz`` (exact round trip), with ``metadata``
+    """Write a `FieldPSF` to ``.npz`` (exact round trip), with ``metadata``
     (JSON-serialisable keywords: the camera, the tolerance, …) beside it. The file is
-    written atomically (:func:`diffcam.io.atomic_output`)."""
+    written atomically (`diffcam.io.atomic_output`)."""
     path = os.fspath(path)
     check_output_path(path, suffixes=(".npz",))
     meta = {"format": FORMAT, "version": FORMAT_VERSION, "rank": model.rank,
@@ -330,7 +330,7 @@ def save_field_psf(path: str | os.PathLike, model: FieldPSF, **metadata) -> None
 
 
 def load_field_psf(path: str | os.PathLike) -> tuple[FieldPSF, dict]:
-    """Read a file written by :func:`save_field_psf`: ``(model, metadata)``.
+    """Read a file written by `save_field_psf`: ``(model, metadata)``.
 
     Raises:
         DiffcamError: one line naming the file and what is wrong with it."""

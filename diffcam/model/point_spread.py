@@ -25,18 +25,18 @@ cubic B-spline interpolation (its prefilter folded into the transfer function) o
 *complex field* — band-limited at the grid's Nyquist — and squared afterwards: the
 intensity has twice the field's bandwidth, so interpolating it would blur speckle. The
 result is the irradiance at the sensor-grid points, like the direct path; integrating
-over pixels of another pitch is :func:`diffcam.model.sensor.bin_pixels`.
+over pixels of another pitch is `diffcam.model.sensor.bin_pixels`.
 
 ``"direct"`` — the literal Eq. 7 on the grid, for checking: the point-source chirp is
-sampled at the aperture, which aliases for close sources (a :class:`SamplingError`
+sampled at the aperture, which aliases for close sources (a `SamplingError`
 unless ``accept_undersampling=True``).
 
 Both propagate with the Fresnel transfer function on a grid zero-padded by
 ``Camera.pad`` per side (wrap-around otherwise) and return the centred ``Camera.crop``.
 
-Each path is two steps, which :mod:`diffcam.model.stack` runs over many depths: the
-fields the FFTs start from (:func:`fields_for_fft`) and what the FFTs make of them
-(:func:`irradiance`); a PSF is ``irradiance(fields_for_fft(...))``.
+Each path is two steps, which `diffcam.model.stack` runs over many depths: the
+fields the FFTs start from (`fields_for_fft`) and what the FFTs make of them
+(`irradiance`); a PSF is ``irradiance(fields_for_fft(...))``.
 """
 
 from __future__ import annotations
@@ -98,7 +98,7 @@ def _source_fields(diffuser, camera, wavelength, z1, positions):
 def zeff_factors(camera, wavelength, z1):
     """The scaling theorem's transfer function on the camera's padded grid, times the
     separable spline prefilter, as four vectors (hy, hx, by, bx): the product
-    (hy·hx)·(by·bx) multiplies the diffuser's spectrum (:func:`_zeff_spectrum`)."""
+    (hy·hx)·(by·bx) multiplies the diffuser's spectrum (`_zeff_spectrum`)."""
     ny, nx = camera.padded_shape
     hy, hx = transfer_factors((ny, nx), camera.dx, wavelength,
                               effective_distance(z1, camera.z2))
@@ -138,7 +138,7 @@ def sample_points(shape, camera, z1, y1=0.0, x1=0.0):
 def _magnified(field, camera, z1, y1, x1):
     """|·|² of the z_eff field magnified by M about the image of the source, at the
     sensor-grid points: the irradiance but for the constant 1/(Mλz1)² of the scaling
-    theorem (:func:`_source_constant`)."""
+    theorem (`_source_constant`)."""
     ty, tx = sample_points(field.shape[-2:], camera, z1, y1, x1)
     s = spline_sample(spline_sample(field, ty, -2), tx, -1)
     return s.real ** 2 + s.imag ** 2
@@ -157,7 +157,7 @@ def fields_for_fft(prepared, camera: Camera, wavelengths, z1, positions) -> Arra
     """What the FFTs of one depth start from, (nλ, n, ny, nx) complex: the source fields
     C·e^{jθd}·U1 (direct, n = npos) or the spectra of the z_eff fields (scaling, n = 1).
 
-    ``prepared`` is :func:`diffuser_fields`; ``positions`` (npos, 2) of (y1, x1), metres.
+    ``prepared`` is `diffuser_fields`; ``positions`` (npos, 2) of (y1, x1), metres.
     """
     def per_wavelength(prep, lam):
         if camera.method == "scaling":
@@ -167,8 +167,8 @@ def fields_for_fft(prepared, camera: Camera, wavelengths, z1, positions) -> Arra
 
 
 def irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions, normalise):
-    """:func:`irradiance`, and the two field-sized arrays its FFTs wrote (the executor in
-    :mod:`diffcam.model.stack` hands them back as the next call's buffers)."""
+    """`irradiance`, and the two field-sized arrays its FFTs wrote (the executor in
+    `diffcam.model.stack` hands them back as the next call's buffers)."""
     def per_wavelength(u, lam):
         constant = _source_constant(camera, lam, z1)
         if camera.method == "scaling":
@@ -186,7 +186,7 @@ def irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions, n
 
 def irradiance(fields, camera: Camera, wavelengths, weights, z1, positions,
                normalise: bool = True) -> Array:
-    """PSFs of one depth, (npos, ny, nx) on the crop, from :func:`fields_for_fft`:
+    """PSFs of one depth, (npos, ny, nx) on the crop, from `fields_for_fft`:
     |P_z2{·}|² (direct) or the magnified z_eff field (scaling), normalised per wavelength
     if asked, then averaged with the spectrum's ``weights``."""
     return irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions,
@@ -216,7 +216,7 @@ def _spectrum_or_camera(camera, wavelengths, weights):
 
 
 def _fields_of_phase(phase, camera, wavelengths, weights, z1, positions):
-    """First stage of :func:`psf`: the fields its FFTs start from, and whether the
+    """First stage of `psf`: the fields its FFTs start from, and whether the
     diffuser is finite (checked here rather than in a dispatch of its own)."""
     wavelengths, _ = _spectrum_or_camera(camera, wavelengths, weights)
     arr = phase.height if isinstance(phase, HeightMap) else phase
@@ -237,24 +237,24 @@ _psf = staged(_fields_of_phase, _irradiance_of_fields, static_argnames=("normali
 
 FIELD_SAMPLES_PER_CHUNK = 2 ** 20
 """Field samples computed together when PSFs are computed many at a time (a chunk of
-:func:`diffcam.model.stack.psf_stack`, a ``vmap`` of :func:`psf`): one depth at 1024²."""
+`diffcam.model.stack.psf_stack`, a ``vmap`` of `psf`): one depth at 1024²."""
 
 
 def items_per_chunk(camera: Camera, fields_per_item: int) -> int:
     """PSFs (depths, or any batched item) per chunk when each needs ``fields_per_item``
-    fields on the padded grid: about :data:`FIELD_SAMPLES_PER_CHUNK` samples, at least 1."""
+    fields on the padded grid: about `FIELD_SAMPLES_PER_CHUNK` samples, at least 1."""
     ny, nx = camera.padded_shape
     return max(1, FIELD_SAMPLES_PER_CHUNK // (ny * nx * max(1, fields_per_item)))
 
 
 def _one_source(prepared, camera, wavelengths, weights, z1, positions, normalise):
-    """PSFs of one source depth from :func:`diffuser_fields`' output: (npos, ny, nx)."""
+    """PSFs of one source depth from `diffuser_fields`' output: (npos, ny, nx)."""
     return irradiance(fields_for_fft(prepared, camera, wavelengths, z1, positions), camera,
                       wavelengths, weights, z1, positions, normalise)
 
 
 def _chunk_rule(in_batched, prepared, camera, wavelengths, weights, z1, positions):
-    """Chunks for a ``vmap`` of :func:`psf`: a batch of lateral positions alone on the
+    """Chunks for a ``vmap`` of `psf`: a batch of lateral positions alone on the
     scaling path is JAX's own batching (the z_eff field is shared, each position is a
     resampling of it); anything else (depths, wavelengths, diffusers, cameras) is
     computed a chunk at a time, each item its own fields."""
@@ -271,9 +271,9 @@ _depth_psfs = {normalise: in_chunks(lambda p, c, w, g, z, x, n=normalise:
 
 
 def _traced_psf(phase, camera, wavelengths, weights, z1, positions, normalise):
-    """:func:`psf` under a JAX transformation: the depth-independent diffuser fields,
+    """`psf` under a JAX transformation: the depth-independent diffuser fields,
     then the source's PSFs, which a ``vmap`` computes a chunk at a time
-    (:func:`diffcam.core.backend.in_chunks`)."""
+    (`diffcam.core.backend.in_chunks`)."""
     wavelengths, weights = _spectrum_or_camera(camera, wavelengths, weights)
     prepared = diffuser_fields(phase, camera, wavelengths)
     return _depth_psfs[normalise](prepared, camera, wavelengths, weights, z1, positions)[0]
@@ -287,7 +287,7 @@ def check_inputs(phase, camera, z1, offsets, wavelengths, accept_undersampling,
 
     ``z1`` and ``offsets`` (lateral distances |ρ1|, metres) may be arrays; the smallest
     z1 and largest offset are checked. ``finite=False`` leaves the NaN/Inf check of a
-    device-array diffuser to the caller (:func:`psf` computes it inside its jitted call);
+    device-array diffuser to the caller (`psf` computes it inside its jitted call);
     a NumPy one is checked here, before anything else can fail.
     """
     _check_phase(phase, camera, finite)
@@ -381,13 +381,14 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
     (shapes are still checked) — call once eagerly (one PSF is cheap) to validate;
-    :func:`diffcam.optics.sampling.plan_sampling` checks the sampling of the geometry alone,
-    without a phase.
+    [`diffcam.optics.sampling.plan_sampling`][diffcam.optics.sampling.plan_sampling] checks
+    the sampling of the geometry alone, without a phase.
 
     Args:
         phase: the diffuser: its phase θd on the camera grid (radians, at
-            ``camera.wavelength``), or a :class:`HeightMap`.
-        camera: the :class:`Camera` (its ``method`` picks scaling theorem or direct).
+            ``camera.wavelength``), or a [`HeightMap`][diffcam.model.camera.HeightMap].
+        camera: the [`Camera`][diffcam.model.camera.Camera] (its ``method`` picks scaling
+            theorem or direct).
         z1: source-to-aperture distance, metres (> 0).
         y1, x1: lateral source position, metres (keywords); the PSF moves by
             −(y1, x1)·z2/z1.
@@ -411,7 +412,7 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
             spectrum.
         SamplingError: ``method="direct"`` with an undersampled source chirp, a
             transfer function that aliases, or (``"scaling"``) a source so close that
-            the frame spans fewer than :data:`MIN_SAMPLES_ACROSS` diffuser samples.
+            the frame spans fewer than `MIN_SAMPLES_ACROSS` diffuser samples.
     """
     arguments = _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling)
     if _traced(phase, camera, arguments):
@@ -429,7 +430,7 @@ def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, y1=0.0, x1=0.0,
     depths at a time: the differentiable PSF stack.
 
     Pure and traceable (``jax.jit``, ``jax.grad``, ``jax.vmap``), unlike
-    :func:`diffcam.model.stack.psf_stack`, which runs on the host. The depths go
+    `diffcam.model.stack.psf_stack`, which runs on the host. The depths go
     through a ``lax.map`` of ``batch_size`` depths a step, the diffuser's field (its
     FFT on the scaling path) computed once for all of them; in reverse mode each chunk's
     PSFs are recomputed (``jax.checkpoint``) rather than kept, so a gradient's working
@@ -442,12 +443,12 @@ def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, y1=0.0, x1=0.0,
         fn: ``fn(psf)`` (``xs`` is ``None``) or ``fn(psf, x)``; ``psf`` is the
             ``camera.out_shape`` PSF of one depth; returns a pytree of arrays.
         phase, camera, y1, x1, spectrum, normalise, accept_undersampling: as in
-            :func:`psf`.
+            `psf`.
         z1: depths, metres, shape (nz,) (> 0).
         xs: a pytree of arrays with leading axis nz (a measured plane per depth, a
             weight), or ``None``.
         batch_size: depths per chunk; default about 2**20 field samples (one depth at
-            1024²), as :func:`~diffcam.model.stack.psf_stack`.
+            1024²), as `psf_stack`.
 
     Returns:
         ``fn``'s outputs stacked over depth (leading axis nz).
@@ -479,7 +480,7 @@ def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, y1=0.0, x1=0.0,
 
 
 def _traced(phase, camera, arguments) -> bool:
-    """Whether :func:`psf` runs under a JAX transformation: a tracer among the diffuser,
+    """Whether `psf` runs under a JAX transformation: a tracer among the diffuser,
     the camera's fields or the source. The fields are read from the camera's
     ``__dict__`` past equinox's attribute hook (2.5 µs an attribute; a tree walk cost
     an eager PSF 30 µs)."""
@@ -490,9 +491,9 @@ def _traced(phase, camera, arguments) -> bool:
 
 
 def _arguments(phase, camera, z1, y1, x1, spectrum, accept_undersampling):
-    """The checks, then what :func:`psf` passes to ``_psf`` after the phase and the
+    """The checks, then what `psf` passes to ``_psf`` after the phase and the
     camera: ``(wavelengths, weights, z1, positions)``. Remembered for a camera and a
-    plain-number source that passed (:data:`_PASSED`)."""
+    plain-number source that passed (`_PASSED`)."""
     remember = spectrum is None and not accept_undersampling and plain_numbers(z1, y1, x1)
     if remember:
         key = (id(camera), z1, y1, x1)

@@ -9,7 +9,7 @@ by a 3.45 µm sensor, cropped to 900×900 as the paper does::
     counts = quantise(saturate(e, full_well), bit_depth=12, full_well=full_well)
 
 Every step is pure and jit-able; randomness comes only from the explicit ``key``.
-:func:`bin_pixels` and :func:`resample` are differentiable; shot noise and quantisation
+`bin_pixels` and `resample` are differentiable; shot noise and quantisation
 are not (they are sampling and rounding).
 """
 
@@ -141,7 +141,7 @@ response decays as (2 − √3)^k, so light wrapped across 2·16 zeros is below 
 
 
 def _zero_extend(ref):
-    """``ref`` centred in a zero frame at least :data:`_SPLINE_PAD` wider on every side,
+    """``ref`` centred in a zero frame at least `_SPLINE_PAD` wider on every side,
     on an FFT-friendly length; index n//2 stays the centre, so does every coordinate."""
     widths = []
     for n in ref.shape[-2:]:

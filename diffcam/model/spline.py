@@ -20,7 +20,7 @@ the derivative with respect to ``t`` samples (spreads) with the weights' derivat
 orders work.
 
 Memory: along −2 whole rows are gathered in one fused operation, along −1 blocks of
-rows in a loop (:func:`_by_row_blocks`), which overwrite their own rows when the length
+rows in a loop (`_by_row_blocks`), which overwrite their own rows when the length
 is kept. A 2-D sampling of a field the caller no longer needs (the scaling-theorem PSF,
 and its transpose) then needs one N² buffer, not three: the scaling PSF's temporaries
 at 1024² went from 32 to 16 MB, its gradient's from 48 to 24 MB, both bit for bit the
@@ -65,7 +65,7 @@ def bspline(x, order: int = 0):
     A NumPy array in gives a NumPy array out (host-side resampling), anything else JAX.
 
     The piece is chosen by |x|, and β₃ is continuous with two derivatives: two roundings
-    of one ``x`` give two nearby values (see :func:`_taps`)."""
+    of one ``x`` give two nearby values (see `_taps`)."""
     xp = np if isinstance(x, np.ndarray) else jnp
     a = xp.abs(x)
 
@@ -88,7 +88,7 @@ def _taps(t, n, order, dtype):
     array for the gathers and the weights. Written as ``jnp.floor``, XLA may compute t
     once per consumer, and two roundings of a t at an integer put the weights on the
     wrong taps (a user's jit with constant geometry did: PSFs off by 5%); a weight
-    computed from another rounding of t differs only in its last bits (:func:`bspline`
+    computed from another rounding of t differs only in its last bits (`bspline`
     is continuous). Beyond the grid the search stops at −1 or n − 1, whose taps still
     cover every grid sample within reach."""
     i0 = _search(jnp.arange(n, dtype=t.dtype), t, "right").astype(jnp.int32)
@@ -167,7 +167,7 @@ def _sample(f, t, *, axis, order):
 
 
 def _spread(ct, t, *, n, axis, order):
-    """The transpose of :func:`_sample` onto ``n`` grid indices, as gathers (module): grid
+    """The transpose of `_sample` onto ``n`` grid indices, as gathers (module): grid
     index j gathers the points ``a ≤ i < b`` within two samples of it, in passes of
     ``_PASS`` gathers, as many as the most crowded index needs."""
     m = t.shape[0]

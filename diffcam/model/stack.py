@@ -1,11 +1,11 @@
 """PSF stacks over depths and lateral positions: chunked, sharded, streamed to disk.
 
-:func:`psf_stack` evaluates PSFs for every depth in ``z1`` (and every lateral position)
+`psf_stack` evaluates PSFs for every depth in ``z1`` (and every lateral position)
 in chunks of ``batch_size`` depths per device, each copied to a host array (or a
 memory-mapped file) while the next one computes, so at most two chunks are in flight
 and working memory is set by the chunk, not by the number of depths. A chunk is two
 jitted calls: the fields (or spectra) its FFTs start from, then the FFTs and
-intensities (see :func:`diffcam.model.point_spread.fields_for_fft`); both write over the last chunk's
+intensities (see `diffcam.model.point_spread.fields_for_fft`); both write over the last chunk's
 two field-sized buffers (donated), which spares a fresh, page-faulted buffer per call.
 A chunk holds one field per depth, wavelength and, on the direct path, lateral position.
 With
@@ -17,8 +17,8 @@ is then on every process, and a file is written by process 0 alone
 (docs/distributed.md). Everything the depths share (the diffuser's field, or its FFT on
 the scaling-theorem path) is computed once per process.
 
-Saving and loading (:func:`save_stack`, :func:`load_stack`) keep the metadata
-(:class:`StackMeta`) beside the pixels: ``.npz`` round-trips exactly; ``.tif`` is an
+Saving and loading (`save_stack`, `load_stack`) keep the metadata
+(`StackMeta`) beside the pixels: ``.npz`` round-trips exactly; ``.tif`` is an
 ImageJ hyperstack (axes ``ZYX``, or ``ZCYX`` with lateral positions as channels) with
 the metadata as JSON in the ImageJ ``Info`` property and the pitch as resolution.
 """
@@ -40,7 +40,7 @@ import numpy as np
 import tifffile
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from tqdm.auto import tqdm
+from tqdm import tqdm  # not tqdm.auto: it warns in Jupyter without ipywidgets
 
 from diffcam.model.camera import Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (irradiance_and_fields, check_inputs, diffuser_fields,
@@ -70,7 +70,7 @@ class StackMeta:
         wavelengths: metres; ``weights``: their relative power.
         camera: the camera's fields as plain numbers (``Camera`` attribute names).
         normalised: each PSF sums to one (else physical irradiance).
-        format_version: :data:`FORMAT_VERSION` of the writer.
+        format_version: `FORMAT_VERSION` of the writer.
     """
 
     depths: np.ndarray
@@ -167,7 +167,7 @@ def _chunk(prepared, camera, wavelengths, weights, z1, positions, normalise, sha
            buffers=None):
     """PSFs (nz, npos, ny, nx) for the depths ``z1``, and the ``buffers`` to pass to the
     next call. Two jitted calls, so that the second one starts with its FFTs (see
-    :func:`diffcam.model.point_spread.fields_for_fft`); both write over the last chunk's
+    `diffcam.model.point_spread.fields_for_fft`); both write over the last chunk's
     buffers. The first chunk has none to write over (``None``): it allocates them, and a
     stack of one chunk allocates nothing more."""
     scratch = (None, None) if buffers is None else buffers
@@ -193,7 +193,8 @@ def _offsets_array(positions):
 
 
 class PsfStackOptions(Options):
-    """How :func:`psf_stack` and :func:`iter_psf_stack` compute.
+    """How [`psf_stack`][diffcam.model.stack.psf_stack] and
+    [`iter_psf_stack`][diffcam.model.stack.iter_psf_stack] compute.
 
     Attributes:
         normalise: each PSF sums to one (default) or is the physical irradiance.
@@ -203,10 +204,10 @@ class PsfStackOptions(Options):
         devices: devices to shard the depth axis over (default ``jax.devices()``:
             every process's, after ``jax.distributed.initialize()``).
         accept_undersampling: turn sampling errors into warnings.
-        progress: :func:`psf_stack` shows a tqdm bar (on process 0 of several);
-            default on from 32 depths; ``DIFFCAM_PROGRESS=0`` turns it off.
-        to_host: :func:`iter_psf_stack` yields host numpy arrays (default) or device
-            arrays.
+        progress: [`psf_stack`][diffcam.model.stack.psf_stack] shows a tqdm bar (on process
+            0 of several); default on from 32 depths; ``DIFFCAM_PROGRESS=0`` turns it off.
+        to_host: [`iter_psf_stack`][diffcam.model.stack.iter_psf_stack] yields host numpy
+            arrays (default) or device arrays.
     """
 
     normalise: bool = True
@@ -218,7 +219,7 @@ class PsfStackOptions(Options):
 
 
 def _options_and_offsets(options, offsets, overrides):
-    """The :class:`PsfStackOptions` and the source offsets (y1, x1); the deprecated
+    """The `PsfStackOptions` and the source offsets (y1, x1); the deprecated
     ``positions=`` (x1, y1) keyword among ``overrides`` is turned into offsets."""
     positions = overrides.pop("positions", None)
     return PsfStackOptions.of(options, **overrides), _legacy_positions(offsets, positions)
@@ -242,7 +243,7 @@ def depth_list(z1) -> np.ndarray:
 
     Raises:
         DiffcamError: no depth, more than one axis, or a value that is not a finite
-            number > 0 (each checked by :func:`~diffcam.core.errors.check_positive`).
+            number > 0 (each checked by `check_positive`).
     """
     if np.ndim(z1) > 1:
         raise ShapeError(f"z1 must be one depth or a 1-D list of depths (nz,), got shape "
@@ -259,12 +260,12 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     (for work that stays on the device, a GPU reconstruction say; with several
     processes, a global array whose shards are on each process's devices). Other
     arguments as in
-    :func:`psf_stack`; the inputs are checked when this is called, before the first
-    chunk.
+    [`psf_stack`][diffcam.model.stack.psf_stack]; the inputs are checked when this is
+    called, before the first chunk.
 
     It runs on the host (it loops over chunks), so it cannot be traced and its input checks
     always run; to jit or differentiate through PSFs, ``jax.vmap``
-    :func:`~diffcam.model.point_spread.psf` over ``z1`` (its checks are skipped under
+    [`psf`][diffcam.model.point_spread.psf] over ``z1`` (its checks are skipped under
     ``jax.jit``: call it once eagerly to validate).
     """
     depths = depth_list(z1)
@@ -350,34 +351,36 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
 
     It runs on the host (it loops over chunks and may write a file), so it cannot be traced
     and its input checks always run; to jit or differentiate through PSFs, ``jax.vmap``
-    :func:`~diffcam.model.point_spread.psf` over ``z1`` (its checks are skipped under
+    [`psf`][diffcam.model.point_spread.psf] over ``z1`` (its checks are skipped under
     ``jax.jit``: call it once eagerly to validate).
 
     Args:
         phase: the diffuser (phase in radians at ``camera.wavelength``, or a
-            :class:`~diffcam.model.camera.HeightMap`).
-        camera: the :class:`~diffcam.model.camera.Camera`.
+            [`HeightMap`][diffcam.model.camera.HeightMap]).
+        camera: the [`Camera`][diffcam.model.camera.Camera].
         z1: depths, metres, shape (nz,) (non-empty, all > 0).
         offsets: ``(npos, 2)`` lateral source positions ``(y1, x1)``, metres (array
             order, like every lateral pair in diffcam); ``None`` for an on-axis source
             (the position axis is then dropped). ``positions=`` of (x1, y1) rows is the
             deprecated spelling.
-        spectrum: ``(wavelengths, weights)`` as in :func:`diffcam.model.point_spread.psf`.
+        spectrum: ``(wavelengths, weights)`` as in
+            [`diffcam.model.point_spread.psf`][diffcam.model.point_spread.psf].
         out: stream the stack to this file instead of memory: ``.npy`` (a memory-mapped
             array; metadata in ``<out>.json``), ``.npz`` (uncompressed, ``stack`` and
-            ``meta`` members, as :func:`save_stack` writes) or ``.tif``/``.tiff``
-            (ImageJ hyperstack written page by page, metadata inside). ``None`` keeps it
-            in memory. The
+            ``meta`` members, as [`save_stack`][diffcam.model.stack.save_stack] writes) or
+            ``.tif``/``.tiff`` (ImageJ hyperstack written page by page, metadata inside).
+            ``None`` keeps it in memory. The
             path is checked before anything is computed
-            (:func:`diffcam.io.check_output_path`), and the file is written atomically
-            (:func:`diffcam.io.atomic_output`): an existing file is replaced only once
-            the whole stack is written, and an error, Ctrl-C or SIGTERM meanwhile leaves
-            it as it was, with no temporary file behind. With several processes
-            (``jax.distributed``) process 0 writes it, and every process returns its
-            memory map once it is written: the folder must be one they all see.
-        options: :class:`PsfStackOptions` (``normalise``, ``batch_size``, ``devices``,
-            ``accept_undersampling``, ``progress``); keywords named after its fields
-            replace them.
+            ([`diffcam.io.check_output_path`][diffcam.io.writing.check_output_path]), and
+            the file is written atomically
+            ([`diffcam.io.atomic_output`][diffcam.io.writing.atomic_output]): an existing
+            file is replaced only once the whole stack is written, and an error, Ctrl-C or
+            SIGTERM meanwhile leaves it as it was, with no temporary file behind. With
+            several processes (``jax.distributed``) process 0 writes it, and every process
+            returns its memory map once it is written: the folder must be one they all see.
+        options: [`PsfStackOptions`][diffcam.model.stack.PsfStackOptions] (``normalise``,
+            ``batch_size``, ``devices``, ``accept_undersampling``, ``progress``); keywords
+            named after its fields replace them.
 
     Returns:
         float array ``(nz, npos, ny, nx)`` (or ``(nz, ny, nx)`` without positions):
@@ -421,7 +424,7 @@ def psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
 
 
 def _write(outputs, pages, shape, meta: StackMeta) -> None:
-    """Stream ``pages`` (blocks of PSFs) into ``outputs`` (:func:`_output_paths`)
+    """Stream ``pages`` (blocks of PSFs) into ``outputs`` (`_output_paths`)
     atomically: the old files stay as they were until every block is written."""
     path = outputs[0]
     if path.endswith(".npy"):  # pixels and metadata replace the old pair together
@@ -443,7 +446,7 @@ def _write(outputs, pages, shape, meta: StackMeta) -> None:
 
 
 def _open_written(path: str) -> np.ndarray:
-    """A read-only memory map of the stack in ``path``, written by :func:`_write`."""
+    """A read-only memory map of the stack in ``path``, written by `_write`."""
     if path.endswith(".npy"):
         return np.load(path, mmap_mode="r")
     if path.endswith(".npz"):
@@ -506,7 +509,7 @@ def _write_npz(path, blocks, shape, meta: StackMeta):
 
 
 def _memmap_npz_stack(path) -> np.memmap:
-    """A read-only memory map of the ``stack`` member :func:`_write_npz` stored
+    """A read-only memory map of the ``stack`` member `_write_npz` stored
     uncompressed: the array starts after the zip entry's local header and its .npy
     header (format 2.0), so nothing is read into memory."""
     with zipfile.ZipFile(path) as archive:
@@ -525,7 +528,8 @@ def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
     (ImageJ hyperstack, float32; the ImageJ Z spacing is the median depth step in mm).
 
     The path is checked first and the file written atomically
-    (:func:`diffcam.io.atomic_output`): an existing file is untouched on any failure."""
+    ([`diffcam.io.atomic_output`][diffcam.io.writing.atomic_output]): an existing file is
+    untouched on any failure."""
     path = os.fspath(path)
     if not path.endswith((".npz", ".tif", ".tiff")):
         raise DiffcamError(f"save_stack writes .npz, .tif or .tiff, got {path!r}.")
@@ -548,7 +552,8 @@ def save_stack(path: str | os.PathLike, stack, meta: StackMeta) -> None:
 
 
 def load_stack(path: str | os.PathLike) -> tuple[np.ndarray, StackMeta]:
-    """Read a stack written by :func:`save_stack` or :func:`psf_stack` (``out=``).
+    """Read a stack written by [`save_stack`][diffcam.model.stack.save_stack] or
+    [`psf_stack`][diffcam.model.stack.psf_stack] (``out=``).
 
     Raises:
         DiffcamError: one line naming the file and what is wrong with it (not a stack,

@@ -1,6 +1,8 @@
-"""Stub of :mod:`diffcam.optics`: its public names and the modules they come from.
+"""Stub of [`diffcam.optics`][diffcam.optics]: its public names and the modules they come
+from.
 
-diffcam/optics/__init__.py imports each on first use (:mod:`diffcam.core.lazy`)."""
+diffcam/optics/__init__.py imports each on first use
+([`diffcam.core.lazy`][diffcam.core.lazy])."""
 
 from diffcam.optics.elements import (apply_phase, circular_aperture, point_source_field,
                                      rectangular_aperture, thin_lens)

@@ -129,7 +129,7 @@ def spherical_wave(shape, dx, wavelength, z1, *, y1=0.0, x1=0.0):
     """The two 1-D factors ``(cy[:, None], cx[None, :])`` of the paraxial spherical wave
     exp(jk((x − x1)² + (y − y1)²)/(2 z1)) of a point source at (x1, y1, z1) (metres), on
     the centred grid of ``shape`` and pitch ``dx``: paper Eq. 2 without its constant
-    e^{jkz1}/(jλz1). Unchecked; :func:`point_source_field` is the checked entry."""
+    e^{jkz1}/(jλz1). Unchecked; `point_source_field` is the checked entry."""
     dy, dxx = pitch_yx(dx)
     cy = spherical_chirp(shape[-2], dy, wavelength, z1, y1)
     cx = spherical_chirp(shape[-1], dxx, wavelength, z1, x1)
@@ -155,7 +155,7 @@ def point_source_field(shape, dx, wavelength, z1, *, y1=0.0, x1=0.0, aperture_ra
     Raises:
         SamplingError: the chirp's local frequency exceeds Nyquist 1/(2·dx) within
             the checked radius. Close sources need the scaling-theorem path
-            (:mod:`diffcam.model.point_spread`), which never samples this chirp.
+            (`diffcam.model.point_spread`), which never samples this chirp.
     """
     _check_grid(shape, dx)
     check_positive("wavelength", wavelength, "m")
@@ -200,7 +200,7 @@ def apply_phase(field: Num[Array, "... ny nx"], phase: Float[Array, "... ny nx"]
 @jax.checkpoint
 def _phase_screen(field, phase):
     """U·e^{jθ}, recomputed in a reverse pass instead of kept for it: e^{jθ} costs a few
-    products (:func:`diffcam.core.phasor.expj`), keeping it a complex array written and
+    products (`diffcam.core.phasor.expj`), keeping it a complex array written and
     read again (a 4096² PSF's gradient: 448 → 320 MB of temporaries and about a sixth
     faster, ``benchmarks/bench_grad.py``)."""
     return field * expj(phase)

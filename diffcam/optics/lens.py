@@ -86,8 +86,8 @@ def fourier_lens(field: Num[Array, "... ny nx"], dx, wavelength, focal_length, *
 def inverse_fourier_lens(field: Num[Array, "... ny nx"], du, wavelength, focal_length
                          ) -> tuple[Complex[Array, "... ny nx"], tuple]:
     """Front-focal-plane field from the back-focal-plane field: inverse of
-    :func:`fourier_lens`. ``du`` is the far-field pitch (metres); returns the field and
-    its pitch λf/(N·du).
+    [`fourier_lens`][diffcam.optics.lens.fourier_lens]. ``du`` is the far-field pitch
+    (metres); returns the field and its pitch λf/(N·du).
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
     (shapes are still checked) — call once eagerly to validate.

@@ -3,17 +3,17 @@
 Three propagators, all pure, jitted, differentiable in their array and physical
 arguments, broadcasting over leading batch axes, complex64 unless given complex128:
 
-- :func:`fresnel_tf`       Fresnel transfer function  H = e^{jkz} e^{-jπλz(fx²+fy²)}
-- :func:`fresnel_ir`       Fresnel impulse response   h = e^{jkz}/(jλz) e^{jk(x²+y²)/(2z)}
-- :func:`angular_spectrum` exact scalar (Rayleigh–Sommerfeld) transfer function,
+- `fresnel_tf`       Fresnel transfer function  H = e^{jkz} e^{-jπλz(fx²+fy²)}
+- `fresnel_ir`       Fresnel impulse response   h = e^{jkz}/(jλz) e^{jk(x²+y²)/(2z)}
+- `angular_spectrum` exact scalar (Rayleigh–Sommerfeld) transfer function,
   band-limited after Matsushima & Shimobaba (2009), evanescent waves dropped
 
-and :func:`propagate`, which picks the method (and the padding) from the sampling
+and `propagate`, which picks the method (and the padding) from the sampling
 criterion: for a grid of width L = N·dx a transfer function is sampled while
 |z| ≤ dx·L/λ, the impulse response beyond (docs/design.md, "Transfer function vs
 impulse response").
 
-Conventions. Fields are centred (index N//2 is the axis, :mod:`diffcam.core.grid`). Kernels
+Conventions. Fields are centred (index N//2 is the axis, `diffcam.core.grid`). Kernels
 are built in FFT order and multiply ``fft2(field)`` directly: convolution is translation
 invariant, so no ``fftshift`` is needed in the hot path. Kernels are separable where the
 physics is (Fresnel TF and IR): two 1-D chirps whose outer product XLA fuses into the
@@ -25,7 +25,7 @@ intensity).
 .. warning:: Without padding, the FFT makes every propagation circular: light leaving
    one edge of the grid re-enters at the other. The low-level functions default to
    ``pad=0`` (so that a step costs exactly one FFT pair on the given grid);
-   :func:`propagate` pads automatically by the spread it predicts.
+   `propagate` pads automatically by the spread it predicts.
 """
 
 from __future__ import annotations
@@ -133,7 +133,7 @@ def spherical_chirp(n: int, dx, wavelength, z, centre=0.0):
     """exp(jπ(t − centre)²/(λz)) on the centred axis t of ``n`` samples at pitch ``dx``:
     the 1-D factor of a paraxial spherical wave (metres). Computed on its own, not once
     per sample of the N² product that consumes it
-    (:func:`diffcam.core.backend.separable_factor`)."""
+    (`diffcam.core.backend.separable_factor`)."""
     def chirp(i):
         t = coord_at(i, n, dx) - centre
         return expj(jnp.pi * (t * t) / (wavelength * z))
@@ -143,7 +143,7 @@ def spherical_chirp(n: int, dx, wavelength, z, centre=0.0):
 def fresnel_tf_factors(shape, dy, dx, wavelength, z):
     """The Fresnel transfer function exp(−jπλz(fy² + fx²)), piston left out, as its two
     1-D factors in FFT order, ``(ny, 1)`` and ``(1, nx)`` (each computed on its own:
-    :func:`diffcam.core.backend.separable_factor`); pitches, wavelength and z in metres."""
+    `diffcam.core.backend.separable_factor`); pitches, wavelength and z in metres."""
     return _chirp_factors(shape, dy, dx, wavelength * z)
 
 
@@ -198,7 +198,7 @@ def transfer_function(shape, dx, wavelength, z, method: str = "angular_spectrum"
     """The kernel that multiplies ``fft2(field)`` (FFT order, piston included).
 
     For loops that propagate the same distance many times (phase retrieval): build it
-    once with this, then call :func:`apply_transfer` inside the loop.
+    once with this, then call `apply_transfer` inside the loop.
 
     Args:
         shape: ``(..., ny, nx)`` of the (already padded) field.
@@ -224,7 +224,7 @@ def _kernel(shape, dy, dx, wavelength, z, p, method, band_limit):
 
 
 def transfer_factors(shape, dx, wavelength, z):
-    """The Fresnel transfer function of :func:`transfer_function` (``"fresnel_tf"``) as
+    """The Fresnel transfer function of `transfer_function` (``"fresnel_tf"``) as
     its two 1-D factors, ``(ny, 1)`` with the piston and ``(1, nx)``, for a caller that
     forms their product itself (the scaling-theorem PSF, under ``jax.checkpoint``, so
     that reverse mode keeps the vectors rather than the N² kernel)."""
@@ -242,7 +242,7 @@ def apply_transfer(field: Complex[Array, "... ny nx"],
 
 def _step(u, H, in_place=True):
     """``ifft2(fft2(u) · H)``. For a prebuilt or separable H through
-    :func:`diffcam.core.backend.transfer_step`; a kernel computed per sample (the angular
+    `diffcam.core.backend.transfer_step`; a kernel computed per sample (the angular
     spectrum's square root and exponential) costs more computed serially than the inverse
     FFT loses, so it is multiplied as one plain product."""
     return transfer_step(u, H) if in_place else ifft2(fft2(u) * H)
@@ -285,7 +285,7 @@ def _run(method, field, dx, wavelength, z, pad, accept_undersampling, band_limit
 
 def _prepare(method, shape, cdt, dx, wavelength, z, pad, accept_undersampling):
     """The geometry's checks, then ``(pad as (py, px), geometry vector)`` for
-    :func:`_propagate_core`, or None for z = 0 (the identity)."""
+    `_propagate_core`, or None for z = 0 (the identity)."""
     _check_lengths(dx, wavelength, z)
     check_grid_size(shape, pad)
     pad = int_pair(pad, "pad")
@@ -298,7 +298,7 @@ def _prepare(method, shape, cdt, dx, wavelength, z, pad, accept_undersampling):
 
 @lru_cache(maxsize=256)
 def _prepare_plain(*args):
-    """:func:`_prepare` remembered for plain-number geometry: an eager call with a
+    """`_prepare` remembered for plain-number geometry: an eager call with a
     geometry that passed before skips the checks (35 µs of Python against 150 µs of
     device work for a 128² step). Not used with ``accept_undersampling``, whose warnings
     must repeat; a geometry that fails raises every time (errors are not remembered).
@@ -310,7 +310,7 @@ def _prepare_plain(*args):
 
 @lru_cache(maxsize=256)
 def _prepare_on_device(*args):
-    """:func:`_prepare_plain` with the geometry vector on the device, for an eager call
+    """`_prepare_plain` with the geometry vector on the device, for an eager call
     on a device array: no host-to-device copy per call (17 µs of a 128² step's 200).
     Only then: inside someone's trace a device array kept here would become an argument
     of their program (above), which a field that is itself a device array does anyway."""
@@ -324,7 +324,7 @@ def fresnel_tf(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
     (shapes are still checked) — call once eagerly to validate, or check the geometry alone
-    (no field) with :func:`choose_propagation` or :func:`critical_distance`.
+    (no field) with `choose_propagation` or `critical_distance`.
 
     Args:
         field: complex field, last two axes space (centred grid).
@@ -350,11 +350,11 @@ def fresnel_ir(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0,
 
     Convolution with h = e^{jkz}/(jλz) e^{jk(x²+y²)/(2z)} sampled on the grid. Accurate
     for ``|z| ≥ N·dx²/λ``; not exactly invertible (the sampled kernel is not unitary).
-    Arguments as in :func:`fresnel_tf`.
+    Arguments as in [`fresnel_tf`][diffcam.optics.propagation.fresnel_tf].
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
     (shapes are still checked) — call once eagerly to validate, or check the geometry alone
-    (no field) with :func:`choose_propagation` or :func:`critical_distance`.
+    (no field) with `choose_propagation` or `critical_distance`.
     """
     return _run("fresnel_ir", field, dx, wavelength, z, pad, accept_undersampling)
 
@@ -367,7 +367,7 @@ def angular_spectrum(field: Num[Array, "... ny nx"], dx, wavelength, z, *, pad=0
     With ``band_limit=True`` frequencies beyond 1/(λ√((2z/L)² + 1)) are also dropped
     (Matsushima & Shimobaba 2009), which removes the aliasing of the kernel at long
     distances; for short distances the limit lies beyond the grid's Nyquist and changes
-    nothing. Arguments as in :func:`fresnel_tf`.
+    nothing. Arguments as in [`fresnel_tf`][diffcam.optics.propagation.fresnel_tf].
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
     (shapes are still checked) — call once eagerly to validate.
@@ -384,7 +384,7 @@ def magnification(z1, z2):
     plane-wave field for a point source at ``z1`` and a sensor at ``z2`` (metres).
 
     A field g times a spherical wave diverging from distance z1, propagated by z2, is
-    g propagated by :func:`effective_distance` and magnified by M, scaled in amplitude by
+    g propagated by `effective_distance` and magnified by M, scaled in amplitude by
     1/M, times a known quadratic phase (docs/design.md, "Fresnel scaling theorem").
     """
     return (z1 + z2) / z1
@@ -392,14 +392,14 @@ def magnification(z1, z2):
 
 def effective_distance(z1, z2):
     """z_eff = z1·z2/(z1 + z2) (metres): the plane-wave propagation distance of the
-    scaling theorem (see :func:`magnification`)."""
+    scaling theorem (see `magnification`)."""
     return z1 * z2 / (z1 + z2)
 
 
 # ------------------------------------------------------------------------ the chooser
 
 class PropagationChoice(NamedTuple):
-    """What :func:`propagate` ran, and why."""
+    """What `propagate` ran, and why."""
 
     method: str
     pad: tuple[int, int]
@@ -468,13 +468,13 @@ def choose_propagation(shape, dx, wavelength, z, pad=(0, 0)) -> PropagationChoic
 
 def plan_propagation(field: Num[Array, "... ny nx"], dx, wavelength, z, *,
                      method: str = "auto", pad="auto") -> PropagationChoice:
-    """The method and padding :func:`propagate` runs for these arguments, and why.
+    """The method and padding `propagate` runs for these arguments, and why.
 
     Args:
         field: complex field (concrete when ``pad="auto"``: its support and bandwidth
             set the padding).
         dx, wavelength, z: metres.
-        method: ``"auto"`` (see :func:`choose_propagation`) or one of the methods.
+        method: ``"auto"`` (see `choose_propagation`) or one of the methods.
         pad: ``"auto"`` (the spread predicted from the field's support and bandwidth,
             rounded up to an FFT-friendly size) or an int / ``(py, px)``.
     """
@@ -503,7 +503,7 @@ def propagate(field: Num[Array, "... ny nx"], dx, wavelength, z, *, method: str 
               pad="auto", accept_undersampling: bool = False, verbose: bool = False
               ) -> Complex[Array, "... ny nx"]:
     """Propagate ``field`` by ``z`` with the method and padding the sampling calls for
-    (:func:`plan_propagation` says which, and why).
+    (`plan_propagation` says which, and why).
 
     Args:
         field: complex field, last two axes space (centred grid), concrete when
@@ -511,12 +511,12 @@ def propagate(field: Num[Array, "... ny nx"], dx, wavelength, z, *, method: str 
         dx: pitch, metres per sample (scalar or ``(dy, dx)``).
         wavelength: metres.
         z: metres.
-        method, pad: as for :func:`plan_propagation`.
+        method, pad: as for `plan_propagation`.
         accept_undersampling: warn instead of raising on an aliased kernel.
         verbose: print the choice.
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
-    (shapes are still checked) — call once eagerly to validate, or :func:`plan_propagation`
+    (shapes are still checked) — call once eagerly to validate, or `plan_propagation`
     with the concrete arguments.
 
     Under an outer ``jit`` the automatic choices need concrete values: pass ``method``

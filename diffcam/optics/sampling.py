@@ -1,6 +1,6 @@
 """The sampling planner: is a diffuser-camera simulation sampled, before anything runs?
 
-:func:`plan_sampling` takes the geometry of paper Eq. 7 (point source at depth z1 and
+`plan_sampling` takes the geometry of paper Eq. 7 (point source at depth z1 and
 lateral offset ρ1, aperture of radius R with a diffuser, sensor at z2) and the grid
 (N samples of pitch dx), and reports, with margins:
 
@@ -65,7 +65,7 @@ def point_source_max_frequency(wavelength, z1, radius, offset=0.0) -> float:
 def check_point_source_sampling(wavelength: float, z1: float, radius: float, offset: float,
                                 dx: float, where: str, accept_undersampling: bool) -> None:
     """The one check of the point-source chirp (paper Eq. 2) against Nyquist 1/(2·dx):
-    a :class:`~diffcam.SamplingError` (or a warning if accepted) that says what to change.
+    a `SamplingError` (or a warning if accepted) that says what to change.
     Lengths in metres; ``where`` names the radius checked ("at the aperture edge")."""
     f_max = point_source_max_frequency(wavelength, z1, radius, offset)
     nyquist = 1 / (2 * dx)
@@ -80,7 +80,7 @@ def check_point_source_sampling(wavelength: float, z1: float, radius: float, off
 
 @dataclass(frozen=True)
 class SamplingPlan:
-    """What :func:`plan_sampling` found. Lengths in metres, frequencies in cycles/m."""
+    """What `plan_sampling` found. Lengths in metres, frequencies in cycles/m."""
 
     wavelength: float
     dx: float
@@ -175,7 +175,7 @@ def plan_sampling(wavelength: float, dx: float, n: int, z1: float, z2: float,
             e.g. tan(1°)/λ ≈ 33 cycles/mm for a 1° diffuser at 532 nm).
 
     Returns:
-        A :class:`SamplingPlan`; ``print(plan)`` gives a readable report.
+        A `SamplingPlan`; ``print(plan)`` gives a readable report.
     """
     for name, v in (("wavelength", wavelength), ("dx", dx), ("z1", z1), ("z2", z2),
                     ("aperture_radius", aperture_radius)):

@@ -25,7 +25,7 @@ with ``B`` smooth polynomials on the sensor and ``c`` free; the ``x = Hv`` updat
 minimises over ``x`` and ``c`` together, which leaves for ``c`` the least-squares fit of
 ``B`` to ``b - C(Hv + ξ/μ1)``.
 
-A field-dependent model (:class:`~diffcam.reconstruct.operators.FieldModel`) in place of
+A field-dependent model (`FieldModel`) in place of
 the PSF has no ``HᵀH`` diagonal in any basis, so its ``v`` update is *linearised*
 (Yang & Yuan, Math. Comp. 82, 301, 2013): ``mu1 HᵀH`` is replaced by ``mu1 L`` with
 ``L >= ||H||²`` plus the data term's gradient at the previous iterate,
@@ -45,8 +45,8 @@ Scaling: like the DiffuserCam code (2-D tutorial and 3-D solver), the PSF (the w
 stack for a volume) is divided by its L2 norm, so the penalties ``mu1..mu3`` do not
 depend on the PSF's units nor on the image's (every term of the augmented Lagrangian
 scales with ``||b||²``); the weights ``tau``, ``tau_axial``, ``sparsity`` scale with the
-image: the tutorial's ``tau = 1e-4`` and :data:`VOLUME`'s weights are for an
-L2-normalised image (:func:`diffcam.io.normalise_l2`), the DiffuserCam 3-D solver's
+image: the tutorial's ``tau = 1e-4`` and `VOLUME`'s weights are for an
+L2-normalised image (`diffcam.io.normalise_l2`), the DiffuserCam 3-D solver's
 ``tau = 6e-4`` for raw counts minus the bias. Inside, the image is divided by its L2
 norm too and the weights with it (every iterate is then the same up to that factor), so
 a faint (1e-25) or bright (1e30) image computes in float32 without a square under- or
@@ -83,13 +83,14 @@ __all__ = ["AdmmOptions", "MAX_BACKGROUND_DEGREE", "TUTORIAL_2D", "VOLUME", "adm
            "admm_tv_3d", "legendre_terms"]
 
 MAX_BACKGROUND_DEGREE = 8
-"""Highest degree of :attr:`AdmmOptions.background` (45 polynomials)."""
+"""Highest degree of `AdmmOptions.background` (45 polynomials)."""
 _AXES = (-2, -1)
 _BOUNDARIES = ("crop", "circular")
 
 
 class AdmmOptions(Options):
-    """Settings of the ADMM-TV solvers (:func:`admm_tv`, :func:`admm_tv_3d`).
+    """Settings of the ADMM-TV solvers ([`admm_tv`][diffcam.reconstruct.admm.admm_tv],
+    [`admm_tv_3d`][diffcam.reconstruct.admm.admm_tv_3d]).
 
     The PSF is divided by its L2 norm inside the solver, so the penalties ``mu1..mu3``
     are dimensionless; the weights ``tau``, ``tau_axial`` and ``sparsity`` are in the
@@ -169,7 +170,7 @@ class AdmmOptions(Options):
 
 
 TUTORIAL_2D = AdmmOptions(mu1=1e-6, mu2=1e-5, mu3=4e-5, tau=1e-4)
-"""The DiffuserCam 2-D tutorial's settings, :func:`admm_tv`'s defaults (for an
+"""The DiffuserCam 2-D tutorial's settings, `admm_tv`'s defaults (for an
 L2-normalised image)."""
 
 VOLUME = AdmmOptions(mu1=0.5, mu2=0.25, mu3=0.5, tau=1e-5, tau_axial=2e-6, sparsity=2e-5,
@@ -196,17 +197,19 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100,
             negatives).
         psf: ``(..., my, mx)`` PSF, non-negative, ``my <= ny``, ``mx <= nx``; leading axes
             broadcast with the image's. Or a 2-D forward model
-            (:class:`~diffcam.reconstruct.operators.FieldModel`, boundary ``"crop"`` or
+            (`FieldModel`, boundary ``"crop"`` or
             ``"circular"``) for the image's sensor (module docstring).
         iterations: iterations (static). The DiffuserCam tutorial shows 5; 50–200 converge
             much further.
-        options: :class:`AdmmOptions`; default :data:`TUTORIAL_2D` (``tau = 1e-4`` is for
-            an L2-normalised image); keywords named after its fields replace them.
-        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
+        options: [`AdmmOptions`][diffcam.reconstruct.admm.AdmmOptions]; default
+            `TUTORIAL_2D` (``tau = 1e-4`` is for an L2-normalised image); keywords named
+            after its fields replace them.
+        progress: a progress bar for runs over 2 s
+            ([`diffcam.core.progress`][diffcam.core.progress]).
 
     Returns:
-        :class:`Reconstruction`; ``image`` is the non-negative split variable ``w``,
-        ``(..., oy, ox)``.
+        [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction]; ``image`` is the
+        non-negative split variable ``w``, ``(..., oy, ox)``.
     """
     options = AdmmOptions.of(options or TUTORIAL_2D, **overrides)
     return _admm(image, psf, iterations, options, volume=False, progress=progress)
@@ -224,17 +227,19 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100,
         image: ``(..., ny, nx)`` sensor image.
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale, or a
             list of ``(my, mx)`` arrays; or a 3-D forward model
-            (:class:`~diffcam.reconstruct.operators.FieldModel`).
+            (`FieldModel`).
         iterations: iterations (static).
-        options: :class:`AdmmOptions`; default ``AdmmOptions()``: DiffuserCam's 3-D
-            settings (μ = 1e-3, isotropic 3-D TV with ``tau = 6e-4`` for raw counts
-            minus the bias); keywords named after its fields replace them.
-        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
+        options: [`AdmmOptions`][diffcam.reconstruct.admm.AdmmOptions]; default
+            ``AdmmOptions()``: DiffuserCam's 3-D settings (μ = 1e-3, isotropic 3-D TV with
+            ``tau = 6e-4`` for raw counts minus the bias); keywords named after its fields
+            replace them.
+        progress: a progress bar for runs over 2 s
+            ([`diffcam.core.progress`][diffcam.core.progress]).
 
     Returns:
-        :class:`Reconstruction` with ``image`` the volume ``(..., nz, oy, ox)`` and,
-        with ``background``, ``background`` the fitted sensor background ``(..., ny,
-        nx)`` in the image's units.
+        [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction] with ``image`` the
+        volume ``(..., nz, oy, ox)`` and, with ``background``, ``background`` the fitted
+        sensor background ``(..., ny, nx)`` in the image's units.
     """
     options = AdmmOptions.of(options, **overrides)
     return _admm(image, as_psf_stack(psf_stack), iterations, options, volume=True,
@@ -371,7 +376,7 @@ def _basis(otf, grid, a, dtype, nz=None) -> _Basis:
 
 
 class _ExactData(NamedTuple):
-    """The data term of a shift-invariant model: ``v`` solved exactly (:func:`_v_update`)."""
+    """The data term of a shift-invariant model: ``v`` solved exactly (`_v_update`)."""
 
     basis: _Basis
 
@@ -489,7 +494,7 @@ def legendre_terms(shape: tuple, degree: int) -> tuple[np.ndarray, list]:
 
 
 def _background(shape, degree, dtype) -> _Background:
-    """:func:`legendre_terms` orthonormalised on the sensor's pixels."""
+    """`legendre_terms` orthonormalised on the sensor's pixels."""
     if degree is None:
         return _Background(jnp.zeros((0,) + tuple(shape), dtype))
     terms = legendre_terms(shape, degree)[0]

@@ -45,7 +45,7 @@ def as_psf_stack(psfs: Any) -> Any:
 
 def check_operator(model: Any, image_shape: Sequence[int], *, volume: bool | None = None,
                    boundaries: Sequence[str] | None = None, solver: str = "the solver") -> bool:
-    """True if ``model`` is a forward model (:class:`~diffcam.reconstruct.operators.
+    """True if ``model`` is a forward model (`
     FieldModel`) given in place of a PSF, after checking it against the sensor image
     (and, if given, its dimensionality and boundary); False for a PSF array."""
     if not isinstance(model, FieldModel):
@@ -69,7 +69,7 @@ def check_psf(psf: Any, image_shape: Sequence[int], *, min_ndim: int = 2) -> Any
 
     Returns the PSF, with negatives down to ``-1e-5·max(psf)`` (the rounding left by a
     background subtraction or an FFT) clipped to 0 and reported by one
-    :class:`diffcam.io.BackgroundWarning`; deeper negatives raise.
+    `diffcam.io.BackgroundWarning`; deeper negatives raise.
     """
     real_array("psf", psf)
     check_field(psf, "psf")
@@ -170,7 +170,7 @@ def check_scale(image, psf, dtype) -> None:
 
 def check_iterations(iterations: Any, name: str = "iterations") -> int:
     """``iterations`` (or the count called ``name``) as a positive Python int, at most
-    :data:`MAX_ITERATIONS` (it fixes the history length: static); a bool is no count."""
+    `MAX_ITERATIONS` (it fixes the history length: static); a bool is no count."""
     if isinstance(iterations, jax.core.Tracer) or not isinstance(iterations, numbers.Integral) \
             or isinstance(iterations, (bool, np.bool_)):
         raise DiffcamError(

@@ -45,7 +45,7 @@ def nonnegative_least_squares(forward: Callable, adjoint: Callable, data, x0,
         tol: relative change of the objective that stops the loop, or ``None``.
 
     Returns:
-        ``(x, residual, objective, iterations, converged)`` as :func:`iterate` gives them;
+        ``(x, residual, objective, iterations, converged)`` as `iterate` gives them;
         the residual is ``||A y - b|| / ||b||`` at the extrapolated point of each step.
     """
     def step(state):
@@ -73,18 +73,18 @@ def fista(image: ArrayLike, psf: ArrayLike, iterations: int = 200, *,
         image: ``(..., ny, nx)`` sensor image (background subtracted).
         psf: ``(..., my, mx)`` PSF, non-negative, at most the image size; leading axes
             broadcast with the image's (one PSF per colour channel, or one shared). Or a
-            forward model (:class:`~diffcam.reconstruct.operators.FieldModel`, 2-D or
+            forward model (`FieldModel`, 2-D or
             3-D) for the image's sensor: it brings its own boundary, and its step is
             ``1 / (1.1 ||A||²)`` with ``||A||`` from 30 power iterations.
         iterations: iterations (static); the only regularisation.
         boundary: ``"crop"`` (DiffuserCam model; the estimate is on the larger object
-            grid), ``"same"`` or ``"circular"`` (:mod:`diffcam.reconstruct.operators`).
+            grid), ``"same"`` or ``"circular"`` (`diffcam.reconstruct.operators`).
         tol: stop early when the objective changes by less than ``tol`` (relative).
         progress: a progress bar for runs over 2 s.
 
     Returns:
-        :class:`Reconstruction`, ``image`` in the units of ``image / psf`` (so
-        ``A x ≈ b`` with the PSF as given).
+        [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction], ``image`` in the units
+        of ``image / psf`` (so ``A x ≈ b`` with the PSF as given).
     """
     if boundary not in BOUNDARIES:
         raise DiffcamError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}.")

@@ -1,6 +1,6 @@
 """Depth search: which plane of a PSF stack explains a sensor image best.
 
-:func:`focus_sweep` deconvolves the image once per PSF (one batched, jitted solver call)
+`focus_sweep` deconvolves the image once per PSF (one batched, jitted solver call)
 and ranks the planes by a focus measure:
 
 * ``"misfit"`` (default): the relative data misfit ``||A x − b|| / ||b||`` the solver
@@ -9,7 +9,7 @@ and ranks the planes by a focus measure:
   unexplained. On the shipped 3-D DiffuserCam capture (a tilted USAF target, 44 planes)
   the ADMM-TV misfit has one shallow minimum at plane 28 (0.0389 against 0.045 at
   plane 0), inside the depth range the 3-D reconstruction gives the target.
-* ``"sharpness"``: :func:`sharpness`, the ratio of the mean square to the squared mean
+* ``"sharpness"``: `sharpness`, the ratio of the mean square to the squared mean
   of each reconstruction. It is right on synthetic stacks but depends on the solver on
   that capture: of Richardson–Lucy reconstructions (30 iterations) it falls steadily
   from plane 0 to plane 43 and picks plane 0, the end of the stack; of ADMM-TV ones it
@@ -36,13 +36,14 @@ MEASURES = ("misfit", "sharpness")
 
 
 class FocusSweep(NamedTuple):
-    """Result of :func:`focus_sweep`.
+    """Result of [`focus_sweep`][diffcam.reconstruct.focus.focus_sweep].
 
     Attributes:
-        reconstruction: :class:`Reconstruction` with a depth axis before the two space
-            axes, ``(..., nz, oy, ox)``.
+        reconstruction: [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction] with a
+            depth axis before the two space axes, ``(..., nz, oy, ox)``.
         misfit: ``(..., nz)`` the relative data misfit reached with each plane's PSF.
-        sharpness: ``(..., nz)`` :func:`sharpness` of each plane's reconstruction.
+        sharpness: ``(..., nz)`` [`sharpness`][diffcam.reconstruct.focus.sharpness] of each
+            plane's reconstruction.
         best: ``(...)`` int, the plane the chosen measure ranks first (least misfit, or
             sharpest).
     """
@@ -75,14 +76,14 @@ def focus_sweep(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100, *
         image: ``(..., ny, nx)`` sensor image, dark level subtracted.
         psf_stack: ``(nz, my, mx)`` PSFs over depth (or a list of ``(my, mx)`` arrays).
         iterations: solver iterations per plane.
-        method: ``"admm"`` (:func:`~diffcam.reconstruct.admm_tv` on the image scaled to
-            unit L2 norm, the scale its default ``tau`` is meant for; each PSF is
-            normalised inside) or ``"rl"`` (:func:`~diffcam.reconstruct.richardson_lucy`).
+        method: ``"admm"`` ([`admm_tv`][diffcam.reconstruct.admm.admm_tv] on the image
+            scaled to unit L2 norm, the scale its default ``tau`` is meant for; each PSF is
+            normalised inside) or ``"rl"`` (`richardson_lucy`).
         measure: ``"misfit"`` or ``"sharpness"`` (module docstring).
         **options: passed to the solver (``tau=``, ``boundary=``, ``progress=``, ...).
 
     Returns:
-        :class:`FocusSweep`.
+        [`FocusSweep`][diffcam.reconstruct.focus.FocusSweep].
 
     Raises:
         DiffcamError: an unknown method or measure; the solver's own input errors.

@@ -63,7 +63,7 @@ def iterate(step: Callable, state, iterations: int, tol: Array | None):
     ``lax.while_loop`` that stops once ``|f_k - f_{k-1}| <= tol·|f_{k-1}|`` for the
     objective ``f`` (forward-mode only). Returns ``(state, residual, objective,
     iterations, converged)`` with NaN-filled histories of length ``iterations``. Each
-    iteration ticks the open progress bar (:mod:`diffcam.core.progress`).
+    iteration ticks the open progress bar (`diffcam.core.progress`).
     """
     if tol is None:
         def scan_step(s, k):

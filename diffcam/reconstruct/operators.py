@@ -24,16 +24,16 @@ A volume model (``volume=True``) takes a PSF stack ``(..., nz, my, mx)``, one PS
 depth, and an object ``(..., nz, oy, ox)``; the sensor image is the sum over depths,
 ``b = crop(sum_z h_z * x_z)``.
 
-A camera whose PSF changes across the field is :class:`FieldModel`, the low-rank model
-of :mod:`diffcam.model.field` (Yanny et al. 2020): ``K`` kernels ``g_k`` and their
+A camera whose PSF changes across the field is [`FieldModel`][diffcam.reconstruct.operators.FieldModel], the low-rank model
+of `diffcam.model.field` (Yanny et al. 2020): ``K`` kernels ``g_k`` and their
 weights ``w_k`` on the object grid, ``b = crop(Σ_k g_k * (w_k · x))`` (per depth, summed,
 in 3-D), on the same grids and with the same boundaries. The solvers take it in place
 of a PSF.
 
-Grids follow :mod:`diffcam.core.grid`: index ``n//2`` of every axis is the optical axis, so
+Grids follow `diffcam.core.grid`: index ``n//2`` of every axis is the optical axis, so
 the sensor's centre pixel sees the object's centre pixel through the PSF sample at
 ``m//2``. ``psf_centre`` moves that PSF sample (scikit-image's convention puts it at
-``(m-1)//2``, see :mod:`diffcam.reconstruct.richardson_lucy`).
+``(m-1)//2``, see `diffcam.reconstruct.richardson_lucy`).
 """
 
 from __future__ import annotations
@@ -99,9 +99,10 @@ def _crop_grid(n: int, m: int) -> int:
 class ConvolutionModel(eqx.Module):
     """The linear map ``A``: object ``(..., [nz,] oy, ox)`` → sensor ``(..., ny, nx)``.
 
-    Build it with :func:`convolution_model`. ``model(x)`` is ``A x``; ``model.adjoint(y)``
-    is ``Aᵀ y`` (exact: ``<A x, y> = <x, Aᵀ y>`` to rounding). Leading axes of the OTF
-    and of the arguments broadcast.
+    Build it with [`convolution_model`][diffcam.reconstruct.operators.convolution_model].
+    ``model(x)`` is ``A x``; ``model.adjoint(y)`` is ``Aᵀ y`` (exact:
+    ``<A x, y> = <x, Aᵀ y>`` to rounding). Leading axes of the OTF and of the arguments
+    broadcast.
 
     Attributes:
         otf: ``(..., [nz,] fy, fx//2+1)`` complex, real FFT of the PSF on the FFT grid,
@@ -167,7 +168,7 @@ class FieldModel(eqx.Module):
     """The field-dependent linear map ``A``: object ``(..., [nz,] oy, ox)`` → sensor
     ``(..., ny, nx)``, ``A x = crop(Σ_k g_k * (w_k · x))`` (Σ over depths too in 3-D).
 
-    Build it with :func:`field_model`. ``model(x)`` is ``A x``, ``model.adjoint(y)`` is
+    Build it with `field_model`. ``model(x)`` is ``A x``, ``model.adjoint(y)`` is
     ``Aᵀ y = Σ_k w_k · (g_k ⋆ pad(y))`` (exact to rounding). The sum over ``k`` is a
     ``lax.scan`` accumulating into one spectrum (forward) or one object (adjoint), so
     the working memory does not grow with ``K``; an evaluation costs ``K + 1`` real
@@ -177,7 +178,7 @@ class FieldModel(eqx.Module):
         otf: ``(K, [nz,] fy, fx//2+1)`` complex, real FFTs of the kernels on the FFT
             grid, their axis sample moved to index 0.
         weights: ``(K, [nz,] oy, ox)`` the kernels' weights on the object grid.
-        sensor_shape, object_shape, fft_shape: as :class:`ConvolutionModel`'s.
+        sensor_shape, object_shape, fft_shape: as `ConvolutionModel`'s.
         boundary: ``"same"``, ``"circular"`` or ``"crop"``.
         volume: True if the model sums over a depth axis (-3).
     """
@@ -214,7 +215,7 @@ class FieldModel(eqx.Module):
         return self.blur_adjoint(pad_to(sensor, self.fft_shape))
 
     def blur_adjoint(self, image: Float[Array, "*batch fy fx"]) -> Float[Array, "*batch oy ox"]:
-        """The adjoint of :meth:`blur`: ``Σ_k w_k · (g_k ⋆ image)``."""
+        """The adjoint of `blur`: ``Σ_k w_k · (g_k ⋆ image)``."""
         spectrum = rfft2(image)
         if self.volume:
             spectrum = spectrum[..., None, :, :]
@@ -242,9 +243,9 @@ def field_model(psf: FieldPSF, sensor_shape: Sequence[int], boundary: str = "cro
     """The forward model of a camera whose PSF changes across the field.
 
     Args:
-        psf: a :class:`diffcam.model.field.FieldPSF` (from
-            :func:`diffcam.model.field.field_psf` or
-            :func:`diffcam.model.field.load_field_psf`); with a depth axis it gives a
+        psf: a `diffcam.model.field.FieldPSF` (from
+            `diffcam.model.field.field_psf` or
+            `diffcam.model.field.load_field_psf`); with a depth axis it gives a
             volume model.
         sensor_shape: ``(ny, nx)`` samples; the kernels ``(my, mx)`` fit inside it.
         boundary: ``"crop"`` (the DiffuserCam model), ``"same"`` or ``"circular"``
@@ -293,7 +294,7 @@ def gradient(x: Float[Array, "*batch ny nx"]) -> Float[Array, "2 *batch ny nx"]:
 
 
 def divergence(g: Float[Array, "2 *batch ny nx"]) -> Float[Array, "*batch ny nx"]:
-    """Negative adjoint of :func:`gradient`: ``div = -gradientᵀ``."""
+    """Negative adjoint of `gradient`: ``div = -gradientᵀ``."""
     return (g[0] - jnp.roll(g[0], 1, axis=-2)) + (g[1] - jnp.roll(g[1], 1, axis=-1))
 
 

@@ -1,7 +1,8 @@
 """Richardson–Lucy deconvolution (paper Eq. 15), its accelerated and TV-regularised
 variants, and 3-D (PSF-stack) reconstruction.
 
-The update, for a sensor image ``b``, forward model ``A`` (:mod:`.operators`) and estimate
+The update, for a sensor image ``b``, forward model ``A`` (`diffcam.reconstruct.operators`)
+and estimate
 ``x``::
 
     x  <-  x · Aᵀ( b / (A x + eps) ) / Aᵀ1
@@ -41,7 +42,7 @@ Variants:
   ``λ = 1e-2`` over tens of iterations (float32 and float64 ones disagree). A
   backtracking line search along the update (Lange, IEEE TMI 9, 439, 1990) would make
   the objective fall at every step, but at ``λ = 0.05`` it halves the step 6 times an
-  iteration on average. For strong TV use :func:`~diffcam.reconstruct.admm_tv`.
+  iteration on average. For strong TV use `admm_tv`.
 """
 
 from __future__ import annotations
@@ -79,7 +80,8 @@ _RISE = 1e-4  # a TV-RL objective rising by more than this fraction in one step 
 
 
 class RichardsonLucyOptions(Options):
-    """How :func:`richardson_lucy` and :func:`richardson_lucy_3d` iterate.
+    """How [`richardson_lucy`][diffcam.reconstruct.richardson_lucy.richardson_lucy] and
+    [`richardson_lucy_3d`][diffcam.reconstruct.richardson_lucy.richardson_lucy_3d] iterate.
 
     Attributes:
         boundary: ``"same"`` (zero-padded linear convolution), ``"circular"`` or
@@ -96,7 +98,8 @@ class RichardsonLucyOptions(Options):
             value, as scikit-image's, with ``convention="skimage"``).
         filter_epsilon: where ``A x + eps < filter_epsilon`` the ratio is set to 0
             (scikit-image's argument, relative like ``eps``); None or 0 disables it.
-        progress: a progress bar for runs over 2 s (:mod:`diffcam.core.progress`).
+        progress: a progress bar for runs over 2 s
+            ([`diffcam.core.progress`][diffcam.core.progress]).
     """
 
     boundary: str = "same"
@@ -124,26 +127,29 @@ def richardson_lucy(image: ArrayLike, psf: ArrayLike, iterations: int = 150, *,
         psf: ``(..., my, mx)`` PSF at the sensor pitch, non-negative, optical axis at
             ``(my//2, mx//2)``; ``my <= ny``, ``mx <= nx``. Leading axes of ``image`` and
             ``psf`` broadcast: one call deconvolves one image by a stack of PSFs (see
-            :func:`focus_sweep`) or a stack of images by one PSF. Or a 2-D forward
-            model (:class:`~diffcam.reconstruct.operators.FieldModel`) for the image's
+            [`focus_sweep`][diffcam.reconstruct.focus.focus_sweep]) or a stack of images by
+            one PSF. Or a 2-D forward model
+            ([`FieldModel`][diffcam.reconstruct.operators.FieldModel]) for the image's
             sensor: it brings its own boundary and units (the estimate is in the units
             of ``image`` over the model's), with ``convention="adjoint"``.
         iterations: iterations (static: it fixes the history length).
         init: initial estimate (object-grid shape, non-negative), default the constant
             that matches the image's flux (0.5 for ``convention="skimage"``).
-        options: :class:`RichardsonLucyOptions`; keywords named after its fields
-            (``boundary``, ``convention``, ``accelerate``, ``tv_weight``, ``tol``,
-            ``eps``, ``filter_epsilon``, ``progress``) replace them.
+        options:
+            [`RichardsonLucyOptions`][diffcam.reconstruct.richardson_lucy.RichardsonLucyOptions];
+            keywords named after its fields (``boundary``, ``convention``, ``accelerate``,
+            ``tv_weight``, ``tol``, ``eps``, ``filter_epsilon``, ``progress``) replace them.
 
     Returns:
-        :class:`Reconstruction` with ``image`` of shape ``(..., oy, ox)``: ``(ny, nx)`` for
-        ``"same"``/``"circular"``, the object grid of :func:`.operators.grid_shapes` for
-        ``"crop"``. Its values are in the units of ``image / sum(psf)``.
+        [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction] with ``image`` of shape
+        ``(..., oy, ox)``: ``(ny, nx)`` for ``"same"``/``"circular"``, the object grid of
+        `diffcam.reconstruct.operators.grid_shapes` for ``"crop"``. Its values are in the
+        units of ``image / sum(psf)``.
 
     Raises:
         DiffcamError: negative, NaN/Inf, non-numeric or all-zero inputs, inputs or an
             estimate outside the float range it computes in, ``iterations`` outside
-            1 … :data:`~diffcam.reconstruct.checks.MAX_ITERATIONS`, or a
+            1 … `MAX_ITERATIONS`, or a
             convention/boundary combination that does not exist.
         ShapeError: a PSF larger than the image, or batch axes that do not broadcast.
     """
@@ -159,8 +165,8 @@ def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int =
 
     The model is ``b = crop(Σ_z h_z * x_z)``: every depth plane of the object is blurred
     by the PSF of its depth and the sensor sees the sum. The update is the one of
-    :func:`richardson_lucy` with ``A`` this sum and ``Aᵀ`` back-projecting into every
-    plane, so all planes are solved together.
+    [`richardson_lucy`][diffcam.reconstruct.richardson_lucy.richardson_lucy] with ``A`` this
+    sum and ``Aᵀ`` back-projecting into every plane, so all planes are solved together.
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
     (shapes are still checked) — call once eagerly (``iterations=1`` is enough) to validate.
@@ -169,15 +175,18 @@ def richardson_lucy_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int =
         image: ``(..., ny, nx)`` sensor image, non-negative.
         psf_stack: ``(..., nz, my, mx)`` PSFs, one per depth, on one common scale (their
             relative intensities matter), or a list of ``(my, mx)`` arrays; or a 3-D
-            forward model (:class:`~diffcam.reconstruct.operators.FieldModel`).
-        iterations, init: as for :func:`richardson_lucy`.
-        options: :class:`RichardsonLucyOptions` (default ``boundary="crop"``, the
-            DiffuserCam model; ``convention`` must be ``"adjoint"`` and
-            ``filter_epsilon`` is not used); keywords named after its fields replace
-            them.
+            forward model ([`FieldModel`][diffcam.reconstruct.operators.FieldModel]).
+        iterations, init: as for
+            [`richardson_lucy`][diffcam.reconstruct.richardson_lucy.richardson_lucy].
+        options:
+            [`RichardsonLucyOptions`][diffcam.reconstruct.richardson_lucy.RichardsonLucyOptions]
+            (default ``boundary="crop"``, the DiffuserCam model; ``convention`` must be
+            ``"adjoint"`` and ``filter_epsilon`` is not used); keywords named after its
+            fields replace them.
 
     Returns:
-        :class:`Reconstruction` whose ``image`` is the volume ``(..., nz, oy, ox)``.
+        [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction] whose ``image`` is the
+        volume ``(..., nz, oy, ox)``.
     """
     opts = RichardsonLucyOptions.of(options or RichardsonLucyOptions(boundary="crop"),
                                     **overrides)
@@ -282,9 +291,9 @@ def _check_estimate_range(image, psf, dtype) -> None:
 
 
 def _warn_if_oscillating(objective, tv_weight) -> None:
-    """A :class:`ConvergenceWarning` when the TV-RL objective (``(batch, iterations)``,
+    """A `ConvergenceWarning` when the TV-RL objective (``(batch, iterations)``,
     NaN after an early stop) rose between two iterations by more than
-    :data:`_RISE` of its value. Plain RL lowers it at every step; TV-RL with a large
+    `_RISE` of its value. Plain RL lowers it at every step; TV-RL with a large
     weight oscillates and its estimate keeps changing (module docstring)."""
     with np.errstate(divide="ignore", invalid="ignore"):  # an objective of exactly 0
         rise = np.nanmax(np.diff(objective, axis=-1) / np.abs(objective[..., 1:]), initial=0)
@@ -375,7 +384,7 @@ def _positive(scale):
 
 
 def _rl_normalised(b, psf, x0, weights: _Weights, config: _Config) -> Reconstruction:
-    """:func:`_rl_solve` on the normalised problem (``max b = 1`` unless skimage's)."""
+    """`_rl_solve` on the normalised problem (``max b = 1`` unless skimage's)."""
     forward, back, sensitivity, seen, x0 = _operators(b, psf, x0, config)
     eps, filter_epsilon = weights.eps, weights.filter_epsilon
     use_tv, use_filter, accelerate = config.use_tv, config.use_filter, config.accelerate

@@ -52,9 +52,10 @@ def wiener(image: ArrayLike, psf: ArrayLike, regularization: float = 1e-3, *,
         boundary: ``"circular"``, ``"same"`` or ``"crop"``.
 
     Returns:
-        :class:`Reconstruction` with one-entry histories: the relative misfit of the
-        estimate under the chosen model (with the normalised PSF), and the Tikhonov
-        functional. The estimate is linear in the image and can be negative.
+        [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction] with one-entry
+        histories: the relative misfit of the estimate under the chosen model (with the
+        normalised PSF), and the Tikhonov functional. The estimate is linear in the image
+        and can be negative.
 
     Raises:
         DiffcamError: NaN/Inf in ``image``, ``psf`` or ``regularization`` (named), a
