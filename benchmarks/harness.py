@@ -85,18 +85,113 @@ def time_against(unit: Callable[[], object], candidates: dict[str, Callable[[], 
     return out
 
 
+PEERS = ("scipy", "skimage", "pyfftw", "torch", "LightPipes", "diffractsim", "scico",
+         "optimistix", "optax", "jaxopt", "equinox", "lineax")
+"""Libraries a benchmark compares against or builds on: their versions are recorded
+(and shown on RESULTS.md) when the benchmark imported them."""
+
+_START = {"date": None, "loadavg": None}
+
+
+def _mark_start() -> None:
+    """Note the time and load now: where the next result's run began."""
+    _START.update(date=_utc_now(), loadavg=list(os.getloadavg()))
+
+
+def _utc_now() -> str:
+    from datetime import datetime, timezone
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _cpu_model() -> str | None:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or None
+
+
+def _memory_gb() -> float | None:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                return round(int(line.split()[1]) * 1024 / 2**30, 2)
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _version(module: str) -> str | None:
+    """The version of an imported module (its distribution's where it has none)."""
+    m = sys.modules.get(module)
+    if m is None:
+        return None
+    v = getattr(m, "__version__", None)
+    if v is None:
+        from importlib import metadata
+        for dist in metadata.packages_distributions().get(module, []):
+            try:
+                return metadata.version(dist)
+            except metadata.PackageNotFoundError:
+                pass
+    return None if v is None else str(v)
+
+
 def machine() -> dict:
-    """Facts about the machine and library versions, for the JSON record."""
-    info = {"python": sys.version.split()[0], "platform": platform.platform(),
-            "cpus": os.cpu_count(), "loadavg": os.getloadavg()}
-    for mod in ("jax", "numpy", "scipy", "skimage", "pyfftw", "torch", "LightPipes",
-                "diffractsim"):
-        try:
-            m = __import__(mod)
-            info[mod] = getattr(m, "__version__", "?")
-        except Exception:
-            info[mod] = None
-    return info
+    """The machine: CPU model, logical cores, memory (GiB), platform."""
+    return {"cpu_model": _cpu_model(), "cpus": os.cpu_count(), "memory_gb": _memory_gb(),
+            "platform": platform.platform()}
+
+
+def versions() -> dict:
+    """Python, JAX, jaxlib, NumPy and diffcam, and every peer of :data:`PEERS` that
+    this process imported (its value ``None`` when it did not)."""
+    import jax
+    import jaxlib
+    import numpy
+    from diffcam.core.version import installed_version
+    out = {"python": sys.version.split()[0], "jax": jax.__version__,
+           "jaxlib": jaxlib.__version__, "numpy": numpy.__version__,
+           "diffcam": installed_version()}
+    out.update({peer: _version(peer) for peer in PEERS})
+    return out
+
+
+def _git() -> dict | None:
+    """The commit the benchmark ran at, and the tracked files changed since it."""
+    import subprocess
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                              text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=root, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if head.returncode:
+        return None
+    return {"commit": head.stdout.strip(),
+            "modified": [line[3:] for line in dirty.stdout.splitlines()]}
+
+
+def command_line() -> str:
+    """The command that started this process, as typed (``python -m benchmarks.…``),
+    prefixed by the settings of the environment that change what runs (``JAX_*``,
+    ``XLA_*``, ``DIFFCAM_*``, ``OMP_NUM_THREADS``)."""
+    import shlex
+    env = [f"{k}={shlex.quote(v)}" for k, v in sorted(os.environ.items())
+           if k.startswith(("JAX_", "XLA_", "DIFFCAM_")) or k == "OMP_NUM_THREADS"]
+    argv = list(getattr(sys, "orig_argv", None) or [sys.executable, *sys.argv])
+    argv[0] = "python"
+    return " ".join(env + [shlex.join(argv)])
+
+
+PROVENANCE = ("workload", "benchmark", "command_line", "date", "load", "machine",
+              "versions", "git")
+"""The keys :func:`write_json` writes beside the rows; a workload's ``extra`` may not
+use them."""
 
 
 def markdown_table(rows: list[dict], columns: list[str]) -> str:
@@ -111,11 +206,28 @@ def markdown_table(rows: list[dict], columns: list[str]) -> str:
 
 
 def write_json(name: str, rows: list[dict], extra: dict | None = None) -> Path:
-    """Write ``benchmarks/results/<name>.json`` with the rows and the machine record."""
+    """Write ``benchmarks/results/<name>.json``: the rows, the workload's ``extra`` and
+    the record of the run (:data:`PROVENANCE`): the benchmark module that called, the
+    command line, the dates (UTC) and 1-, 5- and 15-minute load averages at its start
+    and now, the machine (:func:`machine`), the versions (:func:`versions`) and the git
+    commit. The start is when this module was imported, or when the previous result
+    of this process was written (``benchmarks.run`` runs several workloads in one)."""
+    clash = set(extra or {}) & set(PROVENANCE + ("rows",))
+    if clash:
+        raise ValueError(f"extra keys {sorted(clash)} would hide the run's record")
+    caller = sys._getframe(1).f_globals
+    spec = caller.get("__spec__")
+    module = spec.name if spec is not None else Path(caller.get("__file__", "?")).stem
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
-    record = {"workload": name, "machine": machine(), "rows": rows, **(extra or {})}
+    record = {"workload": name, "benchmark": module.rsplit(".", 1)[-1],
+              "command_line": command_line(),
+              "date": {"start": _START["date"], "end": _utc_now()},
+              "load": {"start": _START["loadavg"], "end": list(os.getloadavg())},
+              "machine": machine(), "versions": versions(), "git": _git(),
+              "rows": rows, **(extra or {})}
     path.write_text(json.dumps(record, indent=2, default=str))
+    _mark_start()
     return path
 
 
@@ -152,3 +264,6 @@ def run_probed(cmd: list[str], cwd=None, timeout: float = 3600) -> dict:
                            text=True, timeout=timeout,
                            cwd=cwd or Path(__file__).resolve().parents[1])
     return json.loads(probe.stdout.strip().splitlines()[-1])
+
+
+_mark_start()
