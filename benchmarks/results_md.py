@@ -4,9 +4,11 @@
     python -m benchmarks.results_md --check    # exit 1 if RESULTS.md is not what it writes
 
 One section per JSON file, in :data:`SECTIONS` order (others after, by name): the
-command that wrote it, the machine it ran on, a table of its rows and the workload's
-own verdict when it records one. RESULTS.md holds the current results only; a
-benchmark run rewrites its JSON, and this command the page.
+command that wrote it, when, on which machine, at what load and with which versions
+(:func:`benchmarks.harness.write_json` records them), a table of its rows and the
+workload's own verdict when it records one; last, the benchmarks of
+``benchmarks/bench_*.py`` that have no result yet. RESULTS.md holds the current results
+only; a benchmark run rewrites its JSON, and this command the page.
 """
 
 from __future__ import annotations
@@ -16,12 +18,15 @@ import json
 import sys
 from pathlib import Path
 
-from benchmarks.harness import RESULTS
+from benchmarks.harness import PEERS, RESULTS
 
 PAGE = Path(__file__).resolve().parent / "RESULTS.md"
+BENCH_DIR = Path(__file__).resolve().parent
 
 SECTIONS = {
-    # JSON name: (title, command, columns of the table: None for every scalar column)
+    # JSON name: (title, command, columns of the table: None for every scalar column).
+    # The command is the JSON's own ``command_line`` where it records one; the one
+    # given here stands for results recorded before the harness kept command lines.
     "demo": ("`diffcam demo`, run after run",
              "python -m benchmarks.bench_demo --runs 2 --cpus all 1",
              ["cpus", "run", "wall_s", "peak_gb", "fig3_gs", "fig3_calibrated",
@@ -103,14 +108,47 @@ SECTIONS = {
                     "python -m benchmarks.bench_distributed",
                     ["config", "N", "depths", "repeat", "psfs_per_s", "peak_mb_each",
                      "first_s"]),
+    "overhead": ("Per-call overhead on small grids: each public call against the same "
+                 "computation fused in one `jax.jit`",
+                 "python -m benchmarks.bench_overhead", None),
+    "cli_memory": ("Peak memory of `diffcam psf` against the number of depths",
+                   "python -m benchmarks.bench_cli_memory", None),
+    "real_data": ("The README's real-data commands: wall time, peak memory and scores, "
+                  "against the command line's former defaults",
+                  "python -m benchmarks.bench_real_data", None),
+    "full_resolution": ("A full-size capture through `diffcam reconstruct`'s defaults, "
+                        "against the 4× box-averaged pair",
+                        "python -m benchmarks.bench_full_resolution --full DIR", None),
+    "retrieval": ("Phase retrieval: Gerchberg–Saxton iterations per second against numpy "
+                  "and scipy.fft, and time to a phase Pearson",
+                  "python -m benchmarks.bench_retrieval", None),
+    "deconvolve": ("Richardson–Lucy against scikit-image, and ADMM-TV on the tutorial pair",
+                   "python -m benchmarks.bench_deconvolve", None),
+    "scene_psf": ("The paper's Table 1 on real data: a PSF calibrated from scenes, every "
+                  "solver scored on held-out captures",
+                  "python -m benchmarks.bench_scene_psf", None),
+    "fig6_seeds": ("The demo's Fig. 6 calibration over capture-noise seeds",
+                   "python -m benchmarks.bench_fig6_seeds", None),
 }
 
-NOT_RECORDED = ["bench_propagate", "bench_retrieval", "bench_psf", "bench_deconvolve",
-                "bench_grad", "bench_fft", "bench_overhead", "bench_cli_memory",
-                "bench_real_data", "bench_fig6_seeds", "bench_scene_psf",
-                "bench_full_resolution"]
-"""Workloads whose results are not committed: the pages that quote them name the
-command, and running it writes the JSON this page is generated from."""
+
+
+def benchmarks(bench_dir: Path = BENCH_DIR) -> list[str]:
+    """The benchmark modules, ``bench_<name>`` for every ``benchmarks/bench_*.py``."""
+    return sorted(p.stem for p in bench_dir.glob("bench_*.py"))
+
+
+def benchmark_of(name: str, record: dict, modules: list[str]) -> str | None:
+    """The benchmark module that wrote results JSON ``name``: as the JSON records it, or
+    for results recorded before the harness kept it, the module whose name the JSON's
+    starts with (``stack_fit_lbfgs`` → ``bench_stack_fit``; the longest such)."""
+    if record.get("benchmark"):
+        return record["benchmark"]
+    stem = name.removeprefix("bench_")
+    fits = [m for m in modules
+            if stem == m.removeprefix("bench_") or stem.startswith(m.removeprefix("bench_") + "_")]
+    return max(fits, key=len) if fits else None
+
 
 HEADER = """# Benchmark results
 
@@ -141,19 +179,43 @@ def _table(rows: list[dict], columns: list[str] | None) -> str:
     return "\n".join(lines)
 
 
-def _machine(m: dict) -> str:
-    load = m.get("loadavg") or [float("nan")]
-    libs = ", ".join(f"{k} {m[k]}" for k in ("jax", "numpy", "scipy") if m.get(k))
-    return (f"Ran on {m.get('cpus', '?')} CPUs at load {load[0]:.1f} (1-minute average "
-            f"at the end), Python {m.get('python', '?')}, {libs}.")
+def _load(values) -> str:
+    return "/".join(f"{v:.1f}" for v in values) if values else "not recorded"
+
+
+def _provenance(record: dict) -> str:
+    """When, where, at what load and with which versions a result ran."""
+    m = record.get("machine", {})
+    if "versions" not in record:  # recorded before the harness kept the whole record
+        libs = ", ".join(f"{k} {m[k]}" for k in ("jax", "numpy", "scipy") if m.get(k))
+        load = m.get("loadavg") or [float("nan")]
+        return (f"Ran on {m.get('cpus', '?')} CPUs at load {load[0]:.1f} (1-minute "
+                f"average at the end), Python {m.get('python', '?')}, {libs}; this JSON "
+                "does not record its date, command line, CPU model, memory, load at the "
+                "start, or jaxlib and diffcam versions.")
+    v, date, load, git = record["versions"], record["date"], record["load"], record.get("git")
+    core = ", ".join(f"{k} {v[k]}" for k in ("python", "jax", "jaxlib", "numpy", "diffcam"))
+    peers = ", ".join(f"{k} {v[k]}" for k in PEERS if v.get(k)) or "none"
+    at = ""
+    if git:
+        changed = git.get("modified") or []
+        at = f" at commit {git['commit'][:10]}" + (
+            f" (tracked files changed: {', '.join(changed)})" if changed else "")
+    start, end = (date.get("start") or "?"), (date.get("end") or "?")
+    return (f"Ran {start} → {end}{at}. Machine: {m.get('cpu_model')}, "
+            f"{m.get('cpus')} cores, {m.get('memory_gb')} GiB, {m.get('platform')}. "
+            f"Load average (1/5/15 min): {_load(load.get('start'))} at the start, "
+            f"{_load(load.get('end'))} at the end. Versions: {core}; peers imported: "
+            f"{peers}.")
 
 
 def section(name: str, record: dict) -> str:
     """The Markdown section of one results JSON."""
     title, command, columns = SECTIONS.get(
         name, (name, f"python -m benchmarks.bench_{name}", None))
+    command = record.get("command_line") or command
     parts = [f"## {title}", "", f"`{command}` → `benchmarks/results/{name}.json`. "
-             + _machine(record.get("machine", {}))]
+             + _provenance(record)]
     rows = record.get("rows") or []
     if rows:
         parts += ["", _table(rows, columns)]
@@ -162,13 +224,26 @@ def section(name: str, record: dict) -> str:
     return "\n".join(parts)
 
 
-def render(results: Path = RESULTS) -> str:
+def load_records(results: Path = RESULTS) -> dict[str, dict]:
+    """Every results JSON in ``results``, by name."""
+    return {p.stem: json.loads(p.read_text()) for p in sorted(results.glob("*.json"))}
+
+
+def unrecorded(records: dict[str, dict], modules: list[str]) -> list[str]:
+    """The benchmark modules that no results JSON comes from."""
+    done = {benchmark_of(n, r, modules) for n, r in records.items()}
+    return [m for m in modules if m not in done]
+
+
+def render(results: Path = RESULTS, bench_dir: Path = BENCH_DIR) -> str:
     """The whole page from the JSON files in ``results``."""
-    records = {p.stem: json.loads(p.read_text()) for p in sorted(results.glob("*.json"))}
+    records = load_records(results)
     order = [n for n in SECTIONS if n in records] + sorted(set(records) - set(SECTIONS))
-    missing = ", ".join(f"`python -m benchmarks.{b}`" for b in NOT_RECORDED)
-    parts = [HEADER] + [section(n, records[n]) for n in order] + [
-        "## Workloads without a committed result\n\n" + missing + "."]
+    parts = [HEADER] + [section(n, records[n]) for n in order]
+    missing = unrecorded(records, benchmarks(bench_dir))
+    if missing:
+        parts.append("## Benchmarks without a committed result\n\n"
+                     + ", ".join(f"`python -m benchmarks.{b}`" for b in missing) + ".")
     return "\n\n".join(parts) + "\n"
 
 
