@@ -132,6 +132,10 @@ SECTIONS = {
 }
 
 
+EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"]}
+"""Keys of a results JSON besides its rows that the page shows as tables too: a dict
+as measure and value, a list of dicts as rows."""
+
 
 def benchmarks(bench_dir: Path = BENCH_DIR) -> list[str]:
     """The benchmark modules, ``bench_<name>`` for every ``benchmarks/bench_*.py``."""
@@ -213,12 +217,21 @@ def section(name: str, record: dict) -> str:
     """The Markdown section of one results JSON."""
     title, command, columns = SECTIONS.get(
         name, (name, f"python -m benchmarks.bench_{name}", None))
-    command = record.get("command_line") or command
-    parts = [f"## {title}", "", f"`{command}` → `benchmarks/results/{name}.json`. "
+    ran = record.get("command_line") or command
+    parts = [f"## {title}", "", f"`{ran}` → `benchmarks/results/{name}.json`. "
              + _provenance(record)]
+    if ran.split() != command.split():
+        parts[-1] += (f" The documented run is `{command}`; this result ran with the "
+                      "options above.")
     rows = record.get("rows") or []
     if rows:
         parts += ["", _table(rows, columns)]
+    for key in EXTRA_TABLES.get(name, []):
+        extra = record.get(key)
+        if isinstance(extra, dict):
+            extra = [{"measure": k, "value": v} for k, v in extra.items()]
+        if extra:
+            parts += ["", f"`{key}`:", "", _table(extra, None)]
     if record.get("claim"):
         parts += ["", f"Verdict: {record['claim']}"]
     return "\n".join(parts)

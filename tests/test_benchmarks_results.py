@@ -94,5 +94,7 @@ def test_the_page_shows_the_run_and_lists_what_is_missing(tmp_path, monkeypatch)
     assert f"jaxlib {record['versions']['jaxlib']}" in page
     assert f"{record['machine']['cpus']} cores" in page
     assert "| a | 0.25 |" in page
+    # the probe ran under pytest, not as the benchmark's documented command
+    assert "The documented run is `python -m benchmarks.bench_alpha`;" in page
     assert page.rstrip().endswith("`python -m benchmarks.bench_beta`.")
     assert "bench_alpha`," not in page
