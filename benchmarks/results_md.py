@@ -213,10 +213,13 @@ def _provenance(record: dict) -> str:
             f"{peers}.")
 
 
-def section(name: str, record: dict) -> str:
-    """The Markdown section of one results JSON."""
+def section(name: str, record: dict, modules: list[str] | None = None) -> str:
+    """The Markdown section of one results JSON (``modules``: the benchmark modules,
+    :func:`benchmarks` by default)."""
+    modules = benchmarks() if modules is None else modules
+    module = benchmark_of(name, record, modules) or f"bench_{name}"
     title, command, columns = SECTIONS.get(
-        name, (name, f"python -m benchmarks.bench_{name}", None))
+        name, (name, f"python -m benchmarks.{module}", None))
     ran = record.get("command_line") or command
     parts = [f"## {title}", "", f"`{ran}` → `benchmarks/results/{name}.json`. "
              + _provenance(record)]
@@ -252,8 +255,9 @@ def render(results: Path = RESULTS, bench_dir: Path = BENCH_DIR) -> str:
     """The whole page from the JSON files in ``results``."""
     records = load_records(results)
     order = [n for n in SECTIONS if n in records] + sorted(set(records) - set(SECTIONS))
-    parts = [HEADER] + [section(n, records[n]) for n in order]
-    missing = unrecorded(records, benchmarks(bench_dir))
+    modules = benchmarks(bench_dir)
+    parts = [HEADER] + [section(n, records[n], modules) for n in order]
+    missing = unrecorded(records, modules)
     if missing:
         parts.append("## Benchmarks without a committed result\n\n"
                      + ", ".join(f"`python -m benchmarks.{b}`" for b in missing) + ".")

@@ -98,3 +98,12 @@ def test_the_page_shows_the_run_and_lists_what_is_missing(tmp_path, monkeypatch)
     assert "The documented run is `python -m benchmarks.bench_alpha`;" in page
     assert page.rstrip().endswith("`python -m benchmarks.bench_beta`.")
     assert "bench_alpha`," not in page
+    # a result recorded before the harness kept its command is its benchmark's all the same
+    legacy = {"workload": "beta_big", "machine": {"cpus": 2, "loadavg": [3.0, 2.0, 1.0]},
+              "rows": [{"case": "b"}]}
+    (tmp_path / "results" / "beta_big.json").write_text(json.dumps(legacy))
+    page = results_md.render(tmp_path / "results", bench)
+    assert ("`python -m benchmarks.bench_beta` → `benchmarks/results/beta_big.json`. Ran on "
+            "2 CPUs at load 3.0") in page
+    assert "does not record its date, command line" in page
+    assert "without a committed result" not in page
