@@ -176,8 +176,20 @@ def _cell(value) -> str:
 
 
 def _table(rows: list[dict], columns: list[str] | None) -> str:
+    """A Markdown table of ``rows``. With ``columns`` None: every scalar key, in order
+    of appearance, and a table of its own for each run of rows of another kind (rows
+    whose first key differs, as a benchmark's speed rows and its accuracy rows)."""
     if columns is None:
-        columns = [k for k, v in rows[0].items() if not isinstance(v, (dict, list))]
+        groups = []
+        for r in rows:
+            if groups and next(iter(r), None) == next(iter(groups[-1][0]), None):
+                groups[-1].append(r)
+            else:
+                groups.append([r])
+        if len(groups) > 1:
+            return "\n\n".join(_table(g, None) for g in groups)
+        columns = list(dict.fromkeys(k for r in rows for k, v in r.items()
+                                     if not isinstance(v, (dict, list))))
     lines = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
     lines += ["| " + " | ".join(_cell(r.get(c)) for c in columns) + " |" for r in rows]
     return "\n".join(lines)
