@@ -116,6 +116,8 @@ SECTIONS = {
     "real_data": ("The README's real-data commands: wall time, peak memory and scores, "
                   "against the command line's former defaults",
                   "python -m benchmarks.bench_real_data", None),
+    "real_data_defaults": ("The real-data defaults: solvers and iteration counts on the hand",
+                           "python -m benchmarks.bench_real_data --defaults", None),
     "full_resolution": ("A full-size capture through `diffcam reconstruct`'s defaults, "
                         "against the 4× box-averaged pair",
                         "python -m benchmarks.bench_full_resolution --full DIR", None),
