@@ -4,9 +4,11 @@
     python -m benchmarks.results_md --check    # exit 1 if RESULTS.md is not what it writes
 
 One section per JSON file, in :data:`SECTIONS` order (others after, by name): the
-command that wrote it, the machine it ran on, a table of its rows and the workload's
-own verdict when it records one. RESULTS.md holds the current results only; a
-benchmark run rewrites its JSON, and this command the page.
+command that wrote it, when, on which machine, at what load and with which versions
+(:func:`benchmarks.harness.write_json` records them), a table of its rows and the
+workload's own verdict when it records one; last, the benchmarks of
+``benchmarks/bench_*.py`` that have no result yet. RESULTS.md holds the current results
+only; a benchmark run rewrites its JSON, and this command the page.
 """
 
 from __future__ import annotations
@@ -16,12 +18,15 @@ import json
 import sys
 from pathlib import Path
 
-from benchmarks.harness import RESULTS
+from benchmarks.harness import PEERS, RESULTS
 
 PAGE = Path(__file__).resolve().parent / "RESULTS.md"
+BENCH_DIR = Path(__file__).resolve().parent
 
 SECTIONS = {
-    # JSON name: (title, command, columns of the table: None for every scalar column)
+    # JSON name: (title, command, columns of the table: None for every scalar column).
+    # The command is the JSON's own ``command_line`` where it records one; the one
+    # given here stands for results recorded before the harness kept command lines.
     "demo": ("`diffcam demo`, run after run",
              "python -m benchmarks.bench_demo --runs 2 --cpus all 1",
              ["cpus", "run", "wall_s", "peak_gb", "fig3_gs", "fig3_calibrated",
@@ -114,21 +119,62 @@ SECTIONS = {
                     "python -m benchmarks.bench_distributed",
                     ["config", "N", "depths", "repeat", "psfs_per_s", "peak_mb_each",
                      "first_s"]),
+    "overhead": ("Per-call overhead on small grids: each public call against the same "
+                 "computation fused in one `jax.jit`",
+                 "python -m benchmarks.bench_overhead", None),
+    "cli_memory": ("Peak memory of `diffcam psf` against the number of depths",
+                   "python -m benchmarks.bench_cli_memory", None),
+    "real_data": ("The README's real-data commands: wall time, peak memory and scores, "
+                  "against the command line's former defaults",
+                  "python -m benchmarks.bench_real_data", None),
+    "real_data_defaults": ("The real-data defaults: solvers and iteration counts on the hand",
+                           "python -m benchmarks.bench_real_data --defaults", None),
+    "full_resolution": ("A full-size capture through `diffcam reconstruct`'s defaults, "
+                        "against the 4× box-averaged pair",
+                        "python -m benchmarks.bench_full_resolution --full DIR", None),
+    "retrieval": ("Phase retrieval: Gerchberg–Saxton iterations per second against numpy "
+                  "and scipy.fft, and time to a phase Pearson",
+                  "python -m benchmarks.bench_retrieval", None),
+    "deconvolve": ("Richardson–Lucy against scikit-image, and ADMM-TV on the tutorial pair",
+                   "python -m benchmarks.bench_deconvolve", None),
+    "scene_psf": ("The paper's Table 1 on real data: a PSF calibrated from scenes, every "
+                  "solver scored on held-out captures",
+                  "python -m benchmarks.bench_scene_psf", None),
+    "fig6_seeds": ("The demo's Fig. 6 calibration over capture-noise seeds",
+                   "python -m benchmarks.bench_fig6_seeds", None),
 }
 
-NOT_RECORDED = ["bench_propagate", "bench_retrieval", "bench_psf", "bench_deconvolve",
-                "bench_grad", "bench_fft", "bench_overhead", "bench_cli_memory",
-                "bench_real_data", "bench_fig6_seeds", "bench_scene_psf",
-                "bench_full_resolution"]
-"""Workloads whose results are not committed: the pages that quote them name the
-command, and running it writes the JSON this page is generated from."""
+
+EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"]}
+"""Keys of a results JSON besides its rows that the page shows as tables too: a dict
+as measure and value, a list of dicts as rows."""
+
+
+def benchmarks(bench_dir: Path = BENCH_DIR) -> list[str]:
+    """The benchmark modules, ``bench_<name>`` for every ``benchmarks/bench_*.py``."""
+    return sorted(p.stem for p in bench_dir.glob("bench_*.py"))
+
+
+def benchmark_of(name: str, record: dict, modules: list[str]) -> str | None:
+    """The benchmark module that wrote results JSON ``name``: as the JSON records it, or
+    for results recorded before the harness kept it, the module whose name the JSON's
+    starts with (``stack_fit_lbfgs`` → ``bench_stack_fit``; the longest such)."""
+    if record.get("benchmark"):
+        return record["benchmark"]
+    stem = name.removeprefix("bench_")
+    fits = [m for m in modules
+            if stem == m.removeprefix("bench_") or stem.startswith(m.removeprefix("bench_") + "_")]
+    return max(fits, key=len) if fits else None
+
 
 HEADER = """# Benchmark results
 
 Generated by `python -m benchmarks.results_md` from `benchmarks/results/*.json`; each
-section names the command that wrote its JSON (`python -m benchmarks.run` runs them
-all). The machine is a shared 2-core CPU VM with no GPU: times are upper bounds, and
-ratios between candidates timed in the same run are what carry over to other machines.
+section names the command that wrote its JSON (`python -m benchmarks.run` runs the
+workloads of its `WORKLOADS` list in one go), when it ran, the machine, the load
+average at its start and end and the versions. The machine is a shared 2-core CPU VM
+with no GPU: times are upper bounds, and ratios between candidates timed in the same
+run are what carry over to other machines.
 How each workload times and what it compares: the module docstring of
 `benchmarks/bench_<name>.py`."""
 
@@ -145,41 +191,103 @@ def _cell(value) -> str:
 
 
 def _table(rows: list[dict], columns: list[str] | None) -> str:
+    """A Markdown table of ``rows``. With ``columns`` None: every scalar key, in order
+    of appearance, and a table of its own for each run of rows of another kind (rows
+    whose first key differs, as a benchmark's speed rows and its accuracy rows)."""
     if columns is None:
-        columns = [k for k, v in rows[0].items() if not isinstance(v, (dict, list))]
+        groups = []
+        for r in rows:
+            if groups and next(iter(r), None) == next(iter(groups[-1][0]), None):
+                groups[-1].append(r)
+            else:
+                groups.append([r])
+        if len(groups) > 1:
+            return "\n\n".join(_table(g, None) for g in groups)
+        columns = list(dict.fromkeys(k for r in rows for k, v in r.items()
+                                     if not isinstance(v, (dict, list))))
     lines = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
     lines += ["| " + " | ".join(_cell(r.get(c)) for c in columns) + " |" for r in rows]
     return "\n".join(lines)
 
 
-def _machine(m: dict) -> str:
-    load = m.get("loadavg") or [float("nan")]
-    libs = ", ".join(f"{k} {m[k]}" for k in ("jax", "numpy", "scipy") if m.get(k))
-    return (f"Ran on {m.get('cpus', '?')} CPUs at load {load[0]:.1f} (1-minute average "
-            f"at the end), Python {m.get('python', '?')}, {libs}.")
+def _load(values) -> str:
+    return "/".join(f"{v:.1f}" for v in values) if values else "not recorded"
 
 
-def section(name: str, record: dict) -> str:
-    """The Markdown section of one results JSON."""
+def _provenance(record: dict) -> str:
+    """When, where, at what load and with which versions a result ran."""
+    m = record.get("machine", {})
+    if "versions" not in record:  # recorded before the harness kept the whole record
+        libs = ", ".join(f"{k} {m[k]}" for k in ("jax", "numpy", "scipy") if m.get(k))
+        load = m.get("loadavg") or [float("nan")]
+        return (f"Ran on {m.get('cpus', '?')} CPUs at load {load[0]:.1f} (1-minute "
+                f"average at the end), Python {m.get('python', '?')}, {libs}; this JSON "
+                "does not record its date, command line, CPU model, memory, load at the "
+                "start, or jaxlib and diffcam versions.")
+    v, date, load, git = record["versions"], record["date"], record["load"], record.get("git")
+    core = ", ".join(f"{k} {v[k]}" for k in ("python", "jax", "jaxlib", "numpy", "diffcam"))
+    peers = ", ".join(f"{k} {v[k]}" for k in PEERS if v.get(k)) or "none"
+    at = ""
+    if git:
+        changed = git.get("modified") or []
+        at = f" at commit {git['commit'][:10]}" + (
+            f" (tracked files changed: {', '.join(changed)})" if changed else "")
+    start, end = (date.get("start") or "?"), (date.get("end") or "?")
+    return (f"Ran {start} → {end}{at}. Machine: {m.get('cpu_model')}, "
+            f"{m.get('cpus')} cores, {m.get('memory_gb')} GiB, {m.get('platform')}. "
+            f"Load average (1/5/15 min): {_load(load.get('start'))} at the start, "
+            f"{_load(load.get('end'))} at the end. Versions: {core}; peers imported: "
+            f"{peers}.")
+
+
+def section(name: str, record: dict, modules: list[str] | None = None) -> str:
+    """The Markdown section of one results JSON (``modules``: the benchmark modules,
+    :func:`benchmarks` by default)."""
+    modules = benchmarks() if modules is None else modules
+    module = benchmark_of(name, record, modules) or f"bench_{name}"
     title, command, columns = SECTIONS.get(
-        name, (name, f"python -m benchmarks.bench_{name}", None))
-    parts = [f"## {title}", "", f"`{command}` → `benchmarks/results/{name}.json`. "
-             + _machine(record.get("machine", {}))]
+        name, (name, f"python -m benchmarks.{module}", None))
+    ran = record.get("command_line") or command
+    parts = [f"## {title}", "", f"`{ran}` → `benchmarks/results/{name}.json`. "
+             + _provenance(record)]
+    if ran.split() != command.split():
+        parts[-1] += (f" The documented run is `{command}`; this result ran with the "
+                      "options above.")
     rows = record.get("rows") or []
     if rows:
         parts += ["", _table(rows, columns)]
+    for key in EXTRA_TABLES.get(name, []):
+        extra = record.get(key)
+        if isinstance(extra, dict):
+            extra = [{"measure": k, "value": v} for k, v in extra.items()]
+        if extra:
+            parts += ["", f"`{key}`:", "", _table(extra, None)]
     if record.get("claim"):
         parts += ["", f"Verdict: {record['claim']}"]
     return "\n".join(parts)
 
 
-def render(results: Path = RESULTS) -> str:
+def load_records(results: Path = RESULTS) -> dict[str, dict]:
+    """Every results JSON in ``results``, by name."""
+    return {p.stem: json.loads(p.read_text()) for p in sorted(results.glob("*.json"))}
+
+
+def unrecorded(records: dict[str, dict], modules: list[str]) -> list[str]:
+    """The benchmark modules that no results JSON comes from."""
+    done = {benchmark_of(n, r, modules) for n, r in records.items()}
+    return [m for m in modules if m not in done]
+
+
+def render(results: Path = RESULTS, bench_dir: Path = BENCH_DIR) -> str:
     """The whole page from the JSON files in ``results``."""
-    records = {p.stem: json.loads(p.read_text()) for p in sorted(results.glob("*.json"))}
+    records = load_records(results)
     order = [n for n in SECTIONS if n in records] + sorted(set(records) - set(SECTIONS))
-    missing = ", ".join(f"`python -m benchmarks.{b}`" for b in NOT_RECORDED)
-    parts = [HEADER] + [section(n, records[n]) for n in order] + [
-        "## Workloads without a committed result\n\n" + missing + "."]
+    modules = benchmarks(bench_dir)
+    parts = [HEADER] + [section(n, records[n], modules) for n in order]
+    missing = unrecorded(records, modules)
+    if missing:
+        parts.append("## Benchmarks without a committed result\n\n"
+                     + ", ".join(f"`python -m benchmarks.{b}`" for b in missing) + ".")
     return "\n\n".join(parts) + "\n"
 
 
