@@ -2,6 +2,9 @@
 nothing breaks under jit or grad, the opt-outs hold, and a log (stderr not a terminal,
 as under pytest) gets a few plain lines instead of a bar's carriage returns."""
 
+import io
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -94,3 +97,19 @@ def test_quick_runs_and_opt_outs_print_nothing(capsys, monkeypatch):
         monkeypatch.setattr(progress, "LINE_EVERY", -100.0)
         bar.update(10)
     assert capsys.readouterr().err == ""
+
+
+def test_a_terminal_gets_a_tqdm_bar(monkeypatch):
+    """On a terminal (stderr a tty) the bar is tqdm's, drawn on stderr once DELAY seconds
+    have passed (tqdm's ``delay``; 0 here)."""
+    from tqdm import tqdm
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(sys, "stderr", Terminal())
+    monkeypatch.setattr(progress, "DELAY", 0.0)
+    with progress.new_bar(3, "PSF stack", unit="depth") as bar:
+        bar.update(3)
+    assert isinstance(bar, tqdm) and "PSF stack" in sys.stderr.getvalue()

@@ -89,7 +89,9 @@ def _fftw_files(precision: int) -> tuple[str, str | None]:
     spec = importlib.util.find_spec("pyfftw")
     if spec is not None and spec.origin:
         package = Path(spec.origin).parent
-        for folder in (package.parent / "pyfftw.libs", package / ".dylibs"):
+        # pyFFTW's wheels before 0.15.1 name the folder pyFFTW.libs
+        for folder in (package.parent / "pyfftw.libs", package.parent / "pyFFTW.libs",
+                       package / ".dylibs"):
             main = sorted(glob.glob(str(folder / f"lib{stem}-*.so*"))
                           + glob.glob(str(folder / f"lib{stem}.*dylib")))
             threads = sorted(glob.glob(str(folder / f"lib{stem}_omp-*.so*"))
