@@ -177,6 +177,10 @@ PROBES = [
           lambda: wiener(IMAGE.astype(object), KERNEL), DiffcamError),
     Probe("API exception", "pearson of an object-dtype array",
           lambda: dc.pearson(IMAGE.astype(object), IMAGE), DiffcamError),
+    Probe("API exception", "pearson of images without pixels",
+          lambda: dc.pearson(np.zeros((0, 0)), np.zeros((0, 0))), DiffcamError),
+    Probe("API exception", "psnr of images without pixels",
+          lambda: dc.psnr(np.zeros((3, 0)), np.zeros((3, 0)), data_range=1.0), DiffcamError),
     Probe("API exception", "ssim of an object-dtype array",
           lambda: dc.ssim(IMAGE, IMAGE.astype(object)), DiffcamError),
     Probe("API exception", "magnify_psf of an object-dtype PSF", lambda: magnify_psf(

@@ -43,6 +43,9 @@ def _check_pair(a, b, name_a="estimate", name_b="reference"):
     if sa[-2:] != sb[-2:]:
         raise ShapeError(f"{name_a} {sa} and {name_b} {sb} differ in their spatial shape; "
                          f"crop or resample one onto the other's grid first.")
+    if 0 in sa[-2:]:
+        raise ShapeError(f"{name_a} and {name_b} have no pixels (spatial shape {sa[-2:]}); "
+                         f"a metric needs at least one.")
     check_finite(name_a, a)
     check_finite(name_b, b)
     return a, b
@@ -229,6 +232,7 @@ def psnr(estimate, reference, *, data_range=None, align: str | None = None
     ``data_range`` defaults to the reference's max − min (as
     ``skimage.metrics.peak_signal_noise_ratio`` does for float images only when told).
     """
+    estimate, reference = _check_pair(estimate, reference)
     dr = _data_range(reference, data_range)    # in units of it: see ssim
     return -10 * jnp.log10(mse(jnp.asarray(estimate) / dr, jnp.asarray(reference) / dr,
                                align=align))
