@@ -99,6 +99,11 @@ SECTIONS = {
                               "split_gap", "side_slope", "side_rms", "side_axial_width",
                               "side_outside", "diffcam_rms", "diffcam_outside", "own_rms",
                               "own_outside"]),
+    "peers": ("PSF stacks beside the JAX optics peers (chromatix, dLux): forward and "
+              "value_and_grad, time and peak memory",
+              "python -m benchmarks.bench_peers --chromatix-python /path/to/python3.12",
+              ["kind", "N", "depths", "candidate", "median_s", "x_forward", "peak_mb",
+               "worst_1mp", "repeats", "first_s", "load", "status"]),
     "distributed": ("PSF stacks over two processes against one",
                     "python -m benchmarks.bench_distributed",
                     ["config", "N", "depths", "repeat", "psfs_per_s", "peak_mb_each",
