@@ -132,6 +132,11 @@ SECTIONS = {
                     "python -m benchmarks.bench_field_truth",
                     ["what", "points", "rank_1pct", "rank_0p1pct", "rank1_error",
                      "psnr_db", "final_residual", "model_error"]),
+    "peers": ("PSF stacks beside the JAX optics peers (chromatix, dLux): forward and "
+              "value_and_grad, time and peak memory",
+              "python -m benchmarks.bench_peers --chromatix-python /path/to/python3.12",
+              ["kind", "N", "depths", "candidate", "median_s", "x_forward", "peak_mb",
+               "worst_1mp", "repeats", "first_s", "load", "status"]),
     "distributed": ("PSF stacks over two processes against one",
                     "python -m benchmarks.bench_distributed",
                     ["config", "N", "depths", "repeat", "psfs_per_s", "peak_mb_each",

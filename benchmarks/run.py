@@ -15,7 +15,7 @@ import argparse
 import importlib
 
 WORKLOADS = ["propagate", "psf", "retrieval", "deconvolve", "stack_fit", "cli_memory",
-             "overhead", "real_data", "fft", "grad", "fig6_seeds"]
+             "overhead", "real_data", "fft", "grad", "fig6_seeds", "peers"]
 QUICK = {"propagate": ["--sizes", "512", "1024"],
          "psf": ["--sizes", "512", "--depths", "8", "--no-memory"],
          "retrieval": ["--sizes", "512", "--repeats", "2"],
@@ -26,6 +26,8 @@ QUICK = {"propagate": ["--sizes", "512", "1024"],
          "real_data": ["--downsample", "4"],
          "grad": ["--sizes", "256", "--repeats", "3"],
          "fig6_seeds": ["--seeds", "0"],
+         "peers": ["--sizes", "256", "--depths", "4", "--grad-sizes", "256",
+                   "--grad-depths", "4", "8", "--repeats", "2", "--name", "peers_quick"],
          "fft": ["--sizes", "512", "--repeats", "3", "--workload-sizes", "256", "--rounds", "1"]}
 
 
