@@ -67,7 +67,8 @@ from diffcam.optics.propagation import (critical_distance, effective_distance,
                                         transfer_function)
 from diffcam.optics.sampling import check_point_source_sampling
 
-__all__ = ["psf", "psf_map", "diffuser_fields", "fields_for_fft", "irradiance", "zeff_factors",
+__all__ = ["psf", "psf_map", "depth_list", "diffuser_fields", "fields_for_fft", "irradiance",
+           "zeff_factors",
            "sample_points", "check_inputs"]
 
 
@@ -423,9 +424,25 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
     return out
 
 
-def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, y1=0.0, x1=0.0,
-            spectrum=None, normalise: bool = True, batch_size: int | None = None,
-            accept_undersampling: bool = False):
+def depth_list(z1) -> np.ndarray:
+    """The depths ``z1`` (a number or a 1-D list, metres) as float64 ``(nz,)`` (traced:
+    flattened, unchecked values).
+
+    Raises:
+        DiffcamError: no depth, more than one axis, or a value that is not a finite
+            number > 0 (each checked by `check_positive`).
+    """
+    if np.ndim(z1) > 1:
+        raise ShapeError(f"z1 must be one depth or a 1-D list of depths (nz,), got shape "
+                         f"{np.shape(z1)}; flatten it (np.ravel) if the order is meant.")
+    check_positive("z1", z1, "m")
+    if not is_concrete(z1):   # under a transformation (psf_map's depths)
+        return jnp.reshape(z1, (-1,))
+    return np.asarray(z1, dtype=np.float64).reshape(-1)
+
+
+def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, spectrum=None,
+            normalise: bool = True, batch_size: int | None = None):
     """``fn(PSF(z), x)`` for every depth ``z`` of ``z1`` (and ``x`` of ``xs``), a chunk of
     depths at a time: the differentiable PSF stack.
 
@@ -442,8 +459,9 @@ def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, y1=0.0, x1=0.0,
     Args:
         fn: ``fn(psf)`` (``xs`` is ``None``) or ``fn(psf, x)``; ``psf`` is the
             ``camera.out_shape`` PSF of one depth; returns a pytree of arrays.
-        phase, camera, y1, x1, spectrum, normalise, accept_undersampling: as in
-            `psf`.
+        phase, camera, spectrum, normalise: as in `psf`; the source is on the axis (an
+            off-axis or knowingly undersampled source: ``jax.lax.map`` over `psf`
+            with its keywords).
         z1: depths, metres, shape (nz,) (> 0).
         xs: a pytree of arrays with leading axis nz (a measured plane per depth, a
             weight), or ``None``.
@@ -453,14 +471,13 @@ def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, y1=0.0, x1=0.0,
     Returns:
         ``fn``'s outputs stacked over depth (leading axis nz).
     """
-    z1 = jnp.asarray(z1) if not is_concrete(z1) else np.asarray(z1, np.float64)
-    if z1.ndim != 1 or z1.shape[0] == 0:
-        raise ShapeError(f"z1 must be a non-empty 1-D array of depths in metres, got shape "
-                         f"{z1.shape}.")
+    z1 = depth_list(z1)
+    if z1.size == 0:
+        raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
     if not callable(fn):
         raise DiffcamError(f"fn must be a function of a PSF (and an x of xs), got {fn!r:.60}.")
-    wavelengths, weights, z1, positions = _arguments(phase, camera, z1, y1, x1, spectrum,
-                                                     accept_undersampling)
+    wavelengths, weights, z1, positions = _arguments(phase, camera, z1, 0.0, 0.0, spectrum,
+                                                     False)
     _check_phase(phase, camera, finite=True)
     wavelengths, weights = _spectrum_or_camera(camera, wavelengths, weights)
     if batch_size is None:
@@ -469,12 +486,11 @@ def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, y1=0.0, x1=0.0,
             or batch_size < 1:
         raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
     prepared = diffuser_fields(phase, camera, wavelengths)
-    one_depth = _depth_psfs[normalise]
 
     @jax.checkpoint
     def step(item):
         z, x = item
-        h = one_depth(prepared, camera, wavelengths, weights, z, positions)[0]
+        h = _one_source(prepared, camera, wavelengths, weights, z, positions, normalise)[0]
         return fn(h) if xs is None else fn(h, x)
     return lax.map(step, (z1, xs), batch_size=min(int(batch_size), z1.shape[0]))
 

@@ -43,8 +43,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm  # not tqdm.auto: it warns in Jupyter without ipywidgets
 
 from diffcam.model.camera import Camera, as_spectrum, real_dtype
-from diffcam.model.point_spread import (irradiance_and_fields, check_inputs, diffuser_fields,
-                              fields_for_fft)
+from diffcam.model.point_spread import (check_inputs, depth_list, diffuser_fields, fields_for_fft,
+                                        irradiance_and_fields, items_per_chunk)
 from diffcam.core.errors import DiffcamError, ShapeError, check_finite, check_positive
 from diffcam.core.options import Options
 from diffcam.core.progress import enabled
@@ -238,20 +238,6 @@ def _legacy_positions(offsets, positions):
     return np.asarray(positions, dtype=np.float64)[:, ::-1]
 
 
-def depth_list(z1) -> np.ndarray:
-    """The depths ``z1`` (a number or a 1-D list, metres) as float64 ``(nz,)``.
-
-    Raises:
-        DiffcamError: no depth, more than one axis, or a value that is not a finite
-            number > 0 (each checked by `check_positive`).
-    """
-    if np.ndim(z1) > 1:
-        raise ShapeError(f"z1 must be one depth or a 1-D list of depths (nz,), got shape "
-                         f"{np.shape(z1)}; flatten it (np.ravel) if the order is meant.")
-    check_positive("z1", z1, "m")
-    return np.asarray(z1, dtype=np.float64).reshape(-1)
-
-
 def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
                    options: PsfStackOptions | None = None, **overrides
                    ) -> Iterator[tuple[int, np.ndarray | jax.Array]]:
@@ -273,10 +259,9 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     pos = _offsets_array(offsets)
     wavelengths, weights = as_spectrum(spectrum, camera)
     batch_size, devices = opts.batch_size, opts.devices
-    if batch_size is None:  # about 2**20 field samples per device per call
+    if batch_size is None:
         fields = len(wavelengths) * (len(pos) if camera.method == "direct" else 1)
-        batch_size = max(1, 2 ** 20 // (camera.padded_shape[0] * camera.padded_shape[1]
-                                        * fields))
+        batch_size = items_per_chunk(camera, fields)
     if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
         raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
     check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
