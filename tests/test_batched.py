@@ -47,6 +47,7 @@ def test_vmap_and_psf_map_equal_one_psf_per_depth(method):
     np.testing.assert_allclose(grad, reference, atol=1e-4 * np.abs(reference).max())
 
 
+@pytest.mark.slow  # 50 s of compilation: a chunk rule per batched argument
 def test_vmap_over_positions_wavelengths_and_cameras():
     """A batch of lateral positions, of wavelengths or of z2 gives each item's PSF; the
     jvp of a vmap over depths is each depth's jvp."""

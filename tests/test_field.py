@@ -193,6 +193,7 @@ def test_solvers_with_a_rank_one_model_match_the_psf_path():
         assert abs(float(m.residual[-1]) - float(a.residual[-1])) < 0.02, solver.__name__
 
 
+@pytest.mark.slow  # float64 finite differences in both modes: 25 s
 def test_gradients_through_the_model_match_finite_differences(x64):
     """Reverse and forward mode through the decomposition (fixed rank) and the operator,
     with respect to the PSFs and their positions, against finite differences."""
