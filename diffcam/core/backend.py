@@ -57,8 +57,7 @@ from diffcam.core.deprecation import renamed
 from diffcam.core.errors import DiffcamError
 
 __all__ = ["fft2", "ifft2", "rfft2", "irfft2", "fft_size", "transfer_step",
-           "transfer_step_with_spectrum", "separable_factor", "separable_product", "staged",
-           "on_cpu",
+           "transfer_step_with_spectrum", "separable_factor", "staged", "on_cpu",
            "set_fft", "fft_backend", "fft_status", "in_chunks"]
 
 _AXES = (-2, -1)
@@ -330,31 +329,6 @@ def separable_factor(f: Callable[[Array], Array], n: int, block: int = 512) -> A
 vector = renamed(separable_factor, "diffcam.core.backend.vector")
 
 
-def separable_product(u: Array, cy: Array, cx: Array) -> Array:
-    """``u · (cy · cx)``: a field times a separable factor (``cy`` (…, ny, 1), ``cx``
-    (…, 1, nx)), such as a point source's chirp on the diffuser.
-
-    With XLA's FFT on CPU the product is written over ``u`` row block by row block in
-    a loop, which XLA does not split over threads, so that an FFT after it in the same
-    program runs on all of them (the FFT rule; module docstring). In a ``vmap`` of the
-    direct-path PSF the split product had left the next FFT on one core: 32 PSFs at
-    1024² took 1.7× ``psf_stack``'s time, which runs the two in separate calls.
-    """
-    if not _xla_fft_on_cpu():
-        return u * (cy * cx)
-    ny = u.shape[-2]
-    blocks = next(b for b in (4, 2, 1) if ny % b == 0)
-    size = ny // blocks
-    u = jnp.broadcast_to(u, jnp.broadcast_shapes(u.shape, cy.shape, cx.shape))
-    u = u.astype(jnp.result_type(u, cy, cx))
-
-    def block(k, out):
-        rows = lax.dynamic_slice_in_dim(out, k * size, size, axis=-2)
-        factor = lax.dynamic_slice_in_dim(cy, k * size, size, axis=-2) * cx
-        return lax.dynamic_update_slice_in_dim(out, rows * factor, k * size, axis=-2)
-    return lax.fori_loop(0, blocks, block, u)
-
-
 STAGED_FROM = 192 * 192  # samples of the first argument from which staged() splits
 
 
@@ -385,7 +359,7 @@ def in_chunks(fn: Callable, items_per_chunk: Callable[..., int | None]) -> Calla
     """``fn`` (a function of arrays and pytrees of arrays) whose ``jax.vmap`` computes
     the batch a chunk at a time, one chunk after another (``lax.map``), not all at once.
 
-    A vmapped PSF or propagation otherwise holds every item's fields at once and runs
+    A vmapped PSF otherwise holds every item's fields at once and runs
     one batched FFT over them: 32 PSFs at 1024² took 3.7× the time and 2.8× the memory
     of the same PSFs one after another (``python -m benchmarks.bench_peers``). Here a
     ``vmap`` — a user's ``jax.jit(jax.vmap(psf))`` — becomes the loop

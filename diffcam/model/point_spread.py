@@ -51,7 +51,7 @@ from jax import lax
 from jaxtyping import Float
 from jax import Array
 
-from diffcam.core.backend import (fft2, ifft2, in_chunks, separable_product, staged,
+from diffcam.core.backend import (fft2, ifft2, in_chunks, staged,
                                   transfer_step_with_spectrum)
 from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, check_positive,
                                  fmt_length, found_false, is_concrete, plain_numbers,
@@ -92,7 +92,7 @@ def _source_fields(diffuser, camera, wavelength, z1, positions):
     def one(offset):
         cy, cx = spherical_wave(diffuser.shape, camera.dx, wavelength, z1, y1=offset[0],
                                 x1=offset[1])
-        return separable_product(diffuser, cy, cx)
+        return diffuser * (cy * cx)
     return jax.vmap(one)(positions)
 
 
