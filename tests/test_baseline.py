@@ -87,6 +87,7 @@ def test_registration_matches_skimage(shift):
     np.testing.assert_allclose(ours, -np.asarray(shift), atol=0.05 + 1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("debug_nans")
 def test_psf_fidelity_per_depth_and_transforms():
     """psf_fidelity registers, min–max normalises and scores each leading index: a

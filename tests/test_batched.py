@@ -1,6 +1,6 @@
-"""PSFs many at a time inside JAX (diffcam.model.point_spread): ``jax.vmap`` of ``psf``,
-which runs a chunk at a time (diffcam.core.backend.in_chunks), and ``psf_map``, the
-differentiable stack. The reference is one ``psf`` call per depth; memory is XLA's own
+"""PSFs many at a time inside JAX: ``jax.vmap`` of ``psf`` (diffcam.model.point_spread),
+which runs a chunk at a time (diffcam.core.backend.in_chunks), and the differentiable
+stacks ``psf_map`` and ``psf_loss`` (diffcam.model.stack_map). The reference is one ``psf`` call per depth; memory is XLA's own
 figure for the compiled program (``memory_analysis``), which does not depend on load."""
 
 import dataclasses
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from diffcam.core.errors import DiffcamError, ShapeError
-from diffcam.model import Camera, point_spread, psf, psf_map, random_diffuser
+from diffcam.model import Camera, point_spread, psf, psf_loss, psf_map, random_diffuser
 
 LAM = 532e-9
 N = 64
@@ -32,7 +32,8 @@ WEIGHTS = jax.random.normal(jax.random.key(1), (DEPTHS.size, 56, 48))
 def test_vmap_and_psf_map_equal_one_psf_per_depth(method):
     """``jit(vmap(psf))`` over depths equals psf at each depth (float32 round-off), and
     the gradient of Σ w·PSF through psf_map (chunks of 2 of 3 depths: a remainder,
-    recomputed in reverse mode) equals that of one psf call per depth."""
+    recomputed in reverse mode) and through psf_loss (computed with the value) equals
+    that of one psf call per depth."""
     cam = _camera(method)
     stacked = jax.jit(jax.vmap(lambda z: psf(PHASE, cam, z)))(jnp.asarray(DEPTHS))
     for z, got in zip(DEPTHS, stacked):
@@ -45,6 +46,36 @@ def test_vmap_and_psf_map_equal_one_psf_per_depth(method):
     grad = jax.jit(jax.grad(lambda p: psf_map(lambda h, w: jnp.sum(h * w), p, cam, DEPTHS,
                                               WEIGHTS, batch_size=2).sum()))(PHASE)
     np.testing.assert_allclose(grad, reference, atol=1e-4 * np.abs(reference).max())
+    value, grad = jax.jit(jax.value_and_grad(
+        lambda p: psf_loss(lambda h, w: jnp.sum(h * w), p, cam, DEPTHS, WEIGHTS,
+                           batch_size=2)))(PHASE)
+    np.testing.assert_allclose(value, one_by_one(PHASE), rtol=1e-5)
+    np.testing.assert_allclose(grad, reference, atol=1e-4 * np.abs(reference).max())
+
+
+def test_psf_loss_differentiates_everything_psf_map_does(x64):
+    """psf_loss's gradient in the depths, a per-depth input, an array its fn closes over
+    and the camera's z2 equals that of the sum of psf_map (direct path, float64; a
+    chunk of 2 of 3 depths); a per-depth integer input rides along undifferentiated; a
+    gradient in the depths alone is the same as with the rest."""
+    cam = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), _camera("direct"))
+    index = jnp.arange(DEPTHS.size)
+
+    def through(stack):
+        def loss(z, w, s, z2):
+            c = dataclasses.replace(cam, z2=z2)
+            return stack(lambda h, x: s * jnp.sum(h * x[0]) + x[1], PHASE, c, z,
+                         (w, index), batch_size=2)
+        return jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3)))
+    args = (jnp.asarray(DEPTHS), jnp.asarray(WEIGHTS, jnp.float64), 1.5, 1e-3)
+    v_map, g_map = through(lambda *a, **k: psf_map(*a, **k).sum())(*args)
+    v_loss, g_loss = through(psf_loss)(*args)
+    np.testing.assert_allclose(v_loss, v_map, rtol=1e-12)
+    for got, want in zip(g_loss, g_map):
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+    only_z = jax.jit(jax.grad(lambda z: psf_loss(lambda h, x: 1.5 * jnp.sum(h * x), PHASE,
+                                                     cam, z, args[1])))(args[0])
+    np.testing.assert_allclose(only_z, g_map[0], rtol=1e-9)
 
 
 @pytest.mark.slow  # 50 s of compilation: a chunk rule per batched argument
@@ -102,6 +133,10 @@ def test_working_memory_is_flat_in_the_number_of_depths(monkeypatch):
         return jax.grad(lambda p: psf_map(lambda h: jnp.sum(h ** 2), p, cam, zs).sum())(PHASE)
     assert _temporaries(gradient, many) < 1.1 * _temporaries(gradient, few)
 
+    def summed(zs):
+        return jax.grad(lambda p: psf_loss(lambda h: jnp.sum(h ** 2), p, cam, zs))(PHASE)
+    assert _temporaries(summed, many) < 1.1 * _temporaries(summed, few)
+
 
 def test_psf_map_refuses_bad_input():
     cam = _camera()
@@ -113,3 +148,7 @@ def test_psf_map_refuses_bad_input():
         psf_map("sum", PHASE, cam, DEPTHS)
     with pytest.raises(DiffcamError, match="z1"):
         psf_map(lambda h: h, PHASE, cam, -DEPTHS)
+    with pytest.raises(DiffcamError, match="real number per depth"):
+        psf_loss(lambda h: h, PHASE, cam, DEPTHS)
+    with pytest.raises(DiffcamError, match="batch_size"):
+        psf_loss(jnp.sum, PHASE, cam, DEPTHS, batch_size=-1)

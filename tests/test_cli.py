@@ -214,6 +214,7 @@ def test_calibrate_psf_compare_pipeline(calibration_files):
     assert r2.stdout.replace("compare2.png", "compare.png") == r.stdout
 
 
+@pytest.mark.slow
 def test_calibrate_with_a_projection_solver(calibration_files, tmp_path):
     """`--solver raar` runs the projections alone and writes a phase file that loads."""
     from diffcam.calibrate import load_phase

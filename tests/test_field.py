@@ -176,6 +176,7 @@ def test_every_solver_takes_the_model(volume):
             solver.__name__
 
 
+@pytest.mark.slow
 def test_solvers_with_a_rank_one_model_match_the_psf_path():
     """Richardson–Lucy is the same iteration with the model as with its PSF (its
     update does not depend on the operator's scale); FISTA and the linearised ADMM

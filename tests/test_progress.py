@@ -30,6 +30,7 @@ def _ticks(run, total):
         return bar.n
 
 
+@pytest.mark.slow
 def test_solvers_tick_once_per_iteration(problem):
     image, psf = problem
     assert _ticks(lambda: richardson_lucy(image, psf, 37, progress=False), 37) == 37

@@ -48,6 +48,7 @@ def test_psf_plane_is_the_plane_wave_intensity_at_z_eff(sim, camera):
     assert abs(width - (152 - 4) / ((Z1 + 1e-3) / Z1)) < 2
 
 
+@pytest.mark.slow
 def test_a_psf_plane_retrieves_a_random_diffuser_where_near_far_stall(sim, camera):
     """Near/far RAAR stalls on a phase spanning many 2π; with one PSF (at 22 mm) as a
     third plane it converges from a flat start, twin included (plain Pearson)."""

@@ -131,6 +131,7 @@ def test_new_depths_reuse_the_compiled_chunk(setup):
     assert [f._cache_size() for f in (_chunk_inputs, _chunk_outputs)] == before
 
 
+@pytest.mark.slow
 def test_sharded_matches_unsharded():
     """On 4 forced host devices the depth axis is sharded over a Mesh; the result equals
     the single-device stack to float32 round-off (1e-6 of the peak)."""

@@ -309,6 +309,7 @@ def test_light_fixes_the_magnification_on_the_shipped_stack():
     assert error.mean() < 0.01 and error.max() < 0.025
 
 
+@pytest.mark.slow
 def test_predicted_planes_carry_the_light_of_the_measured_ones():
     """``predict(light=True)`` on a fit of planes 10 and 39 of the built-in stack: each
     held-out plane's light relative to plane 10 is its measured light's to 2.5 %, where
@@ -501,6 +502,7 @@ def _same_fit_files(a, b) -> None:
     assert meta_a == meta_b
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack_fit.StackFitWarning")
 def test_cli_fit_stops_on_steps_and_repeats_exactly(tmp_path, capsys):
     """By default `diffcam fit` has no wall-clock limit: it stops on its step budget,

@@ -42,12 +42,9 @@ fields the FFTs start from (`fields_for_fft`) and what the FFTs make of them
 from __future__ import annotations
 
 import weakref
-from typing import Callable
-
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 from jaxtyping import Float
 from jax import Array
 
@@ -67,9 +64,8 @@ from diffcam.optics.propagation import (critical_distance, effective_distance,
                                         transfer_function)
 from diffcam.optics.sampling import check_point_source_sampling
 
-__all__ = ["psf", "psf_map", "depth_list", "diffuser_fields", "fields_for_fft", "irradiance",
-           "zeff_factors",
-           "sample_points", "check_inputs"]
+__all__ = ["psf", "depth_list", "on_axis_arguments", "source_psfs", "diffuser_fields",
+           "fields_for_fft", "irradiance", "zeff_factors", "sample_points", "check_inputs"]
 
 
 # --------------------------------------------------------------- Eq. 7, step by step
@@ -248,8 +244,9 @@ def items_per_chunk(camera: Camera, fields_per_item: int) -> int:
     return max(1, FIELD_SAMPLES_PER_CHUNK // (ny * nx * max(1, fields_per_item)))
 
 
-def _one_source(prepared, camera, wavelengths, weights, z1, positions, normalise):
-    """PSFs of one source depth from `diffuser_fields`' output: (npos, ny, nx)."""
+def source_psfs(prepared, camera, wavelengths, weights, z1, positions, normalise):
+    """PSFs of one source depth from `diffuser_fields`' output: (npos, ny, nx)
+    (``wavelengths`` and ``weights`` as `on_axis_arguments` gives them)."""
     return irradiance(fields_for_fft(prepared, camera, wavelengths, z1, positions), camera,
                       wavelengths, weights, z1, positions, normalise)
 
@@ -267,7 +264,7 @@ def _chunk_rule(in_batched, prepared, camera, wavelengths, weights, z1, position
 
 
 _depth_psfs = {normalise: in_chunks(lambda p, c, w, g, z, x, n=normalise:
-                                    _one_source(p, c, w, g, z, x, n), _chunk_rule)
+                                    source_psfs(p, c, w, g, z, x, n), _chunk_rule)
                for normalise in (True, False)}
 
 
@@ -441,58 +438,15 @@ def depth_list(z1) -> np.ndarray:
     return np.asarray(z1, dtype=np.float64).reshape(-1)
 
 
-def psf_map(fn: Callable, phase, camera: Camera, z1, xs=None, *, spectrum=None,
-            normalise: bool = True, batch_size: int | None = None):
-    """``fn(PSF(z), x)`` for every depth ``z`` of ``z1`` (and ``x`` of ``xs``), a chunk of
-    depths at a time: the differentiable PSF stack.
-
-    Pure and traceable (``jax.jit``, ``jax.grad``, ``jax.vmap``), unlike
-    `diffcam.model.stack.psf_stack`, which runs on the host. The depths go
-    through a ``lax.map`` of ``batch_size`` depths a step, the diffuser's field (its
-    FFT on the scaling path) computed once for all of them; in reverse mode each chunk's
-    PSFs are recomputed (``jax.checkpoint``) rather than kept, so a gradient's working
-    memory is one chunk's whatever the number of depths (``python -m
-    benchmarks.bench_peers``: 32 and 256 depths at 1024²). Reduce inside ``fn`` (a
-    per-depth loss, a correlation with a measured plane): what ``fn`` returns is kept
-    for every depth.
-
-    Args:
-        fn: ``fn(psf)`` (``xs`` is ``None``) or ``fn(psf, x)``; ``psf`` is the
-            ``camera.out_shape`` PSF of one depth; returns a pytree of arrays.
-        phase, camera, spectrum, normalise: as in `psf`; the source is on the axis (an
-            off-axis or knowingly undersampled source: ``jax.lax.map`` over `psf`
-            with its keywords).
-        z1: depths, metres, shape (nz,) (> 0).
-        xs: a pytree of arrays with leading axis nz (a measured plane per depth, a
-            weight), or ``None``.
-        batch_size: depths per chunk; default about 2**20 field samples (one depth at
-            1024²), as `psf_stack`.
-
-    Returns:
-        ``fn``'s outputs stacked over depth (leading axis nz).
-    """
-    z1 = depth_list(z1)
-    if z1.size == 0:
-        raise DiffcamError("the depth list z1 is empty; give at least one depth in metres.")
-    if not callable(fn):
-        raise DiffcamError(f"fn must be a function of a PSF (and an x of xs), got {fn!r:.60}.")
+def on_axis_arguments(phase, camera: Camera, z1, spectrum):
+    """The checks of `psf` for on-axis sources at the depths ``z1`` (metres, (nz,)), then
+    ``(wavelengths, weights, z1, positions)``: the spectrum (the camera's wavelength at
+    weight 1 if ``None``), the depths in the camera's dtype, one on-axis position."""
     wavelengths, weights, z1, positions = _arguments(phase, camera, z1, 0.0, 0.0, spectrum,
                                                      False)
     _check_phase(phase, camera, finite=True)
     wavelengths, weights = _spectrum_or_camera(camera, wavelengths, weights)
-    if batch_size is None:
-        batch_size = items_per_chunk(camera, wavelengths.shape[0])
-    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
-            or batch_size < 1:
-        raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
-    prepared = diffuser_fields(phase, camera, wavelengths)
-
-    @jax.checkpoint
-    def step(item):
-        z, x = item
-        h = _one_source(prepared, camera, wavelengths, weights, z, positions, normalise)[0]
-        return fn(h) if xs is None else fn(h, x)
-    return lax.map(step, (z1, xs), batch_size=min(int(batch_size), z1.shape[0]))
+    return wavelengths, weights, z1, positions
 
 
 def _traced(phase, camera, arguments) -> bool:
