@@ -112,8 +112,9 @@ def _parameters(surface):
 def _write_tiff(path, height: np.ndarray, meta: dict) -> None:
     import tifffile
     per_cm = 1e-2 / meta["camera"]["dx"]
-    description = {k: meta[k] for k in ("format", "unit", "refractive_index", "camera",
-                                        "surface", "height_range")}
+    description = {"shape": list(height.shape),   # tifffile's JSON description
+                   **{k: meta[k] for k in ("format", "unit", "refractive_index", "camera",
+                                           "surface", "height_range")}}
     tifffile.imwrite(path, height, resolution=(per_cm, per_cm), resolutionunit="CENTIMETER",
                      description=json.dumps(description), metadata=None)
 

@@ -126,7 +126,8 @@ def design(surface: Surface, camera: Camera, z1, refractive_index: float = 1.5,
     state = optax.adam(options.learning_rate).init(eqx.filter(surface, eqx.is_array))
     start = Design(surface, camera, z1, float(refractive_index), options,
                    np.zeros((0, len(HISTORY_COLUMNS))), {}, state, "not started", 0.0)
-    if options.checkpoint is not None and Path(options.checkpoint).exists():
+    if options.resume and options.checkpoint is not None \
+            and Path(options.checkpoint).exists():
         start = _continued(start, load_design(options.checkpoint))
     return _run(start, objective)
 

@@ -33,9 +33,10 @@ class DesignOptions:
         sparsity_weight: weight w of the PSFs' spread ‖h‖₁/(√N‖h‖₂), unitless.
         time_budget: also stop after this many seconds (``None``: the steps alone).
         checkpoint: a design file (``.npz``) written every ``checkpoint_every`` steps
-            and at the end; if it exists when the design starts, the design continues
-            from it.
+            and at the end.
         checkpoint_every: steps between checkpoints.
+        resume: if the checkpoint file exists when the design starts, continue from it
+            (``False``: start afresh; the file is replaced at the first checkpoint).
         progress: show a progress bar over the steps.
     """
 
@@ -46,6 +47,7 @@ class DesignOptions:
     time_budget: float | None = None
     checkpoint: str | None = None
     checkpoint_every: int = 50
+    resume: bool = True
     progress: bool = True
 
     def __post_init__(self):

@@ -72,6 +72,7 @@ class SmoothSurface(eqx.Module):
     feature_size: float = eqx.field(static=True)
     height_max: float = eqx.field(static=True)
 
+    @eqx.filter_jit
     def height(self) -> Float[Array, "ny nx"]:
         """h on the diffuser grid, metres, in (0, ``height_max``)."""
         by = spline_basis(self.shape[0], self.dx, self.feature_size)
@@ -84,9 +85,11 @@ class SmoothSurface(eqx.Module):
     def random(key: Array, shape, dx: float, feature_size: float,
                height_max: float, spread: float = 2.0) -> "SmoothSurface":
         """A random start: independent normal coefficients of standard deviation
-        ``spread`` (unitless; 2 spreads the heights over the whole range).
-        ``dx``, ``feature_size`` and ``height_max`` in metres."""
+        ``spread`` (unitless; 2 spreads the heights over the whole range). ``key`` is a
+        ``jax.random`` key or an int seed; ``dx``, ``feature_size`` and ``height_max``
+        in metres."""
         shape = _check_limits(shape, dx, feature_size, height_max)
+        key = _key(key)
         my = spline_basis(shape[0], dx, feature_size).shape[1]
         mx = spline_basis(shape[1], dx, feature_size).shape[1]
         return SmoothSurface(spread * jax.random.normal(key, (my, mx)), shape, float(dx),
@@ -132,6 +135,7 @@ class LensletArray(eqx.Module):
         sag = sag_max * jax.nn.sigmoid(p[:, 2])
         return centre[:, 0], centre[:, 1], sag, aperture
 
+    @eqx.filter_jit
     def height(self) -> Float[Array, "ny nx"]:
         """h on the diffuser grid, metres: the highest cap at each point (0 outside
         every lens)."""
@@ -154,8 +158,10 @@ class LensletArray(eqx.Module):
                count: int, region: float, regular: bool = False) -> "LensletArray":
         """``count`` lenses with random centres within ±``region`` (m), sags and
         apertures; ``regular`` puts them on a square lattice instead, all alike (the
-        baseline a regular microlens array gives). Lengths in metres."""
+        baseline a regular microlens array gives). ``key`` is a ``jax.random`` key or an
+        int seed; lengths in metres."""
         shape = _check_limits(shape, dx, feature_size, height_max)
+        key = _key(key)
         check_positive("region", region, "m")
         if not isinstance(count, (int, np.integer)) or count < 1:
             raise DiffcamError(f"count must be a positive number of lenses, got {count!r}.")
@@ -195,6 +201,11 @@ def lenslet_table(surface: LensletArray, refractive_index: float) -> dict[str, l
     return {"y": y.tolist(), "x": x.tolist(), "sag": sag.tolist(),
             "aperture_radius": a.tolist(), "radius_of_curvature": radius.tolist(),
             "focal_length": (radius / (refractive_index - 1)).tolist()}
+
+
+def _key(key) -> Array:
+    """A ``jax.random`` key from a key or an int seed."""
+    return jax.random.key(key) if isinstance(key, (int, np.integer)) else key
 
 
 def _check_limits(shape, dx, feature_size, height_max) -> tuple[int, int]:
