@@ -68,7 +68,8 @@ def _cmd_design(args) -> int:
           f"{after:.4f}; PSF spread {result.history[0, 3]:.3f} → "
           f"{result.final['spread']:.3f}\n"
           f"  {result.steps} steps ({result.stop_reason}), {result.seconds:.1f} s "
-          f"({per_step:.3f} s/step, compilation included) → {out}, {design.tiff_path(out)} (height map, m)")
+          f"({per_step:.3f} s/step, compilation included) → {out}, "
+          f"{design.tiff_path(out)} (height map, m)")
     return 0
 
 

@@ -19,8 +19,11 @@ weight:
     loss = ρ_τ + w · mean_z spread(h_z).
 
 The PSFs come from `diffcam.model.point_spread.psf_map`, a chunk of depths at a time
-and recomputed in the reverse pass, so the gradient's memory is a chunk's fields plus
-the nz standardised PSFs the correlations need.
+(at least `CHUNKS` chunks) and recomputed in the reverse pass, so the gradient's memory
+is a chunk's fields plus the nz standardised PSFs the correlations need. ``jax.vmap`` of
+`diffcam.model.point_spread.psf` (chunked too, by a custom_vmap) keeps every chunk's
+fields for the reverse pass instead: its gradient's temporaries grow with the number of
+depths (``python -m benchmarks.bench_design``).
 """
 
 from __future__ import annotations
@@ -35,10 +38,17 @@ from jaxtyping import Float
 
 from diffcam.design.surfaces import Surface, height_map
 from diffcam.model.camera import Camera
-from diffcam.model.point_spread import psf_map
+from diffcam.model.point_spread import items_per_chunk, psf_map
 
 __all__ = ["standardised", "spread", "correlation_matrix", "pair_correlations",
-           "smooth_max", "DepthObjective", "Terms", "depth_objective"]
+           "smooth_max", "DepthObjective", "Terms", "depth_objective", "objective_terms"]
+
+
+CHUNKS = 4
+"""Fewest chunks the depths are split into (`psf_map`'s ``batch_size``; fewer depths per
+chunk when its default, about 2**20 field samples, holds more): with every depth in one
+chunk the gradient's temporaries were 2.3× the forward pass's at 256² over 16 depths,
+with four 1.5× (``python -m benchmarks.bench_design``)."""
 
 
 def standardised(image: Float[Array, "... ny nx"]) -> Float[Array, "... ny nx"]:
@@ -106,10 +116,18 @@ def depth_objective(surface: Surface, objective: DepthObjective) -> tuple[Array,
     """``(loss, Terms)`` of ``surface``: loss = ρ_τ + w·mean spread (module docstring).
     Differentiable in the surface's array leaves."""
     diffuser = height_map(surface, objective.refractive_index)
+    nz = np.shape(objective.z1)[0]
+    chunk = min(items_per_chunk(objective.camera, 1), -(-nz // CHUNKS))
     q, s = psf_map(lambda h: (standardised(h), spread(h)), diffuser, objective.camera,
-                   objective.z1)
+                   objective.z1, batch_size=chunk)
+    return objective_terms(q, s, objective)
+
+
+def objective_terms(q: Float[Array, "nz ny nx"], spreads: Float[Array, " nz"],
+                    objective: DepthObjective) -> tuple[Array, Terms]:
+    """``(loss, Terms)`` from the `standardised` PSFs ``q`` and their `spread`."""
     pairs = pair_correlations(q)
     smooth = smooth_max(pairs, objective.temperature)
-    mean_spread = jnp.mean(s)
+    mean_spread = jnp.mean(spreads)
     loss = smooth + objective.sparsity_weight * mean_spread
     return loss, Terms(smooth, jnp.max(pairs), mean_spread)

@@ -31,17 +31,12 @@ from jax import Array
 from jaxtyping import Float
 
 from diffcam.core.errors import DiffcamError, check_positive
-from diffcam.core.grid import int_pair
+from diffcam.core.grid import coord_at, int_pair, radius2
 from diffcam.model.camera import HeightMap
 from diffcam.model.spline import bspline
 
 __all__ = ["SmoothSurface", "LensletArray", "Surface", "height_map", "spline_basis",
            "lenslet_table"]
-
-
-def _grid_coordinates(n: int, dx: float) -> np.ndarray:
-    """Sample coordinates of a centred grid axis, metres (index n//2 on the axis)."""
-    return (np.arange(n) - n // 2) * dx
 
 
 def spline_basis(n: int, dx: float, feature_size: float) -> np.ndarray:
@@ -50,7 +45,7 @@ def spline_basis(n: int, dx: float, feature_size: float) -> np.ndarray:
     grid with one knot to spare on each side, centred like it."""
     m = int(np.ceil(n * dx / feature_size)) + 3
     knots = (np.arange(m) - (m - 1) / 2) * feature_size
-    return bspline((_grid_coordinates(n, dx)[:, None] - knots[None, :]) / feature_size)
+    return bspline((coord_at(np.arange(n), n, dx)[:, None] - knots[None, :]) / feature_size)
 
 
 class SmoothSurface(eqx.Module):
@@ -141,12 +136,10 @@ class LensletArray(eqx.Module):
         every lens)."""
         y, x, sag, a = self.lenses()
         radius = (a ** 2 + sag ** 2) / (2 * sag)
-        dtype = self.params.dtype
-        gy = jnp.asarray(_grid_coordinates(self.shape[0], self.dx), dtype)
-        gx = jnp.asarray(_grid_coordinates(self.shape[1], self.dx), dtype)
+        dx = jnp.asarray(self.dx, self.params.dtype)
 
         def cap(yk, xk, tk, ak, rk):
-            r2 = (gy[:, None] - yk) ** 2 + (gx[None, :] - xk) ** 2
+            r2 = radius2(self.shape, dx, centre=(yk, xk))
             inside = r2 < ak ** 2
             # safe where: the square root's argument stays positive outside the cap
             h = jnp.sqrt(jnp.where(inside, rk ** 2 - r2, rk ** 2)) - (rk - tk)
