@@ -160,6 +160,15 @@ def test_continued_design_ends_where_an_uninterrupted_one_does(designed, tmp_pat
         design(_smooth(), _camera(), Z1, INDEX, other)
 
 
+def test_a_time_budget_stops_the_design(designed):
+    """A budget shorter than one step: the design stops after its first step and says
+    why (the step budget alone would have run ten)."""
+    result = design(_smooth(), _camera(), Z1, INDEX,
+                    dataclasses.replace(OPTIONS, time_budget=1e-9))
+    assert result.steps == 1 and result.stop_reason.startswith("time budget")
+    np.testing.assert_array_equal(result.history, designed.history[:1])
+
+
 # ------------------------------------------------------------------------- the file
 
 def test_design_file_round_trips_with_its_psfs(designed, saved):
