@@ -162,12 +162,18 @@ SECTIONS = {
     "scene_psf": ("The paper's Table 1 on real data: a PSF calibrated from scenes, every "
                   "solver scored on held-out captures",
                   "python -m benchmarks.bench_scene_psf", None),
+    "design": ("Diffuser design: the largest cross-depth PSF correlation at the start, "
+               "after the design and for unoptimised baselines, and the cost",
+               "python -m benchmarks.bench_design",
+               ["surface", "seed", "sparsity_weight", "steps", "start", "design", "baseline",
+                "baseline_is", "held_out_start", "held_out_design", "held_out_baseline",
+                "spread_start", "spread_design", "height_um", "wall_s", "wall_per_step_s"]),
     "fig6_seeds": ("The demo's Fig. 6 calibration over capture-noise seeds",
                    "python -m benchmarks.bench_fig6_seeds", None),
 }
 
 
-EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"]}
+EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["cost", "large"]}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 

@@ -2,7 +2,7 @@
 
 diffcam/__init__.py imports each on first use ([`diffcam.core.lazy`][diffcam.core.lazy])."""
 
-from diffcam import calibrate, core, evaluate, model, optics, reconstruct
+from diffcam import calibrate, core, design, evaluate, model, optics, reconstruct
 from diffcam.calibrate import retrieve_phase
 from diffcam.core.errors import (ConvergenceWarning, DiffcamError, GeometryWarning,
                                  SamplingError, ShapeError, UndersamplingWarning)
@@ -21,7 +21,7 @@ __all__ = [
     "fresnel_tf", "fresnel_ir", "angular_spectrum", "fourier_lens",
     "circular_aperture", "point_source_field", "thin_lens", "apply_phase", "plan_sampling",
     "pearson", "ssim", "psnr", "psf_fidelity", "DiffcamError", "SamplingError", "ShapeError",
-    "UndersamplingWarning", "GeometryWarning", "ConvergenceWarning", "calibrate", "core",
+    "UndersamplingWarning", "GeometryWarning", "ConvergenceWarning", "calibrate", "core", "design",
     "evaluate", "model", "optics", "reconstruct",
 ]
 

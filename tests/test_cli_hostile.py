@@ -92,6 +92,9 @@ def _valid(command: str, f: dict[str, Path], o: Path) -> list[str]:
                     "--pixel", "10um", "-o", Out(o / "cmp.png")],
         "compare-stack": [stack, "--model", StandIn(f["phase"]), "-o", Out(o / "cmps.png")],
         "data": ["hand", "-o", str(o / "captures")],
+        "design": ["--grid", "32", "--aperture", "36um", "--z2", "1mm", "--depths", "3",
+                   "--feature", "12um", "--height", "1um", "--steps", "2", "--no-progress",
+                   "-o", Out(o / "design.npz")],
         "demo": ["--grid", "600", "--gs-iterations", "1", "--calibration-iterations", "1",
                  "-o", str(o / "report")],
         "fit": [stack, "--planes", "0,2", "--max-steps", "1", "--no-progress",
@@ -216,7 +219,7 @@ def test_corrupt_input_files(command, files, tmp_path):
         _check(["data", "hand", "-o", existing])
         assert existing.read_bytes() == _OLD
         return
-    assert slots or command in ("demo", "plan"), command
+    assert slots or command in ("demo", "plan", "design"), command
     for i in slots:
         folder = tmp_path / f"slot{i}"
         folder.mkdir()

@@ -19,7 +19,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted((ROOT / "docs").rglob("*.md"))
 API_MODULES = ["diffcam", "diffcam.calibrate", "diffcam.model", "diffcam.optics",
-               "diffcam.reconstruct", "diffcam.evaluate", "diffcam.io", "diffcam.data"]
+               "diffcam.reconstruct", "diffcam.evaluate", "diffcam.io", "diffcam.data",
+               "diffcam.design"]
 
 # work-log wording that reference text must not carry: dates, numbered or named working
 # sessions, "previously", "formerly", "former …", "until <date>", "an earlier run", "in

@@ -19,6 +19,7 @@ from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iteration
                                  save_open_figures, save_rgb)
 from diffcam.apps.scene_psf_cli import add_calibrate_psf
 from diffcam.core.errors import DiffcamError
+from diffcam.apps.design_cli import add_design
 from diffcam.apps.fit_cli import add_fit, cmd_compare_stack, cmd_predict
 from diffcam.apps.processes import (distributed_settings, end_process, ERRORS,
                                     in_distributed_run, initialize_from_environment,
@@ -481,7 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
     # every subcommand's --help shows its defaults (a parser may still pass its own)
     sub._parser_class = functools.partial(Parser, formatter_class=DefaultsFormatter)
     for add in (_add_demo, _add_data, _add_plan, add_reconstruct, _add_calibrate,
-                add_calibrate_psf, _add_psf, _add_compare, add_fit):
+                add_calibrate_psf, _add_psf, _add_compare, add_fit, add_design):
         add(sub)
     for name, command in sub.choices.items():
         command.epilog = limits(name)

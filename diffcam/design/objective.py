@@ -1,0 +1,133 @@
+"""The depth-discrimination objective: PSFs of different depths should differ.
+
+A diffuser discriminates depth when the PSFs of any two depths of the range are unlike;
+the figure is the largest Pearson correlation (paper Eq. 14) between the PSFs of two
+different depths,
+
+    ρ_max = max_{i<j} P(h_i, h_j),   P(a, b) = ⟨â, b̂⟩,   â = (a − ā)/‖a − ā‖,
+
+which the optimiser lowers through its smooth upper bound (log-sum-exp at temperature τ)
+
+    ρ_τ = τ · log Σ_{i<j} exp(P(h_i, h_j)/τ),   ρ_max ≤ ρ_τ ≤ ρ_max + τ·log(#pairs),
+
+whose gradient reaches every close pair, not only the worst one. Lowering correlation
+alone could spread each PSF into a faint haze (two flat, noisy images correlate little):
+the PSFs' spread, their L1/L2 ratio ‖h‖₁/(√N·‖h‖₂) (1 for a uniform image, 1/√N for a
+single bright pixel; Miniscope3D asks for sparse, high-contrast PSFs), enters with a
+weight:
+
+    loss = ρ_τ + w · mean_z spread(h_z).
+
+The PSFs come from `diffcam.model.point_spread.psf_map`, a chunk of depths at a time
+(at least `CHUNKS` chunks) and recomputed in the reverse pass, so the gradient's memory
+is a chunk's fields plus the nz standardised PSFs the correlations need. ``jax.vmap`` of
+`diffcam.model.point_spread.psf` (chunked too, by a custom_vmap) keeps every chunk's
+fields for the reverse pass instead: its gradient's temporaries grow with the number of
+depths (``python -m benchmarks.bench_design``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.scipy.special import logsumexp
+from jaxtyping import Float
+
+from diffcam.design.surfaces import Surface, height_map
+from diffcam.model.camera import Camera
+from diffcam.model.point_spread import items_per_chunk, psf_map
+
+__all__ = ["standardised", "spread", "correlation_matrix", "pair_correlations",
+           "smooth_max", "DepthObjective", "Terms", "depth_objective", "objective_terms"]
+
+
+CHUNKS = 4
+"""Fewest chunks the depths are split into (`psf_map`'s ``batch_size``; fewer depths per
+chunk when its default, about 2**20 field samples, holds more): with every depth in one
+chunk the gradient's temporaries were 2.3× the forward pass's at 256² over 16 depths,
+with four 1.5× (``python -m benchmarks.bench_design``)."""
+
+
+def standardised(image: Float[Array, "... ny nx"]) -> Float[Array, "... ny nx"]:
+    """(a − ā)/‖a − ā‖ over the last two axes: Pearson correlations are dot products
+    of these."""
+    d = image - jnp.mean(image, axis=(-2, -1), keepdims=True)
+    return d / jnp.sqrt(jnp.sum(d * d, axis=(-2, -1), keepdims=True))
+
+
+def spread(image: Float[Array, "... ny nx"]) -> Float[Array, "..."]:
+    """‖a‖₁/(√N·‖a‖₂) over the last two axes (N samples): 1 for a uniform image,
+    1/√N for one bright sample; lower is sparser."""
+    n = image.shape[-2] * image.shape[-1]
+    l1 = jnp.sum(jnp.abs(image), axis=(-2, -1))
+    l2 = jnp.sqrt(jnp.sum(image * image, axis=(-2, -1)))
+    return l1 / (jnp.sqrt(n) * l2)
+
+
+def correlation_matrix(q: Float[Array, "nz ny nx"]) -> Float[Array, "nz nz"]:
+    """Pearson correlations of every pair of `standardised` images."""
+    flat = q.reshape(q.shape[0], -1)
+    return flat @ flat.T
+
+
+def pair_correlations(q: Float[Array, "nz ny nx"]) -> Float[Array, " npairs"]:
+    """The correlations of the nz(nz − 1)/2 pairs i < j of `standardised` images."""
+    i, j = np.triu_indices(q.shape[0], k=1)
+    return correlation_matrix(q)[i, j]
+
+
+def smooth_max(values: Float[Array, " n"], temperature) -> Float[Array, ""]:
+    """τ · log Σ exp(v/τ): an upper bound of max(v) within τ·log n (τ = ``temperature``,
+    in the units of v)."""
+    return temperature * logsumexp(values / temperature)
+
+
+class DepthObjective(NamedTuple):
+    """What the objective needs besides the surface.
+
+    Attributes:
+        camera: the camera the diffuser sits in (its grid is the surface's).
+        z1: the depths of the range, metres, (nz,) with nz ≥ 2.
+        refractive_index: n of the diffuser material, unitless.
+        temperature: τ of the smooth maximum, in correlation units.
+        sparsity_weight: w of the spread term, unitless.
+    """
+
+    camera: Camera
+    z1: np.ndarray
+    refractive_index: float
+    temperature: float = 0.01
+    sparsity_weight: float = 0.1
+
+
+class Terms(NamedTuple):
+    """The objective's parts at one surface: ``smooth`` (ρ_τ), ``max_correlation``
+    (ρ_max, the true maximum), ``spread`` (mean over depths)."""
+
+    smooth: Array
+    max_correlation: Array
+    spread: Array
+
+
+def depth_objective(surface: Surface, objective: DepthObjective) -> tuple[Array, Terms]:
+    """``(loss, Terms)`` of ``surface``: loss = ρ_τ + w·mean spread (module docstring).
+    Differentiable in the surface's array leaves."""
+    diffuser = height_map(surface, objective.refractive_index)
+    nz = np.shape(objective.z1)[0]
+    chunk = min(items_per_chunk(objective.camera, 1), -(-nz // CHUNKS))
+    q, s = psf_map(lambda h: (standardised(h), spread(h)), diffuser, objective.camera,
+                   objective.z1, batch_size=chunk)
+    return objective_terms(q, s, objective)
+
+
+def objective_terms(q: Float[Array, "nz ny nx"], spreads: Float[Array, " nz"],
+                    objective: DepthObjective) -> tuple[Array, Terms]:
+    """``(loss, Terms)`` from the `standardised` PSFs ``q`` and their `spread`."""
+    pairs = pair_correlations(q)
+    smooth = smooth_max(pairs, objective.temperature)
+    mean_spread = jnp.mean(spreads)
+    loss = smooth + objective.sparsity_weight * mean_spread
+    return loss, Terms(smooth, jnp.max(pairs), mean_spread)
