@@ -38,7 +38,8 @@ from jaxtyping import Float
 
 from diffcam.design.surfaces import Surface, height_map
 from diffcam.model.camera import Camera
-from diffcam.model.point_spread import items_per_chunk, psf_map
+from diffcam.model.point_spread import items_per_chunk
+from diffcam.model.stack_map import psf_map
 
 __all__ = ["standardised", "spread", "correlation_matrix", "pair_correlations",
            "smooth_max", "DepthObjective", "Terms", "depth_objective", "objective_terms"]
