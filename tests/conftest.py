@@ -14,13 +14,18 @@ import pytest
 # (tests/test_startup.py turns it on, in temporary folders)
 os.environ["DIFFCAM_NO_CACHE"] = "1"
 
-# Most of the suite's time is XLA compiling small programs that then run once. The tests
-# (and the commands they start) compile with LLVM's code optimisation off: the same
-# programs (XLA's own passes, buffers and float semantics are unchanged; fast math is
-# off either way), a quarter less CPU time. Read before JAX starts its backend.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                               + " --xla_backend_optimization_level=0").strip()
+
+def pytest_configure(config):
+    """The default run (``-m 'not slow'``: small programs, compiled and run once, most
+    of their time XLA compiling) compiles with LLVM's code optimisation off: the same
+    programs (XLA's own passes, buffers and float semantics are unchanged; fast math is
+    off either way) in a quarter less CPU time, for the commands the tests start too.
+    The slow tests, whose programs run long, keep the optimisation. Set before JAX
+    starts its backend (at the first computation, during collection)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "not slow" in (config.option.markexpr or "") \
+            and "xla_backend_optimization_level" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=0".strip()
 
 
 @pytest.fixture
