@@ -32,6 +32,7 @@ def retrieve_from_raw(sim, near_raw, far_raw, exposure, pitch_error):
     return phase_scores(crop_to(r.phase, sim.truth.shape), sim.truth, mask=sim.mask)
 
 
+@pytest.mark.slow
 def test_noisy_synthetic_captures(sim):
     """Poisson 1e4 photons at peak, 12 bits, 2 % background, pixel integration at 3.45 µm,
     far pitch 1 % wrong: one exposure still gives twin-resolved P > 0.9; an exposure

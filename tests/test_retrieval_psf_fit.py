@@ -24,6 +24,7 @@ def camera(sim):
                   shape=(128, 128))
 
 
+@pytest.mark.slow
 def test_third_measurement_breaks_the_twin_from_a_flat_start(sim, camera):
     """Near + far + one PSF (z1 = 25 mm, z2 = 1 mm): no projection warm start, and the
     estimate is the phase itself, not its twin (plain piston-aligned Pearson)."""
