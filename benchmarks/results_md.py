@@ -128,10 +128,11 @@ SECTIONS = {
                "numpy_s", "speedup", "admm_s_per_it", "cost_ratio", "fwd_adj_s",
                "fwd_adj_ratio", "temp_mb", "argument_mb"]),
     "field_truth": ("A PSF that changes across the field: a per-point known truth from "
-                    "the engine",
+                    "the engine, with a stop away from the diffuser and a pixel response",
                     "python -m benchmarks.bench_field_truth",
-                    ["what", "points", "rank_1pct", "rank_0p1pct", "rank1_error",
-                     "psnr_db", "final_residual", "model_error"]),
+                    ["half", "field_deg", "stop_mm", "p", "rank_1pct", "rank_0p1pct", "K",
+                     "psnr_shift_invariant", "psnr_flat_field", "psnr_field_model",
+                     "gain_db", "seconds"]),
     "peers": ("PSF stacks beside the JAX optics peers (chromatix, dLux): forward and "
               "value_and_grad, time and peak memory",
               "python -m benchmarks.bench_peers --chromatix-python /path/to/python3.12",

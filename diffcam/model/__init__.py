@@ -5,6 +5,8 @@
   [`Spectrum`][diffcam.model.camera.Spectrum], random diffusers;
 - `diffcam.model.point_spread` — the PSF of a point source (direct, or by the Fresnel
   scaling theorem);
+- `diffcam.model.off_axis` — what changes across the field: the stop's shadow, the
+  sensor's angular response, vignetting;
 - `diffcam.model.stack` — PSF stacks over depths and positions: chunked, sharded, streamed,
   saved and loaded;
 - `diffcam.model.sensor` — pixel integration, resampling, noise, saturation, quantisation.

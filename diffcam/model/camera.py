@@ -33,6 +33,8 @@ __all__ = ["Camera", "HeightMap", "Spectrum", "as_spectrum", "diffuser_phase", "
            "real_dtype", "with_method", "METHODS"]
 
 METHODS = ("scaling", "direct")
+OFF_AXIS_TERMS = ("aperture_distance", "acceptance_exponent", "vignetting_exponent")
+"""The Camera fields of the terms that change across the field (`diffcam.model.off_axis`)."""
 
 
 def _scalar(x):
@@ -60,14 +62,21 @@ def _optional_array(x):
     return None if x is None else jnp.asarray(x)
 
 
+def _optional_scalar(x):
+    return None if x is None else _scalar(x)
+
+
 class Camera(eqx.Module):
     """A diffuser camera: static geometry plus traced physical numbers.
 
     Static (hashable; changing one recompiles): ``shape``, ``pad``, ``crop``, ``method``,
     ``edge``. Traced (array leaves: differentiable, ``vmap``-able, new values reuse the
     compiled code): ``wavelength``, ``z2``, ``dx``, ``aperture_radius`` or
-    ``aperture_mask``. Change a field with ``dataclasses.replace(camera, z2=2e-3)`` (which
-    re-validates) or ``eqx.tree_at`` (which does not, for use under transforms).
+    ``aperture_mask``, and the off-axis terms ``aperture_distance``,
+    ``acceptance_exponent`` and ``vignetting_exponent`` (`diffcam.model.off_axis`; each
+    ``None``, the default, leaves it out). Change a field with
+    ``dataclasses.replace(camera, z2=2e-3)`` (which re-validates) or ``eqx.tree_at``
+    (which does not, for use under transforms).
 
     Attributes:
         wavelength: metres (the wavelength a phase-array diffuser is given at).
@@ -84,6 +93,14 @@ class Camera(eqx.Module):
         method: ``"scaling"`` (Fresnel scaling theorem, default) or ``"direct"``.
         edge: ``"hard"`` (as in the paper) or ``"soft"`` (one-pixel ramp,
             differentiable in ``aperture_radius``) circular-aperture edge.
+        aperture_distance: distance d of the circular aperture (the stop) in front of the
+            diffuser, metres (≥ 0); its shadow on the diffuser moves with the source.
+            ``None``: the aperture lies on the diffuser.
+        acceptance_exponent: p of the sensor's angular response: a pixel records the
+            fraction cos^p θ of the power of a plane wave at incidence θ (≥ 0, unitless).
+        vignetting_exponent: n of the irradiance's fall-off cos^n of the source's field
+            angle (≥ 0, unitless; 4 is the classic cos⁴ law). Only an unnormalised PSF
+            shows it.
     """
 
     wavelength: Float[Array, ""] = eqx.field(converter=_scalar)
@@ -93,6 +110,12 @@ class Camera(eqx.Module):
                                                          converter=_optional_array)
     aperture_mask: Float[Array, "ny nx"] | None = eqx.field(default=None,
                                                             converter=_optional_array)
+    aperture_distance: Float[Array, ""] | None = eqx.field(default=None,
+                                                           converter=_optional_scalar)
+    acceptance_exponent: Float[Array, ""] | None = eqx.field(default=None,
+                                                             converter=_optional_scalar)
+    vignetting_exponent: Float[Array, ""] | None = eqx.field(default=None,
+                                                             converter=_optional_scalar)
     shape: tuple[int, int] = eqx.field(default=(1024, 1024), static=True)
     pad: tuple[int, int] = eqx.field(default=(0, 0), static=True,
                                      converter=lambda v: int_pair(v, "pad"))
@@ -114,7 +137,7 @@ class Camera(eqx.Module):
             raise DiffcamError(f"method must be one of {METHODS}, got {self.method!r}.")
         if self.edge not in ("hard", "soft"):
             raise DiffcamError(f"edge must be 'hard' or 'soft', got {self.edge!r}.")
-        for name in ("wavelength", "z2", "dx", "aperture_radius"):
+        for name in ("wavelength", "z2", "dx", "aperture_radius", *OFF_AXIS_TERMS):
             value = getattr(self, name)
             if value is not None and not isinstance(value, jax.core.Tracer) \
                     and np.ndim(value) != 0:
@@ -133,6 +156,9 @@ class Camera(eqx.Module):
                 raise ShapeError(f"aperture_mask has shape {np.shape(self.aperture_mask)}, "
                                  f"the camera grid is {shape}; build it on that grid.")
             check_finite("aperture_mask", self.aperture_mask)
+            if self.aperture_distance is not None:
+                raise DiffcamError("aperture_distance moves a circular aperture's shadow; "
+                                   "give aperture_radius (metres) instead of a mask.")
         else:
             check_positive("aperture_radius", self.aperture_radius, "m")
             if is_concrete(self.aperture_radius, self.dx):
@@ -142,6 +168,10 @@ class Camera(eqx.Module):
                         f"aperture radius {fmt_length(float(self.aperture_radius))} is larger "
                         f"than the grid's half-width {fmt_length(half)}; use more samples "
                         f"(shape) or a larger pitch dx.")
+
+        for name, unit in zip(OFF_AXIS_TERMS, ("m", "", "")):
+            if getattr(self, name) is not None:
+                check_positive(name, getattr(self, name), unit, allow_zero=True)
 
     @property
     def out_shape(self) -> tuple[int, int]:

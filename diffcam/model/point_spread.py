@@ -56,6 +56,7 @@ from diffcam.core.errors import (DiffcamError, ShapeError, check_finite, check_p
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.model.camera import (Camera, HeightMap, as_spectrum, diffuser_phase,
                                   real_dtype)
+from diffcam.model import off_axis
 from diffcam.model.sensor import bspline_prefilter
 from diffcam.model.spline import spline_sample
 from diffcam.optics.elements import apply_phase, spherical_wave
@@ -65,21 +66,33 @@ from diffcam.optics.propagation import (critical_distance, effective_distance,
 from diffcam.optics.sampling import check_point_source_sampling
 
 __all__ = ["psf", "depth_list", "on_axis_arguments", "source_psfs", "diffuser_fields",
-           "fields_for_fft", "irradiance", "zeff_factors", "sample_points", "check_inputs"]
+           "fields_for_fft", "fields_per_depth", "irradiance", "zeff_factors",
+           "sample_points", "check_inputs"]
 
 
 # --------------------------------------------------------------- Eq. 7, step by step
 
 def diffuser_fields(phase, camera: Camera, wavelengths) -> Array:
     """C · e^{jθd(λ)} (paper Eqs. 4–5) on the padded grid, one per wavelength:
-    (nλ, ny, nx) complex; on the scaling path its FFT, which every depth shares."""
+    (nλ, ny, nx) complex; on the scaling path its FFT, which every depth shares. With a
+    stop away from the diffuser (`diffcam.model.off_axis`) e^{jθd} alone: each source
+    has its own shadow C."""
     thetas = jax.vmap(lambda lam: diffuser_phase(phase, lam, camera.wavelength))(wavelengths)
+    if camera.aperture_distance is not None:
+        return pad_to(apply_phase(jnp.ones(camera.shape, thetas.dtype), thetas),
+                      camera.padded_shape)
     fields = pad_to(apply_phase(camera.aperture(), thetas), camera.padded_shape)
     return fft2(fields) if camera.method == "scaling" else fields
 
 
-def _fresnel_kernel(camera, wavelength, z):
-    return transfer_function(camera.padded_shape, camera.dx, wavelength, z, "fresnel_tf")
+def _sensor_kernel(camera, wavelength):
+    """The Fresnel transfer function over z2, times the sensor's angular response."""
+    kernel = transfer_function(camera.padded_shape, camera.dx, wavelength, camera.z2,
+                               "fresnel_tf")
+    if camera.acceptance_exponent is None:
+        return kernel
+    return kernel * off_axis.response_amplitude(camera.padded_shape, camera.dx, wavelength,
+                                                camera.acceptance_exponent)
 
 
 def _source_fields(diffuser, camera, wavelength, z1, positions):
@@ -88,8 +101,16 @@ def _source_fields(diffuser, camera, wavelength, z1, positions):
     def one(offset):
         cy, cx = spherical_wave(diffuser.shape, camera.dx, wavelength, z1, y1=offset[0],
                                 x1=offset[1])
-        return diffuser * (cy * cx)
+        return _through_stop(diffuser, camera, z1, offset) * (cy * cx)
     return jax.vmap(one)(positions)
+
+
+def _through_stop(diffuser, camera, z1, offset):
+    """The diffuser field in the stop's shadow for the source at ``offset`` (itself when
+    the aperture is on the diffuser and already applied)."""
+    if camera.aperture_distance is None:
+        return diffuser
+    return diffuser * off_axis.stop_shadow(camera, z1, offset)
 
 
 def zeff_factors(camera, wavelength, z1):
@@ -105,7 +126,8 @@ def zeff_factors(camera, wavelength, z1):
 def _zeff_spectrum(diffuser_hat, camera, wavelength, z1):
     """Spectrum of the cubic B-spline coefficients of P_zeff{C·e^{jθd}}: its inverse FFT is
     the field the scaling theorem magnifies (the separable spline prefilter rides on the
-    transfer function). (1, ny, nx): the positions only move the sampling."""
+    transfer function). (n, ny, nx) for n spectra: one (the positions only move the
+    sampling), or one per position in a moving stop's shadow."""
     # Under jax.checkpoint, reverse mode keeps the four vectors and forms the N² product
     # again inside the multiply's transpose; without it, XLA kept the product as an
     # array (8 MB and 3 ms of a 1024² gradient). Multiplying by the vectors one after
@@ -115,29 +137,35 @@ def _zeff_spectrum(diffuser_hat, camera, wavelength, z1):
     def filtered(d, hy, hx, by, bx):
         return d * ((hy * hx) * (by * bx))
     factors = zeff_factors(camera, wavelength, z1)
-    return filtered(diffuser_hat, *factors)[None]
+    return filtered(diffuser_hat, *factors)
 
 
-def sample_points(shape, camera, z1, y1=0.0, x1=0.0):
+def sample_points(shape, camera, z1, y1=0.0, x1=0.0, margin: int = 0):
     """Where the scaling theorem samples the z_eff field on a grid of ``shape``: the
-    sensor-grid points, magnified by M about the image of the source (y1, x1), in
-    fractional sample indices (ty, tx); both increase (spline_sample's promise)."""
+    sensor-grid points (the crop and ``margin`` samples per side), magnified by M about
+    the image of the source (y1, x1), in fractional sample indices (ty, tx); both
+    increase (spline_sample's promise)."""
     z2 = camera.z2
     mag = magnification(z1, z2)
     ny, nx = shape
     cy, cx = camera.out_shape
     shift = z2 / (z1 + z2) / camera.dx  # source offset → sample offset, per metre
-    ty = (jnp.arange(cy) - cy // 2) / mag + y1 * shift + ny // 2
-    tx = (jnp.arange(cx) - cx // 2) / mag + x1 * shift + nx // 2
+    ty = (jnp.arange(cy + 2 * margin) - margin - cy // 2) / mag + y1 * shift + ny // 2
+    tx = (jnp.arange(cx + 2 * margin) - margin - cx // 2) / mag + x1 * shift + nx // 2
     return ty, tx
 
 
-def _magnified(field, camera, z1, y1, x1):
+def _magnified(field, camera, wavelength, z1, y1, x1):
     """|·|² of the z_eff field magnified by M about the image of the source, at the
-    sensor-grid points: the irradiance but for the constant 1/(Mλz1)² of the scaling
-    theorem (`_source_constant`)."""
-    ty, tx = sample_points(field.shape[-2:], camera, z1, y1, x1)
+    sensor-grid points (as the pixels record it, with an angular response): the
+    irradiance but for the constant 1/(Mλz1)² of the scaling theorem
+    (`_source_constant`)."""
+    accepting = camera.acceptance_exponent is not None
+    margin = off_axis.MARGIN if accepting else 0
+    ty, tx = sample_points(field.shape[-2:], camera, z1, y1, x1, margin)
     s = spline_sample(spline_sample(field, ty, -2), tx, -1)
+    if accepting:
+        s = off_axis.accepted_on_sensor(s, camera, wavelength, z1, y1, x1)
     return s.real ** 2 + s.imag ** 2
 
 
@@ -157,9 +185,12 @@ def fields_for_fft(prepared, camera: Camera, wavelengths, z1, positions) -> Arra
     ``prepared`` is `diffuser_fields`; ``positions`` (npos, 2) of (y1, x1), metres.
     """
     def per_wavelength(prep, lam):
-        if camera.method == "scaling":
-            return _zeff_spectrum(prep, camera, lam, z1)
-        return _source_fields(prep, camera, lam, z1, positions)
+        if camera.method == "direct":
+            return _source_fields(prep, camera, lam, z1, positions)
+        if camera.aperture_distance is None:
+            return _zeff_spectrum(prep[None], camera, lam, z1)
+        shadowed = jax.vmap(lambda offset: fft2(_through_stop(prep, camera, z1, offset)))
+        return _zeff_spectrum(shadowed(positions), camera, lam, z1)
     return jax.vmap(per_wavelength)(prepared, wavelengths)
 
 
@@ -167,12 +198,15 @@ def irradiance_and_fields(fields, camera, wavelengths, weights, z1, positions, n
     """`irradiance`, and the two field-sized arrays its FFTs wrote (the executor in
     `diffcam.model.stack` hands them back as the next call's buffers)."""
     def per_wavelength(u, lam):
-        constant = _source_constant(camera, lam, z1)
+        constant = _source_constant(camera, lam, z1) * off_axis.vignetting(camera, z1,
+                                                                           positions)
         if camera.method == "scaling":
-            field = ifft2(u[0])
-            psfs = jax.vmap(lambda p: _magnified(field, camera, z1, p[0], p[1]))(positions)
-            return _normalised(psfs, normalise, constant), (u, field[None])
-        kernel = _fresnel_kernel(camera, lam, camera.z2)
+            field = ifft2(u)   # one z_eff field, or one per position's stop shadow
+            psfs = jax.vmap(lambda f, p: _magnified(f, camera, lam, z1, p[0], p[1]),
+                            in_axes=(0 if u.shape[0] > 1 else None, 0))(
+                field if u.shape[0] > 1 else field[0], positions)
+            return _normalised(psfs, normalise, constant), (u, field)
+        kernel = _sensor_kernel(camera, lam)
         field, spectrum = transfer_step_with_spectrum(u, kernel)
         out = crop_to(field, camera.out_shape)
         psfs = out.real ** 2 + out.imag ** 2
@@ -244,6 +278,12 @@ def items_per_chunk(camera: Camera, fields_per_item: int) -> int:
     return max(1, FIELD_SAMPLES_PER_CHUNK // (ny * nx * max(1, fields_per_item)))
 
 
+def fields_per_depth(camera: Camera, npos: int) -> int:
+    """Fields one depth's ``npos`` sources need per wavelength: one each on the direct
+    path or in a moving stop's shadow, else one z_eff field for all."""
+    return npos if camera.method == "direct" or camera.aperture_distance is not None else 1
+
+
 def source_psfs(prepared, camera, wavelengths, weights, z1, positions, normalise):
     """PSFs of one source depth from `diffuser_fields`' output: (npos, ny, nx)
     (``wavelengths`` and ``weights`` as `on_axis_arguments` gives them)."""
@@ -259,8 +299,8 @@ def _chunk_rule(in_batched, prepared, camera, wavelengths, weights, z1, position
     shared = [b for i, b in enumerate(in_batched) if i != 5]
     if camera.method == "scaling" and not any(jax.tree_util.tree_leaves(shared)):
         return None
-    npos = positions.shape[-2] if camera.method == "direct" else 1
-    return items_per_chunk(camera, prepared.shape[-3] * npos)
+    return items_per_chunk(camera, prepared.shape[-3] * fields_per_depth(camera,
+                                                                         positions.shape[-2]))
 
 
 _depth_psfs = {normalise: in_chunks(lambda p, c, w, g, z, x, n=normalise:
@@ -333,6 +373,7 @@ def _check_geometry(camera, z_min, z_max, rho, wavelengths, accept_undersampling
             f"towards the axis or enlarge the camera's crop.")
     if camera.method == "scaling":
         _check_magnified_sampling(camera, z_min, accept_undersampling)
+    off_axis.check_off_axis(camera, z_min, rho, wavelengths, accept_undersampling)
     for lam in wavelengths:
         # transfer-function sampling of the longest propagation on the padded grid
         z_prop = z2 if camera.method == "direct" else effective_distance(z_max, z2)
@@ -343,8 +384,8 @@ def _check_geometry(camera, z_min, z_max, rho, wavelengths, accept_undersampling
                 f"grid (critical distance N·dx²/λ = {fmt_length(zc)}); increase Camera.pad "
                 f"or the grid", accept_undersampling)
         if camera.method == "direct":
-            check_point_source_sampling(lam, z_min, camera.support_radius(), rho, dx,
-                                        "at the aperture edge", accept_undersampling)
+            check_point_source_sampling(lam, z_min, off_axis.lit_radius(camera, z_min, rho),
+                                        rho, dx, "at the aperture edge", accept_undersampling)
 
 
 MIN_SAMPLES_ACROSS = 4
@@ -393,9 +434,11 @@ def psf(phase, camera: Camera, z1, *, y1=0.0, x1=0.0, spectrum=None, normalise: 
         spectrum: ``(wavelengths, weights)`` (metres, relative power) for broadband
             light: the weight-averaged PSF; ``None`` is monochromatic at
             ``camera.wavelength``.
-        normalise: unit sum over the returned crop (default); ``False`` returns the
-            physical irradiance of a unit point source (1/M² of the scaling theorem
-            and 1/(λz1)² of the source included), per m² of sensor. Its values reach
+        normalise: unit sum over the returned crop (default: what the stop's shadow,
+            the angular response and vignetting take off the power is divided out);
+            ``False`` returns the physical irradiance of a unit point source (1/M² of
+            the scaling theorem, 1/(λz1)² of the source and the camera's off-axis terms
+            included), per m² of sensor. Its values reach
             10¹⁶ for close sources and their sum 10²²: a float32 loss that squares
             such a sum (a quotient's derivative does) overflows, so scale it first.
         accept_undersampling: turn sampling errors into warnings.

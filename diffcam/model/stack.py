@@ -42,9 +42,9 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm  # not tqdm.auto: it warns in Jupyter without ipywidgets
 
-from diffcam.model.camera import Camera, as_spectrum, real_dtype
+from diffcam.model.camera import OFF_AXIS_TERMS, Camera, as_spectrum, real_dtype
 from diffcam.model.point_spread import (check_inputs, depth_list, diffuser_fields, fields_for_fft,
-                                        irradiance_and_fields, items_per_chunk)
+                                        fields_per_depth, irradiance_and_fields, items_per_chunk)
 from diffcam.core.errors import DiffcamError, ShapeError, check_finite, check_positive
 from diffcam.core.options import Options
 from diffcam.core.progress import enabled
@@ -117,9 +117,9 @@ def camera_record(camera: Camera) -> dict:
     rec = {"wavelength": float(camera.wavelength), "z2": float(camera.z2),
            "dx": float(camera.dx), "shape": list(camera.shape), "pad": list(camera.pad),
            "crop": list(camera.out_shape), "method": camera.method, "edge": camera.edge}
-    if camera.aperture_radius is not None:
-        rec["aperture_radius"] = float(camera.aperture_radius)
-    else:
+    traced = ("aperture_radius", *OFF_AXIS_TERMS)
+    rec.update({n: float(getattr(camera, n)) for n in traced if getattr(camera, n) is not None})
+    if camera.aperture_mask is not None:
         rec["aperture_mask_shape"] = list(np.shape(camera.aperture_mask))
     return rec
 
@@ -260,8 +260,7 @@ def iter_psf_stack(phase, camera: Camera, z1, *, offsets=None, spectrum=None,
     wavelengths, weights = as_spectrum(spectrum, camera)
     batch_size, devices = opts.batch_size, opts.devices
     if batch_size is None:
-        fields = len(wavelengths) * (len(pos) if camera.method == "direct" else 1)
-        batch_size = items_per_chunk(camera, fields)
+        batch_size = items_per_chunk(camera, len(wavelengths) * fields_per_depth(camera, len(pos)))
     if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
         raise DiffcamError(f"batch_size must be a positive int, got {batch_size!r}.")
     check_inputs(phase, camera, depths, np.hypot(pos[:, 0], pos[:, 1]), wavelengths,
