@@ -311,10 +311,11 @@ def field_positions(grid: tuple[int, int], sensor_shape: tuple[int, int]) -> np.
 def _field(kernels: np.ndarray, positions: np.ndarray) -> FieldPSF:
     """The `FieldPSF` of kernels ``(K, ny, nx)`` at ``positions``, interpolated."""
     k = len(kernels)
+    stack = np.asarray(kernels, np.float64).reshape(k, -1)
+    gram = np.linalg.eigvalsh(stack @ stack.T)[::-1]      # the stack's σ², largest first
     return FieldPSF(kernels=jnp.asarray(kernels), coefficients=jnp.eye(k, dtype=jnp.float32),
                     positions=jnp.asarray(positions),
-                    singular_values=jnp.linalg.svd(jnp.asarray(kernels).reshape(k, -1),
-                                                   compute_uv=False))
+                    singular_values=jnp.asarray(np.sqrt(np.maximum(gram, 0)), jnp.float32))
 
 
 def _sensor_weights(positions: np.ndarray, sensor_shape) -> np.ndarray:
