@@ -2,6 +2,8 @@
 scored against the ground truth of captures the calibration did not see.
 
     python -m benchmarks.bench_scene_psf [--source DIR] [--downsample F] [--figure PNG]
+    python -m benchmarks.bench_scene_psf --source DIR --pairs 3 --pairs-used 6 \
+        --solvers admm fista --name scene_psf_full        # the published 270 × 480
 
 Data: the seven Lensless Learning pairs (a DiffuserCam colour capture of a picture on a
 monitor, and a lensed photograph of it registered to the sensor), as shipped
@@ -10,7 +12,10 @@ monitor, and a lensed photograph of it registered to the sensor), as shipped
 ``DIR/lensed/imNN.npy``) box-averaged by ``--downsample``.
 
 Leave-one-out: for each pair, the PSF is fitted (:func:`fit_psf_from_scenes`, default
-options) to the other six, and to the next one and three of them; the held-out raw is
+options) to the other six, and to the next one and three of them; with six, a
+field-dependent PSF too (:func:`fit_field_psf_from_scenes`: kernels at the sensor's
+corners, ``--grid``, interpolated across the field, same iterations and flip); the
+held-out raw is
 
 * predicted from its truth (Pearson per channel: must-show 2);
 * reconstructed (dark offset from the calibration subtracted) with ADMM-TV (the command
@@ -38,7 +43,10 @@ from benchmarks.harness import markdown_table, write_json
 
 NAMES = ("im43", "im65", "im157", "im189", "im326", "im394", "im643")
 SOLVERS = ("admm", "rl", "wiener", "fista")
+FIELD_SOLVERS = ("admm", "fista")
 PAIRS_USED = (6, 3, 1)
+PICTURE_LEVEL = 0.03
+"""A truth's row or column mean above this is inside the monitor picture."""
 
 
 def load(source: Path | None, downsample: int) -> tuple[np.ndarray, np.ndarray]:
@@ -55,12 +63,21 @@ def load(source: Path | None, downsample: int) -> tuple[np.ndarray, np.ndarray]:
     return (box(raws, downsample), box(truths, downsample)) if downsample > 1 else (raws, truths)
 
 
-def reconstruct(method: str, raw: np.ndarray, psf: np.ndarray) -> np.ndarray:
-    """The scene on the sensor frame, in the truth's units (``A x ≈ raw``)."""
+def reconstruct(method: str, raw: np.ndarray, psf) -> np.ndarray:
+    """The scene on the sensor frame, in the truth's units (``A x ≈ raw``); ``psf`` is
+    ``(3, ny, nx)`` or a field-dependent PSF per channel (a tuple of ``FieldPSF``)."""
     from diffcam.core.grid import crop_to
-    from diffcam.reconstruct import admm_tv, fista, richardson_lucy, wiener
+    from diffcam.reconstruct import admm_tv, fista, field_model, richardson_lucy, wiener
 
     norm = lambda a: np.linalg.norm(a, axis=(-2, -1), keepdims=True)  # noqa: E731
+    if isinstance(psf, tuple):
+        models = [field_model(f, raw.shape[-2:]) for f in psf]
+        if method == "admm":
+            x = [admm_tv(r / norm(r), m, 100, progress=False).image * norm(r)
+                 for r, m in zip(raw, models)]
+        else:
+            x = [fista(r, m, 200, progress=False).image for r, m in zip(raw, models)]
+        return np.stack([np.asarray(crop_to(v, raw.shape)) for v in x])
     if method == "admm":
         x = admm_tv(raw / norm(raw), psf / norm(psf), 100, progress=False).image
         x = x * (norm(raw) / norm(psf))
@@ -81,54 +98,94 @@ def scores(estimate: np.ndarray, truth: np.ndarray) -> dict:
 
     from diffcam.evaluate.metrics import pearson
 
-    estimate = np.clip(estimate, 0, 1)
-    return {"psnr": float(peak_signal_noise_ratio(truth, estimate, data_range=1)),
+    clipped = np.clip(estimate, 0, 1)
+    rows, cols = (np.flatnonzero(truth.mean(axis=(0, a)) > PICTURE_LEVEL) for a in (2, 1))
+    inside = (slice(None), slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    truth_in, mapped = truth[inside], np.clip(affine_fit(estimate[inside], truth[inside]), 0, 1)
+    return {"psnr": float(peak_signal_noise_ratio(truth, clipped, data_range=1)),
             "ssim": float(np.mean([structural_similarity(t, e, data_range=1)
-                                   for t, e in zip(truth, estimate)])),
-            "pearson": float(np.mean(np.asarray(pearson(estimate, truth))))}
+                                   for t, e in zip(truth, clipped)])),
+            "pearson": float(np.mean(np.asarray(pearson(clipped, truth)))),
+            "psnr_picture": float(peak_signal_noise_ratio(truth_in, mapped, data_range=1)),
+            "ssim_picture": float(np.mean([structural_similarity(t, e, data_range=1)
+                                           for t, e in zip(truth_in, mapped)]))}
 
 
-def fold(raws, truths, k: int) -> tuple[list[dict], dict]:
+def affine_fit(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """``a·estimate + b`` per channel, ``a, b`` the least-squares fit to the truth."""
+    out = []
+    for e, t in zip(estimate, truth):
+        design = np.stack([e.ravel(), np.ones(e.size)], axis=1)
+        (a, b), *_ = np.linalg.lstsq(design, t.ravel(), rcond=None)
+        out.append(a * e + b)
+    return np.stack(out)
+
+
+def fold(raws, truths, k: int, args) -> tuple[list[dict], dict]:
     """Leave pair ``k`` out: rows of scores, and the arrays for the figure."""
-    from diffcam.calibrate.scene_psf import fit_psf_from_scenes, flip_scene, predict_raw
-    from diffcam.evaluate.metrics import pearson
+    from diffcam.calibrate.scene_psf import (fit_field_psf_from_scenes, fit_psf_from_scenes,
+                                             flip_scene)
 
     others = [(k + j) % len(raws) for j in range(1, len(raws))]
     rows, shown = [], {}
-    for used in PAIRS_USED:
+    for used in args.pairs_used:
         t = time.perf_counter()
         cal = fit_psf_from_scenes(raws[others[:used]], truths[others[:used]], progress=False)
-        fit_s = time.perf_counter() - t
-        predicted = np.asarray(pearson(predict_raw(cal, truths[k]), raws[k]))
-        truth = flip_scene(truths[k], cal.flip)           # the truth in the sensor frame
-        raw = raws[k] - cal.offset[:, None, None]
-        for method in SOLVERS if used == len(raws) - 1 else ("admm",):
+        calibrations = [("one PSF", cal, time.perf_counter() - t)]
+        if used == len(raws) - 1 and args.grid:
             t = time.perf_counter()
-            estimate = reconstruct(method, raw, cal.psf)
-            rows.append({"pair": NAMES[k], "pairs_used": used, "method": method,
-                         "flip": cal.flip, "fit_s": fit_s,
-                         "predict_pearson_min": float(predicted.min()),
-                         "predict_pearson": predicted.tolist(),
-                         **scores(estimate, truth), "solve_s": time.perf_counter() - t})
-            if used == len(raws) - 1:
-                shown[method] = estimate
+            field = fit_field_psf_from_scenes(raws[others], truths[others], tuple(args.grid),
+                                              flip=cal.flip, progress=False)
+            calibrations.append((f"field {args.grid[0]}×{args.grid[1]}", field,
+                                 time.perf_counter() - t))
+        for model, c, fit_s in calibrations:
+            solvers = [m for m in args.solvers if model == "one PSF" or m in FIELD_SOLVERS]
+            rows += held_out(raws[k], truths[k], c, solvers if used == len(raws) - 1
+                             else [m for m in ("admm",) if m in args.solvers],
+                             {"pair": NAMES[k], "pairs_used": used, "model": model,
+                              "flip": c.flip, "fit_s": fit_s,
+                              "misfit": float(c.residual[-1])}, shown)
         if used == len(raws) - 1:
-            shown.update(raw=raws[k], truth=truth, psf=cal.psf)
+            shown.update(raw=raws[k], truth=flip_scene(truths[k], cal.flip), psf=cal.psf)
     return rows, shown
 
 
+def held_out(raw, truth, cal, solvers, row: dict, shown: dict) -> list[dict]:
+    """Rows of one calibration on the held-out pair: its raw predicted from its truth
+    and reconstructed by each solver (the estimates of the one-PSF model into
+    ``shown``)."""
+    from diffcam.calibrate.scene_psf import flip_scene, predict_raw
+    from diffcam.evaluate.metrics import pearson
+
+    predicted = np.asarray(pearson(predict_raw(cal, truth), raw))
+    truth = flip_scene(truth, cal.flip)                    # the truth in the sensor frame
+    raw = raw - cal.offset[:, None, None]
+    kernels = getattr(cal, "fields", None) or cal.psf
+    rows = []
+    for method in solvers:
+        t = time.perf_counter()
+        estimate = reconstruct(method, raw, kernels)
+        rows.append({**row, "method": method, "predict_pearson_min": float(predicted.min()),
+                     "predict_pearson": predicted.tolist(), **scores(estimate, truth),
+                     "solve_s": time.perf_counter() - t})
+        if row["model"] == "one PSF":
+            shown[method] = estimate
+    return rows
+
+
 def summary(rows: list[dict]) -> list[dict]:
-    """Mean scores per (pairs used, method)."""
+    """Mean scores per (pairs used, model, method)."""
     out = []
-    for used in PAIRS_USED:
-        for method in SOLVERS:
-            sel = [r for r in rows if r["pairs_used"] == used and r["method"] == method]
-            if sel:
-                out.append({"pairs_used": used, "method": method, "n": len(sel),
-                            **{m: float(np.mean([r[m] for r in sel]))
-                               for m in ("psnr", "ssim", "pearson", "predict_pearson_min")},
-                            "worst_predict_pearson": float(np.min(
-                                [r["predict_pearson_min"] for r in sel]))})
+    keys = dict.fromkeys((r["pairs_used"], r["model"], r["method"]) for r in rows)
+    for used, model, method in keys:
+        sel = [r for r in rows if (r["pairs_used"], r["model"], r["method"])
+               == (used, model, method)]
+        out.append({"pairs_used": used, "model": model, "method": method, "n": len(sel),
+                    **{m: float(np.mean([r[m] for r in sel]))
+                       for m in ("psnr", "ssim", "pearson", "psnr_picture", "ssim_picture",
+                                 "predict_pearson_min", "misfit")},
+                    "worst_predict_pearson": float(np.min(
+                        [r["predict_pearson_min"] for r in sel]))})
     return out
 
 
@@ -147,7 +204,7 @@ def figure(shown: dict, path: Path, name: str) -> None:
 
     panels = [("raw (held out)", rgb(shown["raw"])), ("PSF fitted to the other six",
                                                       rgb(shown["psf"]) ** 0.5)]
-    panels += [(f"{m}", rgb(shown[m], 1.0)) for m in SOLVERS]
+    panels += [(f"{m}", rgb(shown[m], 1.0)) for m in SOLVERS if m in shown]
     panels += [("ground truth (lensed)", rgb(shown["truth"], 1.0))]
     fig, axes = plt.subplots(2, 4, figsize=(16, 5.2), layout="constrained")
     for ax, (title, image) in zip(axes.flat, panels):
@@ -166,11 +223,18 @@ def main(argv=None):
     p.add_argument("--downsample", type=int, default=1, help="box-average factor")
     p.add_argument("--figure", type=Path, help="write the figure of the first pair here")
     p.add_argument("--pairs", type=int, default=len(NAMES), help="held-out pairs to run")
+    p.add_argument("--pairs-used", type=int, nargs="+", default=list(PAIRS_USED),
+                   help="calibrate on this many of the other pairs")
+    p.add_argument("--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS))
+    p.add_argument("--grid", type=int, nargs=2, default=[2, 2], metavar=("GY", "GX"),
+                   help="field positions of the field-dependent PSF (0 0: none)")
+    p.add_argument("--name", default="scene_psf", help="results JSON name")
     args = p.parse_args(argv)
+    args.grid = args.grid if min(args.grid) > 0 else None
     raws, truths = load(args.source, args.downsample)
     t, rows = time.perf_counter(), []
     for k in range(args.pairs):
-        fold_rows, shown = fold(raws, truths, k)
+        fold_rows, shown = fold(raws, truths, k, args)
         rows += fold_rows
         if k == 0 and args.figure:
             figure(shown, args.figure, NAMES[k])
@@ -181,7 +245,7 @@ def main(argv=None):
     data = "shipped" if args.source is None else str(args.source.name)
     extra = {"data": data, "shape": list(raws.shape), "downsample": args.downsample,
              "summary": table}
-    print(f"wrote {write_json('scene_psf', rows, extra)}")
+    print(f"wrote {write_json(args.name, rows, extra)}")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,9 @@ Raws and truths pair up in the order given (a shell glob sorts both alike). Colo
 files give one PSF per channel, written as an RGB TIFF; grayscale files one PSF. With
 two pairs or more, one pair is held out of a second fit and predicted from its truth:
 the printed Pearson correlation per channel says how well the calibration explains a
-capture it did not see.
+capture it did not see. The model is one PSF per channel (rank 1): a field-dependent
+PSF (`diffcam.calibrate.scene_psf.fit_field_psf_from_scenes`) predicts held-out
+Lensless Learning raws better but reconstructs them worse (docs/scene_psf.md).
 """
 
 from __future__ import annotations
@@ -84,7 +86,8 @@ def _cmd_calibrate_psf(args) -> int:
     print(f"diffcam calibrate-psf: {k} pair(s), {c} channel(s), {ny}×{nx}; FISTA, "
           f"{args.iterations} iterations", file=sys.stderr)
     cal = calibrate.fit_psf_from_scenes(raws, truths, options, progress=not args.quiet)
-    summary = {"pairs": k, "channels": c, "flip": cal.flip,
+    summary = {"pairs": k, "channels": c, "model": "one PSF per channel", "rank": 1,
+               "flip": cal.flip,
                "flip_residuals": cal.flip_residuals, "offset": cal.offset.tolist(),
                "residual": float(cal.residual[-1]), "iterations": args.iterations}
     if k >= 2 and not args.no_check:
@@ -97,8 +100,8 @@ def _cmd_calibrate_psf(args) -> int:
             tmp.write_text(json.dumps(summary, indent=2))
     held = ("" if "holdout_pearson" not in summary else "; held-out pair predicted with "
             "Pearson " + ", ".join(f"{v:.3f}" for v in summary["holdout_pearson"]))
-    print(f"diffcam calibrate-psf: flip {cal.flip}, offset "
-          f"{', '.join(f'{v:.3g}' for v in cal.offset)}, residual "
+    print(f"diffcam calibrate-psf: one PSF per channel (rank 1), flip {cal.flip}, offset "
+          f"{', '.join(f'{v:.3g}' for v in cal.offset)}, relative misfit "
           f"{summary['residual']:.3g}{held} → {out}")
     return 0
 

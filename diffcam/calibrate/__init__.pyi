@@ -24,7 +24,8 @@ from diffcam.calibrate.projections import (ProjectionOptions, gerchberg_saxton, 
 from diffcam.calibrate.psf_fit import (DepthLaw, PsfFitOptions, fit_to_psfs, predict_psfs,
                                       resolve_twin)
 from diffcam.calibrate.result import RetrievalResult
-from diffcam.calibrate.scene_psf import (ScenePsf, ScenePsfOptions, fit_psf_from_scenes,
+from diffcam.calibrate.scene_psf import (SceneFieldPsf, ScenePsf, ScenePsfOptions,
+                                         fit_field_psf_from_scenes, fit_psf_from_scenes,
                                          predict_raw)
 from diffcam.calibrate.simulation import PaperSimulation, cameraman_phase, paper_simulation
 from diffcam.calibrate.stack_fit import StackFitOptions, StackFitWarning, fit_stack
@@ -53,4 +54,5 @@ __all__ = [
     "load_stack_fit", "prepare_planes",
     # the PSF from scenes
     "ScenePsf", "ScenePsfOptions", "fit_psf_from_scenes", "predict_raw",
+    "SceneFieldPsf", "fit_field_psf_from_scenes",
 ]

@@ -46,10 +46,13 @@ from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import check_iterations
 from diffcam.reconstruct.fista import nonnegative_least_squares
-from diffcam.reconstruct.operators import convolution_model
+from diffcam.core.grid import int_pair
+from diffcam.model.field import FieldPSF
+from diffcam.reconstruct.operators import convolution_model, field_model, grid_shapes
 
-__all__ = ["FLIPS", "ScenePsfOptions", "ScenePsf", "check_scene_pairs", "flip_scene",
-           "fit_psf_from_scenes", "predict_raw"]
+__all__ = ["FLIPS", "ScenePsfOptions", "ScenePsf", "SceneFieldPsf", "check_scene_pairs",
+           "flip_scene", "fit_psf_from_scenes", "fit_field_psf_from_scenes", "field_positions",
+           "predict_raw"]
 
 FLIPS = ("none", "y", "x", "yx")
 """Flips of the scene frame relative to the sensor frame: none, up-down, left-right,
@@ -90,6 +93,28 @@ class ScenePsf(NamedTuple):
     """
 
     psf: np.ndarray
+    offset: np.ndarray
+    flip: str
+    residual: np.ndarray
+    flip_residuals: dict
+
+
+class SceneFieldPsf(NamedTuple):
+    """A field-dependent PSF calibrated from scenes: ``b = crop(Σ_k g_k ∗ (w_k · x)) + c``.
+
+    Attributes:
+        fields: one `diffcam.model.field.FieldPSF` per channel: kernels ``g_k``
+            ``(K, ny, nx)``, the PSF at each of ``K`` field positions (a grid spanning the
+            sensor, `field_positions`), sensor units per unit of scene; coefficients the
+            identity, so the weights ``w_k`` are the thin-plate spline that interpolates
+            between the positions; singular values those of the kernels' stack.
+        offset: ``(c,)`` dark offset of the raws, sensor units.
+        flip: the flip of the scenes (`FLIPS`) into the sensor frame.
+        residual: ``(iterations,)`` relative misfit of the fit, as `ScenePsf`'s.
+        flip_residuals: final relative misfit of each trial flip (one PSF each).
+    """
+
+    fields: tuple
     offset: np.ndarray
     flip: str
     residual: np.ndarray
@@ -174,27 +199,64 @@ def flip_scene(scene: Float[ArrayLike, "... ny nx"], flip: str) -> np.ndarray:
 
 
 @partial(jax.jit, static_argnames=("iterations",))
-def _fit(raws: Array, truths: Array, iterations: int):
-    """FISTA over all pairs: ``raws``, ``truths`` ``(k, c, ny, nx)``; returns the PSF
-    ``(c, ny, nx)``, the offset ``(c,)`` and the residual history."""
+def _fit(raws: Array, scenes: Array, iterations: int):
+    """FISTA over all pairs: ``raws`` ``(k, c, ny, nx)``, ``scenes`` ``(k, K, c, ny, nx)``
+    (each scene times each of the ``K`` field weights); returns the kernels
+    ``(K, c, ny, nx)``, the offset ``(c,)`` and the residual history."""
     sensor = raws.shape[-2:]
-    model = convolution_model(truths, sensor, "crop")    # the scenes as kernels
-    lipschitz = jnp.max(jnp.sum(jnp.abs(model.otf) ** 2, axis=0), axis=(-2, -1))
+    model = convolution_model(scenes, sensor, "crop")    # the scenes as kernels
+    # ||A||² per channel: exact for K = 1 (a circulant), the trace bound for K > 1
+    lipschitz = jnp.max(jnp.sum(jnp.abs(model.otf) ** 2, axis=(0, 1)), axis=(-2, -1))
 
     def centred(r):      # remove each channel's mean over pairs and pixels: fits c
         return r - jnp.mean(r, axis=(0, -2, -1), keepdims=True)
 
-    def forward(h):
-        return centred(model(pad_to(h, model.object_shape)))
+    def blur(h):
+        return model(pad_to(h, model.object_shape)).sum(axis=1)
 
     def adjoint(r):
-        return crop_to(model.adjoint(centred(r)), sensor).sum(axis=0)
+        return crop_to(model.adjoint(centred(r)[:, None]), sensor).sum(axis=0)
 
-    h0 = jnp.zeros(raws.shape[1:], raws.dtype)
+    h0 = jnp.zeros(scenes.shape[1:], raws.dtype)
     h, residual, _, _, _ = nonnegative_least_squares(
-        forward, adjoint, centred(raws), h0, lipschitz[:, None, None], iterations)
-    offset = jnp.mean(raws - model(pad_to(h, model.object_shape)), axis=(0, -2, -1))
+        lambda h: centred(blur(h)), adjoint, centred(raws), h0,
+        lipschitz[:, None, None], iterations)
+    offset = jnp.mean(raws - blur(h), axis=(0, -2, -1))
     return h, offset, residual
+
+
+def _scaled_pairs(raws, truths):
+    """Each channel of the raws and the truths scaled to unit peak (the fit's float32
+    sums of products of raw values overflow from ~1e19: a raw of 1e30 would give an
+    all-NaN PSF), and the two scales ``(raw_peak, gain)`` per channel."""
+    raw_peak, truth_peak = _channel_peaks(raws), _channel_peaks(truths)
+    gain = raw_peak / truth_peak
+    if not np.finfo(np.float32).tiny < gain.min() <= gain.max() < np.finfo(np.float32).max:
+        raise DiffcamError(f"the PSF's scale max(raw)/max(truth) reaches {gain.min():.3g}…"
+                           f"{gain.max():.3g}, outside float32's range; divide the raws or "
+                           f"the truths by a constant first (the PSF scales with raw/truth).")
+    return (raws / raw_peak[:, None, None].astype(np.float32),
+            truths / truth_peak[:, None, None].astype(np.float32), raw_peak, gain)
+
+
+def _choose_flip(raws: Array, truths: np.ndarray, options: ScenePsfOptions,
+                 progress: bool) -> tuple[str, dict]:
+    """The flip of the scenes (one PSF fitted per trial) and each trial's misfit."""
+    flips = FLIPS if options.flip == "auto" else (options.flip,)
+    trials = {}
+    if len(flips) > 1:
+        with progress_bar(options.search_iterations * len(flips), "flips", progress):
+            for flip in flips:
+                _, _, res = _fit(raws, jnp.asarray(flip_scene(truths, flip))[:, None],
+                                 options.search_iterations)
+                trials[flip] = float(res[-1])
+    return (min(trials, key=trials.get) if trials else flips[0]), trials
+
+
+def _finite(*arrays) -> None:
+    if not all(np.isfinite(a).all() for a in arrays):
+        raise DiffcamError("the PSF fit from scenes did not stay finite; check that the "
+                           "raws and truths are the captures of each other.")
 
 
 def fit_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
@@ -219,39 +281,90 @@ def fit_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
         DiffcamError: see `check_scene_pairs`; bad options.
     """
     options = ScenePsfOptions.of(options, **overrides)
-    raws, truths = check_scene_pairs(raws, truths)
-    # the fit runs on each channel scaled to unit peak: float32 sums of products of raw
-    # values overflow from ~1e19 (a raw of 1e30 would give an all-NaN PSF)
-    raw_peak, truth_peak = _channel_peaks(raws), _channel_peaks(truths)
-    gain = raw_peak / truth_peak
-    if not np.finfo(np.float32).tiny < gain.min() <= gain.max() < np.finfo(np.float32).max:
-        raise DiffcamError(f"the PSF's scale max(raw)/max(truth) reaches {gain.min():.3g}…"
-                           f"{gain.max():.3g}, outside float32's range; divide the raws or "
-                           f"the truths by a constant first (the PSF scales with raw/truth).")
-    raws = raws / raw_peak[:, None, None].astype(np.float32)
-    truths = truths / truth_peak[:, None, None].astype(np.float32)
+    raws, truths, raw_peak, gain = _scaled_pairs(*check_scene_pairs(raws, truths))
     raws_j = jnp.asarray(raws)
-    flips = FLIPS if options.flip == "auto" else (options.flip,)
-    trials = {}
-    if len(flips) > 1:
-        with progress_bar(options.search_iterations * len(flips), "flips", progress):
-            for flip in flips:
-                _, _, res = _fit(raws_j, jnp.asarray(flip_scene(truths, flip)),
-                                 options.search_iterations)
-                trials[flip] = float(res[-1])
-    flip = min(trials, key=trials.get) if trials else flips[0]
+    flip, trials = _choose_flip(raws_j, truths, options, progress)
     with progress_bar(options.iterations, "PSF from scenes", progress):
         h, offset, residual = jax.block_until_ready(_fit(
-            raws_j, jnp.asarray(flip_scene(truths, flip)), options.iterations))
-    psf = (np.asarray(h, np.float64) * gain[:, None, None]).astype(np.float32)
+            raws_j, jnp.asarray(flip_scene(truths, flip))[:, None], options.iterations))
+    psf = (np.asarray(h[0], np.float64) * gain[:, None, None]).astype(np.float32)
     offset = (np.asarray(offset, np.float64) * raw_peak).astype(np.float32)
     residual = np.asarray(residual)
-    if not (np.isfinite(psf).all() and np.isfinite(offset).all()
-            and np.isfinite(residual).all()):
-        raise DiffcamError("the PSF fit from scenes did not stay finite; check that the "
-                           "raws and truths are the captures of each other.")
+    _finite(psf, offset, residual)
     return ScenePsf(psf=psf, offset=offset, flip=flip, residual=residual,
                     flip_residuals=trials)
+
+
+def field_positions(grid: tuple[int, int], sensor_shape: tuple[int, int]) -> np.ndarray:
+    """``(gy·gx, 2)`` field positions ``(y, x)``, pixels from the axis: a ``gy × gx`` grid
+    whose outer points are the sensor's edges (one point: the axis)."""
+    gy, gx = int_pair(grid, "grid")
+    if not (1 <= gy <= 5 and 1 <= gx <= 5):
+        raise DiffcamError(f"grid is (rows, columns) of field positions, each 1 to 5, e.g. "
+                           f"(2, 2); got {grid!r}.")
+    ny, nx = sensor_shape
+    ys = np.linspace(-ny / 2, ny / 2, gy) if gy > 1 else np.zeros(1)
+    xs = np.linspace(-nx / 2, nx / 2, gx) if gx > 1 else np.zeros(1)
+    return np.stack(np.meshgrid(ys, xs, indexing="ij"), -1).reshape(-1, 2).astype(np.float32)
+
+
+def _field(kernels: np.ndarray, positions: np.ndarray) -> FieldPSF:
+    """The `FieldPSF` of kernels ``(K, ny, nx)`` at ``positions``, interpolated."""
+    k = len(kernels)
+    stack = np.asarray(kernels, np.float64).reshape(k, -1)
+    gram = np.linalg.eigvalsh(stack @ stack.T)[::-1]      # the stack's σ², largest first
+    return FieldPSF(kernels=jnp.asarray(kernels), coefficients=jnp.eye(k, dtype=jnp.float32),
+                    positions=jnp.asarray(positions),
+                    singular_values=jnp.asarray(np.sqrt(np.maximum(gram, 0)), jnp.float32))
+
+
+def _sensor_weights(positions: np.ndarray, sensor_shape) -> np.ndarray:
+    """``(K, ny, nx)`` the weights of kernels at ``positions`` on the sensor frame, as
+    `diffcam.reconstruct.operators.field_model` puts them on the object grid."""
+    object_shape, _ = grid_shapes(sensor_shape, sensor_shape, "crop")
+    unit = _field(np.zeros((len(positions), 1, 1), np.float32), positions)
+    return np.asarray(crop_to(unit.weights(object_shape), sensor_shape))
+
+
+def fit_field_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
+                              grid: tuple[int, int] = (2, 2),
+                              options: ScenePsfOptions | None = None, *,
+                              progress: bool = True, **overrides) -> SceneFieldPsf:
+    """The field-dependent PSF (per channel) that best maps the scenes to the raws:
+    kernels at a ``grid`` of field positions, interpolated across the field (the
+    low-rank model of `diffcam.model.field`), fitted jointly by non-negative least
+    squares like `fit_psf_from_scenes` (the flip is chosen with one PSF).
+
+    Args:
+        raws, truths: as `fit_psf_from_scenes`'s.
+        grid: ``(rows, columns)`` of field positions spanning the sensor, 1 to 5 each.
+        options: [`ScenePsfOptions`][diffcam.calibrate.scene_psf.ScenePsfOptions];
+            ``overrides`` replace its fields.
+        progress: progress bars for runs over 2 s.
+
+    Returns:
+        [`SceneFieldPsf`][diffcam.calibrate.scene_psf.SceneFieldPsf].
+
+    Raises:
+        DiffcamError: see `check_scene_pairs`; a bad grid; bad options.
+    """
+    options = ScenePsfOptions.of(options, **overrides)
+    raws, truths, raw_peak, gain = _scaled_pairs(*check_scene_pairs(raws, truths))
+    positions = field_positions(grid, raws.shape[-2:])
+    raws_j = jnp.asarray(raws)
+    flip, trials = _choose_flip(raws_j, truths, options, progress)
+    weights = _sensor_weights(positions, raws.shape[-2:])
+    scenes = flip_scene(truths, flip)[:, None] * weights[None, :, None]
+    with progress_bar(options.iterations, "field PSF from scenes", progress):
+        g, offset, residual = jax.block_until_ready(_fit(raws_j, jnp.asarray(scenes),
+                                                         options.iterations))
+    kernels = (np.asarray(g, np.float64) * gain[:, None, None]).astype(np.float32)
+    offset = (np.asarray(offset, np.float64) * raw_peak).astype(np.float32)
+    residual = np.asarray(residual)
+    _finite(kernels, offset, residual)
+    fields = tuple(_field(kernels[:, ch], positions) for ch in range(kernels.shape[1]))
+    return SceneFieldPsf(fields=fields, offset=offset, flip=flip, residual=residual,
+                         flip_residuals=trials)
 
 
 def _channel_peaks(images: np.ndarray) -> np.ndarray:
@@ -260,10 +373,13 @@ def _channel_peaks(images: np.ndarray) -> np.ndarray:
     return np.where(peak > 0, peak, 1.0)
 
 
-def predict_raw(calibration: ScenePsf, truth: Float[ArrayLike, "c ny nx"]) -> np.ndarray:
+def predict_raw(calibration: ScenePsf | SceneFieldPsf,
+                truth: Float[ArrayLike, "c ny nx"]) -> np.ndarray:
     """The raw capture the calibrated camera records of ``truth`` (a scene in the lensed
     frame, shape ``(c, ny, nx)`` like the calibration's raws, or ``(ny, nx)`` for one
-    channel): ``crop(h * x) + c``, computed on the PSF and the scene scaled to unit peak.
+    channel): ``crop(h * x) + c``, or ``crop(Σ_k g_k ∗ (w_k · x)) + c`` for a
+    field-dependent calibration, computed on the kernels and the scene scaled to unit
+    peak.
 
     Raises:
         DiffcamError: a truth that is not a finite, non-negative real image of the
@@ -272,19 +388,26 @@ def predict_raw(calibration: ScenePsf, truth: Float[ArrayLike, "c ny nx"]) -> np
     """
     truth = _as_pairs([flip_scene(real_array("truth", truth), calibration.flip)],
                       "truth")[0]
-    psf = _as_pairs([calibration.psf], "calibration.psf")[0]
+    field = isinstance(calibration, SceneFieldPsf)
+    kernels = (_as_pairs([f.kernels for f in calibration.fields], "calibration.fields")
+               .swapaxes(0, 1) if field else _as_pairs([calibration.psf], "calibration.psf"))
     offset = np.asarray(real_array("calibration.offset", calibration.offset), np.float64)
-    if truth.shape != psf.shape or offset.shape != psf.shape[:1]:
+    if truth.shape != kernels.shape[1:] or offset.shape != kernels.shape[1:2]:
         raise ShapeError(f"truth {truth.shape} does not match the calibration's "
-                         f"{psf.shape} (channels, ny, nx) and offset {offset.shape}.")
-    if (truth < 0).any() or (psf < 0).any() or not np.isfinite(offset).all():
+                         f"{kernels.shape[1:]} (channels, ny, nx) and offset {offset.shape}.")
+    if (truth < 0).any() or (kernels < 0).any() or not np.isfinite(offset).all():
         raise DiffcamError("predict_raw needs a non-negative truth and a calibration with "
-                           "a non-negative PSF and a finite offset (fit_psf_from_scenes "
-                           "gives one).")
-    psf_peak = _channel_peaks(psf[None])[:, None, None]
+                           "non-negative kernels and a finite offset (fit_psf_from_scenes "
+                           "or fit_field_psf_from_scenes gives one).")
+    psf_peak = _channel_peaks(kernels)[:, None, None]
     truth_peak = _channel_peaks(truth[None])[:, None, None]
-    model = convolution_model(jnp.asarray(psf / psf_peak), truth.shape, "crop")
-    unit = model(pad_to(jnp.asarray(truth / truth_peak), model.object_shape))
+    scene, unit_kernels = jnp.asarray(truth / truth_peak), jnp.asarray(kernels / psf_peak)
+    if field:
+        unit = jnp.stack([_channel_model(f, k, truth.shape)(s) for f, k, s in
+                          zip(calibration.fields, unit_kernels.swapaxes(0, 1), scene)])
+    else:
+        model = convolution_model(unit_kernels[0], truth.shape, "crop")
+        unit = model(pad_to(scene, model.object_shape))
     peaks = psf_peak * truth_peak
     raw = np.asarray(unit, np.float64) * peaks + offset[:, None, None]
     if not np.abs(raw).max() <= float(np.finfo(np.float32).max):
@@ -292,3 +415,10 @@ def predict_raw(calibration: ScenePsf, truth: Float[ArrayLike, "c ny nx"]) -> np
                            f"at {float(peaks.max()):.3g} together); divide the truth by a "
                            f"constant first.")
     return raw.astype(np.float32)
+
+
+def _channel_model(field: FieldPSF, kernels: Array, shape):
+    """One channel's forward model on its sensor-frame scene, with ``kernels`` in place
+    of the field's."""
+    model = field_model(_field(kernels, np.asarray(field.positions)), shape[-2:])
+    return lambda scene: model(pad_to(scene, model.object_shape))
