@@ -280,19 +280,34 @@ def fit_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
     Raises:
         DiffcamError: see `check_scene_pairs`; bad options.
     """
-    options = ScenePsfOptions.of(options, **overrides)
+    kernels, _, offset, residual, flip, trials = _fit_kernels(
+        raws, truths, None, ScenePsfOptions.of(options, **overrides), progress)
+    return ScenePsf(psf=kernels[0], offset=offset, flip=flip, residual=residual,
+                    flip_residuals=trials)
+
+
+def _fit_kernels(raws, truths, grid, options, progress):
+    """The scenes' kernels by `_fit`, in the raws' units: one PSF per channel (``grid``
+    ``None``: kernels ``(1, c, my, mx)``, positions ``None``), or one at each of a
+    ``grid`` of field positions, the scenes weighted by `_sensor_weights`; with the
+    positions, the offset, the residual, the flip and the flips' residuals."""
     raws, truths, raw_peak, gain = _scaled_pairs(*check_scene_pairs(raws, truths))
+    positions = None if grid is None else field_positions(grid, raws.shape[-2:])
     raws_j = jnp.asarray(raws)
     flip, trials = _choose_flip(raws_j, truths, options, progress)
-    with progress_bar(options.iterations, "PSF from scenes", progress):
-        h, offset, residual = jax.block_until_ready(_fit(
-            raws_j, jnp.asarray(flip_scene(truths, flip))[:, None], options.iterations))
-    psf = (np.asarray(h[0], np.float64) * gain[:, None, None]).astype(np.float32)
+    scenes = flip_scene(truths, flip)[:, None]
+    what = "PSF from scenes"
+    if positions is not None:
+        scenes = scenes * _sensor_weights(positions, raws.shape[-2:])[None, :, None]
+        what = "field PSF from scenes"
+    with progress_bar(options.iterations, what, progress):
+        g, offset, residual = jax.block_until_ready(_fit(raws_j, jnp.asarray(scenes),
+                                                         options.iterations))
+    kernels = (np.asarray(g, np.float64) * gain[:, None, None]).astype(np.float32)
     offset = (np.asarray(offset, np.float64) * raw_peak).astype(np.float32)
     residual = np.asarray(residual)
-    _finite(psf, offset, residual)
-    return ScenePsf(psf=psf, offset=offset, flip=flip, residual=residual,
-                    flip_residuals=trials)
+    _finite(kernels, offset, residual)
+    return kernels, positions, offset, residual, flip, trials
 
 
 def field_positions(grid: tuple[int, int], sensor_shape: tuple[int, int]) -> np.ndarray:
@@ -348,20 +363,8 @@ def fit_field_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayL
     Raises:
         DiffcamError: see `check_scene_pairs`; a bad grid; bad options.
     """
-    options = ScenePsfOptions.of(options, **overrides)
-    raws, truths, raw_peak, gain = _scaled_pairs(*check_scene_pairs(raws, truths))
-    positions = field_positions(grid, raws.shape[-2:])
-    raws_j = jnp.asarray(raws)
-    flip, trials = _choose_flip(raws_j, truths, options, progress)
-    weights = _sensor_weights(positions, raws.shape[-2:])
-    scenes = flip_scene(truths, flip)[:, None] * weights[None, :, None]
-    with progress_bar(options.iterations, "field PSF from scenes", progress):
-        g, offset, residual = jax.block_until_ready(_fit(raws_j, jnp.asarray(scenes),
-                                                         options.iterations))
-    kernels = (np.asarray(g, np.float64) * gain[:, None, None]).astype(np.float32)
-    offset = (np.asarray(offset, np.float64) * raw_peak).astype(np.float32)
-    residual = np.asarray(residual)
-    _finite(kernels, offset, residual)
+    kernels, positions, offset, residual, flip, trials = _fit_kernels(
+        raws, truths, grid, ScenePsfOptions.of(options, **overrides), progress)
     fields = tuple(_field(kernels[:, ch], positions) for ch in range(kernels.shape[1]))
     return SceneFieldPsf(fields=fields, offset=offset, flip=flip, residual=residual,
                          flip_residuals=trials)
