@@ -138,6 +138,32 @@ def test_stray_value_pattern_catches_plotting_returns():
         assert not STRAY_VALUE.search(value), value
 
 
+def test_cross_references_name_objects_that_exist():
+    """Every Markdown cross-reference (`[text][diffcam.x.y]`) in the sources and the docs
+    names an importable object: the strict site build refuses a stale one, and this
+    check finds it without building the site."""
+    targets = {(path.relative_to(ROOT), target)
+               for path in [*(ROOT / "diffcam").rglob("*.py"), *PAGES]
+               for target in re.findall(r"\]\[(diffcam(?:\.\w+)*)\]", path.read_text())}
+    missing = []
+    for path, target in sorted(targets):
+        parts = target.split(".")
+        for split in range(len(parts), 0, -1):
+            try:
+                obj = importlib.import_module(".".join(parts[:split]))
+            except ImportError:
+                continue
+            try:
+                for name in parts[split:]:
+                    obj = getattr(obj, name)
+            except AttributeError:
+                missing.append(f"{path}: {target}")
+            break
+        else:
+            missing.append(f"{path}: {target}")
+    assert not missing, "\n".join(missing)
+
+
 def test_api_pages_cover_every_public_module():
     """Every module with an ``__all__`` is on an API page (the built site's entries are
     checked by test_site_builds_with_every_public_name)."""

@@ -8,7 +8,7 @@
   between the PSFs of two depths (a smooth maximum for the gradient), with the PSFs'
   spread;
 - `diffcam.design.optimise` — [`design`][diffcam.design.optimise.design]: Adam through
-  [`psf_map`][diffcam.model.point_spread.psf_map], resumable;
+  [`psf_map`][diffcam.model.stack_map.psf_map], resumable;
 - `diffcam.design.design_file` — the design file (``.npz``) and its TIFF height map.
 """
 

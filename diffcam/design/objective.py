@@ -18,7 +18,7 @@ weight:
 
     loss = ρ_τ + w · mean_z spread(h_z).
 
-The PSFs come from `diffcam.model.point_spread.psf_map`, a chunk of depths at a time
+The PSFs come from `diffcam.model.stack_map.psf_map`, a chunk of depths at a time
 (at least `CHUNKS` chunks) and recomputed in the reverse pass, so the gradient's memory
 is a chunk's fields plus the nz standardised PSFs the correlations need. ``jax.vmap`` of
 `diffcam.model.point_spread.psf` (chunked too, by a custom_vmap) keeps every chunk's
