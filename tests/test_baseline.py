@@ -24,6 +24,7 @@ def baseline_pearson(z2, feature, degrees, n=640, dx=5e-6):
     return np.asarray(pearson(predicted, stack))
 
 
+@pytest.mark.slow
 def test_baseline_near_exact_in_paper_geometry():
     """Paper's simulated geometry (z2 = 1 mm, aperture radius 1.2 mm, 5 µm pitch, a
     60 µm / 0.5° diffuser on 640²): an error-free reference at 22 mm, magnified, matches

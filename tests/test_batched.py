@@ -103,6 +103,7 @@ def test_vmap_over_positions_wavelengths_and_cameras():
     np.testing.assert_allclose(jvp[1], one, atol=1e-4 * np.abs(one).max())
 
 
+@pytest.mark.slow
 def test_psf_map_gradient_in_depth_matches_finite_differences(x64):
     """d/dz of Σ w·PSF through psf_map against a central difference (float64)."""
     cam = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), _camera())
@@ -118,6 +119,7 @@ def _temporaries(fn, *args):
     return jax.jit(fn).lower(*args).compile().memory_analysis().temp_size_in_bytes
 
 
+@pytest.mark.slow
 def test_working_memory_is_flat_in_the_number_of_depths(monkeypatch):
     """XLA's temporaries of ``jit(vmap(psf))`` (both paths) and of psf_map's gradient
     are those of a chunk (here one depth): 4 and 32 depths need the same (within 10 %),

@@ -231,6 +231,7 @@ def test_calibrate_with_a_projection_solver(calibration_files, tmp_path):
     assert loaded.dx == pytest.approx(5e-6)
 
 
+@pytest.mark.slow
 def test_calibrate_psf_compare_failures(calibration_files, tmp_path, capsys):
     """Missing files, wrong units, a corrupt TIFF, mismatched shapes and a non-phase file:
     one clear line on stderr, exit 2, no output left behind."""
@@ -287,6 +288,7 @@ def test_version_is_the_installed_distribution(capsys):
     assert capsys.readouterr().out.strip() == f"diffcam {version('diffcam')}"
 
 
+@pytest.mark.slow
 def test_warnings_are_one_line(tmp_path):
     """A warning on the command line is one line naming the command and the warning's
     category, without Python's file name and source line."""

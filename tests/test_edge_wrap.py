@@ -3,6 +3,7 @@ identity, and light at one edge never shows at the opposite edge (the spline pre
 works by FFT and used to wrap it across, as it did for ``scale_psf``)."""
 
 import numpy as np
+import pytest
 
 from diffcam.calibrate import psf_plane, resample_capture
 from diffcam.model.camera import Camera
@@ -19,6 +20,7 @@ def edge_light(level=0.0):
     return img
 
 
+@pytest.mark.slow
 def test_resample_capture_at_its_own_pitch_is_the_identity():
     img = edge_light()
     out = np.asarray(resample_capture(img, DX, DX, (N, N)))

@@ -35,6 +35,7 @@ def prepare(raw, focal_length):
                             background=(82, 82), saturation=4095)
 
 
+@pytest.mark.slow
 def test_the_right_pitch_gives_no_warning(raw):
     with warnings.catch_warnings():
         warnings.simplefilter("error", GeometryWarning)

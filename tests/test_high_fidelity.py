@@ -54,6 +54,7 @@ def test_noise_is_poisson_at_the_stated_peak(sim, camera):
     assert np.isclose(hf.sum(), 1, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_captures_keep_power_and_shape(sim):
     """One wavelength, no noise: the 2×-finer captures binned to the grid carry the
     model's power (near 1.002, far 0.992 measured) and pattern (Pearson > 0.99)."""

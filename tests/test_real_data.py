@@ -53,6 +53,7 @@ def test_loaders():
     assert raw.shape == (270, 320) and raw.min() == 0
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not SHARED_3D.is_dir(), reason="needs shared/data/real beside the repo")
 def test_stored_stack_matches_the_original_slices():
     """16-bit storage of the normalised slices changes a reconstruction by < 1e-3."""
@@ -119,6 +120,7 @@ def test_tilted_usaf_target_admm_3d(volume_data, admm_volume):
     assert spearmanr(target, best)[0] < -0.75              # ... steadily (-0.88 measured)
 
 
+@pytest.mark.slow
 def test_tilted_usaf_target_richardson_lucy_3d(volume_data):
     stack, raw = volume_data
     out = richardson_lucy_3d(raw, stack, 100)
@@ -128,6 +130,7 @@ def test_tilted_usaf_target_richardson_lucy_3d(volume_data):
     assert spearmanr(target, best)[0] < -0.4               # -0.64 measured: RL is blurrier
 
 
+@pytest.mark.slow
 def test_focus_sweep_finds_the_target_depth(volume_data, admm_volume):
     """The plane a 2-D focus sweep picks lies within the depths the 3-D reconstruction
     gives the tilted target; the sharpness of Richardson–Lucy reconstructions picks the

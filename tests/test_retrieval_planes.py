@@ -32,6 +32,7 @@ def score(result, sim):
     return phase_scores(crop_to(result.phase, sim.truth.shape), sim.truth, mask=sim.mask)
 
 
+@pytest.mark.slow
 def test_psf_plane_is_the_plane_wave_intensity_at_z_eff(sim, camera):
     """Fresnel scaling theorem: the PSF of a point at z1 is the plane-wave intensity
     z1·z2/(z1 + z2) behind the diffuser, magnified by (z1 + z2)/z1."""

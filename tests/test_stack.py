@@ -38,10 +38,20 @@ def test_stack_equals_single_psfs_and_batch_size_does_not_matter(setup):
     assert a.shape == (5, 2, 80, 72)
     ref = np.asarray(psf(phase, cam, z[3], y1=-20e-6, x1=40e-6))
     np.testing.assert_allclose(a[3, 1], ref, atol=1e-5 * ref.max())
+    np.testing.assert_allclose(a, b, atol=1e-6 * a.max())
+
+
+@pytest.mark.slow
+def test_on_axis_stack_and_the_old_spelling_of_offsets(setup):
+    """Without offsets, the on-axis slices of a stack with offsets; the deprecated
+    ``positions`` ((x1, y1) rows) still gives the same stack, with a warning."""
+    cam, phase = setup
+    z = np.array([20e-3, 22e-3, 25e-3, 30e-3, 40e-3])
+    pos = np.array([[0.0, 0.0], [-20e-6, 40e-6]])  # (y1, x1)
+    a = psf_stack(phase, cam, z, offsets=pos, batch_size=2)
     with pytest.warns(DeprecationWarning, match="offsets"):  # old spelling: (x1, y1) rows
         old = psf_stack(phase, cam, z[3:4], positions=pos[:, ::-1])
     np.testing.assert_allclose(old[0], a[3], atol=1e-6 * a.max())
-    np.testing.assert_allclose(a, b, atol=1e-6 * a.max())
     on_axis = psf_stack(phase, cam, z, batch_size=3)
     assert on_axis.shape == (5, 80, 72)
     np.testing.assert_allclose(on_axis, a[:, 0], atol=1e-6 * a.max())
