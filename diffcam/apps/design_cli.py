@@ -54,7 +54,9 @@ def _cmd_design(args) -> int:
     z1 = design.depth_range(args.near, args.far, args.depths)
     options = design.DesignOptions(steps=args.steps, learning_rate=args.learning_rate,
                                    time_budget=args.time_budget, checkpoint=str(out),
-                                   resume=args.resume, progress=not args.no_progress)
+                                   resume=args.resume, progress=not args.no_progress,
+                                   objective=args.objective.replace("-", "_"),
+                                   scenes=args.scenes, photons=args.photons)
     print(f"diffcam design: {args.surface} surface, {args.grid}×{args.grid} at "
           f"{args.pixel * 1e6:g} µm, heights 0–{args.height * 1e6:g} µm, features ≥ "
           f"{args.feature * 1e6:g} µm, n = {args.index:g}; {args.depths} depths "
@@ -64,6 +66,10 @@ def _cmd_design(args) -> int:
     result = design.design(_start(args, camera), camera, z1, args.index, options)
     before, after = result.history[0, 2], result.final["max_correlation"]
     per_step = result.seconds / max(result.steps, 1)
+    if result.log_tau is not None:
+        print(f"diffcam design: training volumes' relative reconstruction error "
+              f"{result.history[0, 0]:.4f} (start) → {result.final['loss']:.4f}, TV weight "
+              f"{options.tau:g} → {math.exp(float(result.log_tau)):.3g}")
     print(f"diffcam design: max cross-depth PSF correlation {before:.4f} (start) → "
           f"{after:.4f}; PSF spread {result.history[0, 3]:.3f} → "
           f"{result.final['spread']:.3f}\n"
@@ -103,6 +109,13 @@ def add_design(sub) -> None:
                    help="minimum feature size (smallest lens diameter)")
     p.add_argument("--lenses", type=count(1, 10000), default=36,
                    help="lenses of a microlens array")
+    p.add_argument("--objective", choices=["depth", "end-to-end"], default="depth",
+                   help="depth discrimination, or the reconstruction of training volumes "
+                        "by unrolled ADMM-TV (its TV weight learnt too)")
+    p.add_argument("--scenes", type=count(1, 1000), default=4,
+                   help="end to end: training volumes")
+    p.add_argument("--photons", type=float, default=1e4,
+                   help="end to end: the captures' peak, photo-electrons (shot noise)")
     p.add_argument("--steps", type=iterations_count(), default=300, help="Adam steps in all")
     p.add_argument("--learning-rate", type=float, default=0.2, help="Adam's step size")
     p.add_argument("--time-budget", type=float,

@@ -36,7 +36,7 @@ from diffcam.model.camera import Camera
 __all__ = ["save_design", "load_design", "tiff_path", "FORMAT", "FORMAT_VERSION"]
 
 FORMAT = "diffcam-design"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _KINDS = {"smooth": SmoothSurface, "lenslets": LensletArray}
 _WHAT = "a diffcam design file"
 
@@ -75,6 +75,7 @@ def _metadata(design: Design, height: np.ndarray) -> dict:
             "options": dataclasses.asdict(design.options),
             "history_columns": list(HISTORY_COLUMNS), "final": design.final,
             "stop_reason": design.stop_reason, "seconds": float(design.seconds),
+            "log_tau": None if design.log_tau is None else float(design.log_tau),
             "height_range": [float(height.min()), float(height.max())]}
     if kind == "lenslets":
         meta["lenses"] = lenslet_table(design.surface, design.refractive_index)
@@ -144,12 +145,17 @@ def load_design(path: str | os.PathLike) -> Design:
         options = DesignOptions(**meta["options"])
         n_opt = sum(name.startswith("optimiser_") for name in names)
         leaves = read_npz(path, [f"optimiser_{i}" for i in range(n_opt)], what=_WHAT)
-        state = _optimiser_state(surface, options, [leaves[f"optimiser_{i}"]
-                                                    for i in range(n_opt)], path)
+        log_tau = meta.get("log_tau")
+        log_tau = None if log_tau is None else jnp.float32(log_tau)
+        if (log_tau is None) != (options.objective == "depth"):
+            raise DiffcamError(f"{path}: a design of the {options.objective} objective "
+                               f"with{'out' if log_tau is None else ''} a solver weight.")
         design = Design(surface, camera, np.asarray(meta["z1"], np.float64),
                         float(meta["refractive_index"]), options,
-                        np.asarray(data["history"], np.float64), dict(meta["final"]), state,
-                        str(meta["stop_reason"]), float(meta["seconds"]))
+                        np.asarray(data["history"], np.float64), dict(meta["final"]), None,
+                        str(meta["stop_reason"]), float(meta["seconds"]), log_tau)
+        design.optimiser_state = _optimiser_state(
+            design, [leaves[f"optimiser_{i}"] for i in range(n_opt)], path)
     except DiffcamError as err:
         raise DiffcamError(str(err) if str(err).startswith(str(path)) else
                            f"{path}: damaged {_WHAT}: {err}") from None
@@ -167,10 +173,11 @@ def _surface_from(meta: dict, parameters: np.ndarray):
     return cls(np.asarray(parameters), **meta)
 
 
-def _optimiser_state(surface, options, leaves, path):
+def _optimiser_state(design: Design, leaves, path):
     """Adam's state from its saved leaves, in the structure `optax.adam` gives the
-    surface's parameters."""
-    template = optax.adam(options.learning_rate).init(eqx.filter(surface, eqx.is_array))
+    design's parameters."""
+    template = optax.adam(design.options.learning_rate).init(
+        eqx.filter(design.parameters, eqx.is_array))
     treedef = jax.tree_util.tree_structure(template)
     shapes = [np.shape(v) for v in jax.tree_util.tree_leaves(template)]
     if [np.shape(v) for v in leaves] != shapes:

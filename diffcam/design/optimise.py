@@ -1,5 +1,8 @@
 """Designing a diffuser: Adam (optax) on a surface's parameters, through the PSFs of a
-depth range, against `diffcam.design.objective.depth_objective`.
+depth range, against `diffcam.design.objective.depth_objective` or, with
+``DesignOptions(objective="end_to_end")``,
+`diffcam.design.end_to_end.end_to_end_objective` (the solver's TV weight is learnt
+beside the surface).
 
     surface = SmoothSurface.random(key, (256, 256), 3e-6, feature_size=30e-6,
                                    height_max=2e-6)
@@ -28,6 +31,7 @@ import optax
 from diffcam.core.errors import DiffcamError, check_positive
 from diffcam.core.progress import new_bar
 from diffcam.design.design_file import load_design, save_design
+from diffcam.design.end_to_end import EndToEndObjective, end_to_end_objective
 from diffcam.design.objective import DepthObjective, Terms, depth_objective
 from diffcam.design.result import HISTORY_COLUMNS, Design, DesignOptions
 from diffcam.design.surfaces import LensletArray, SmoothSurface, Surface, height_map
@@ -49,25 +53,33 @@ def depth_range(near: float, far: float, count: int) -> np.ndarray:
     return 1 / np.linspace(1 / near, 1 / far, count)
 
 
+def _loss(parameters, objective):
+    """``(loss, Terms)``: ``parameters`` is the surface (depth objective) or
+    ``(surface, log_tau)`` (end to end)."""
+    if isinstance(objective, EndToEndObjective):
+        return end_to_end_objective(parameters, objective)
+    return depth_objective(parameters, objective)
+
+
 @eqx.filter_jit
-def _step(surface, state, objective, learning_rate):
-    """One Adam step: the surface and state after it, and the loss and terms before."""
-    (loss, terms), grad = eqx.filter_value_and_grad(depth_objective, has_aux=True)(
-        surface, objective)
+def _step(parameters, state, objective, learning_rate):
+    """One Adam step: the parameters and state after it, and the loss and terms before."""
+    (loss, terms), grad = eqx.filter_value_and_grad(_loss, has_aux=True)(parameters,
+                                                                         objective)
     updates, state = optax.adam(learning_rate).update(grad, state)
-    return eqx.apply_updates(surface, updates), state, loss, terms
+    return eqx.apply_updates(parameters, updates), state, loss, terms
 
 
-@eqx.filter_jit
-def _terms(surface, objective):
-    return depth_objective(surface, objective)
+_terms = eqx.filter_jit(_loss)
 
 
-def evaluate_design(surface: Surface, objective: DepthObjective) -> dict:
-    """The objective's terms at ``surface`` as floats: ``loss``, ``smooth_max``,
-    ``max_correlation``, ``spread``. Evaluate a design on depths it was not optimised
-    for with ``objective._replace(z1=finer_depths)``."""
-    loss, terms = _terms(surface, objective)
+def evaluate_design(parameters, objective: DepthObjective | EndToEndObjective) -> dict:
+    """The objective's terms at ``parameters`` as floats: ``loss``, ``smooth_max``,
+    ``max_correlation``, ``spread``. ``parameters``: a surface for the depth objective,
+    ``(surface, log_tau)`` end to end (`diffcam.design.result.Design.parameters`).
+    Evaluate a design on depths it was not optimised for with
+    ``objective._replace(z1=finer_depths)`` (depth objective)."""
+    loss, terms = _terms(parameters, objective)
     return _row(loss, terms)
 
 
@@ -108,8 +120,9 @@ def design(surface: Surface, camera: Camera, z1, refractive_index: float = 1.5,
         camera: the camera (wavelength, z2, pitch, aperture), metres.
         z1: the depths of the range, metres, (nz,), at least 2 (see `depth_range`).
         refractive_index: n of the diffuser material, unitless (> 1).
-        options: `diffcam.design.result.DesignOptions` (steps, step size, τ, sparsity
-            weight, time budget, checkpoint, progress).
+        options: `diffcam.design.result.DesignOptions` (objective, steps, step size,
+            τ, sparsity weight, time budget, checkpoint, progress; end to end: training
+            volumes, solver iterations, photons, the solver's first TV weight).
 
     Returns:
         A `diffcam.design.result.Design`; write it with
@@ -121,15 +134,16 @@ def design(surface: Surface, camera: Camera, z1, refractive_index: float = 1.5,
     """
     options = DesignOptions() if options is None else options
     z1 = _check(surface, camera, z1, refractive_index)
-    objective = DepthObjective(camera, z1, float(refractive_index), options.temperature,
-                               options.sparsity_weight)
-    state = optax.adam(options.learning_rate).init(eqx.filter(surface, eqx.is_array))
+    log_tau = None if options.objective == "depth" else jnp.log(jnp.float32(options.tau))
     start = Design(surface, camera, z1, float(refractive_index), options,
-                   np.zeros((0, len(HISTORY_COLUMNS))), {}, state, "not started", 0.0)
+                   np.zeros((0, len(HISTORY_COLUMNS))), {}, None, "not started", 0.0,
+                   log_tau)
+    start.optimiser_state = optax.adam(options.learning_rate).init(
+        eqx.filter(start.parameters, eqx.is_array))
     if options.resume and options.checkpoint is not None \
             and Path(options.checkpoint).exists():
         start = _continued(start, load_design(options.checkpoint))
-    return _run(start, objective)
+    return _run(start, start.objective())
 
 
 def _continued(start: Design, saved: Design) -> Design:
@@ -159,22 +173,24 @@ def _is_parameter(name: str) -> bool:
     return name in ("coefficients", "params")
 
 
-def _run(current: Design, objective: DepthObjective) -> Design:
+def _run(current: Design, objective: DepthObjective | EndToEndObjective) -> Design:
     """Steps from ``current`` to ``options.steps``, with checkpoints and progress."""
     options = current.options
-    surface, state = current.surface, current.optimiser_state
+    parameters, state = current.parameters, current.optimiser_state
     rows, reason = list(current.history), f"{options.steps} steps"
     lr = jnp.asarray(options.learning_rate, jnp.float32)
     t0, seconds = time.perf_counter(), current.seconds
     with new_bar(options.steps, "design", unit="step", progress=options.progress) as bar:
         bar.update(len(rows))
         while len(rows) < options.steps:
-            surface, state, loss, terms = _step(surface, state, objective, lr)
+            parameters, state, loss, terms = _step(parameters, state, objective, lr)
             rows.append(list(_row(loss, terms).values()))
             bar.update(1)
-            bar.set_postfix(max_correlation=f"{rows[-1][2]:.4f}")
+            bar.set_postfix(loss=f"{rows[-1][0]:.4f}", max_correlation=f"{rows[-1][2]:.4f}")
             elapsed = time.perf_counter() - t0
-            current = dataclasses.replace(current, surface=surface, optimiser_state=state,
+            surface, log_tau = (parameters, None) if current.log_tau is None else parameters
+            current = dataclasses.replace(current, surface=surface, log_tau=log_tau,
+                                          optimiser_state=state,
                                           history=np.asarray(rows, np.float64),
                                           seconds=seconds + elapsed)
             if options.checkpoint is not None and len(rows) % options.checkpoint_every == 0:
@@ -188,7 +204,8 @@ def _run(current: Design, objective: DepthObjective) -> Design:
     return current
 
 
-def _finished(current: Design, objective: DepthObjective, reason: str) -> Design:
-    """``current`` with the objective's terms at its surface and why it stopped."""
-    return dataclasses.replace(current, final=evaluate_design(current.surface, objective),
+def _finished(current: Design, objective: DepthObjective | EndToEndObjective,
+              reason: str) -> Design:
+    """``current`` with the objective's terms at its parameters and why it stopped."""
+    return dataclasses.replace(current, final=evaluate_design(current.parameters, objective),
                                stop_reason=reason)

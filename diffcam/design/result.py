@@ -10,16 +10,23 @@ from typing import Any
 
 import numpy as np
 
+import jax
+
 from diffcam.core.errors import DiffcamError, real_number, whole_number
+from diffcam.design.end_to_end import EndToEndObjective, training_volumes
 from diffcam.design.objective import DepthObjective
 from diffcam.design.surfaces import Surface, height_map
 from diffcam.model.camera import Camera, HeightMap
 
-__all__ = ["DesignOptions", "Design", "HISTORY_COLUMNS"]
+__all__ = ["DesignOptions", "Design", "HISTORY_COLUMNS", "OBJECTIVES"]
 
 HISTORY_COLUMNS = ("loss", "smooth_max", "max_correlation", "spread")
 """The columns of `Design.history`, one row per step (the surface the step started
-from)."""
+from): the objective's loss, and the depth terms of the same PSFs."""
+
+OBJECTIVES = ("depth", "end_to_end")
+"""`DesignOptions.objective`: depth discrimination (`diffcam.design.objective`) or the
+reconstruction of training volumes (`diffcam.design.end_to_end`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +45,12 @@ class DesignOptions:
         resume: if the checkpoint file exists when the design starts, continue from it
             (``False``: start afresh; the file is replaced at the first checkpoint).
         progress: show a progress bar over the steps.
+        objective: one of `OBJECTIVES`; the rest applies to ``"end_to_end"`` alone.
+        scenes: training volumes (`diffcam.design.end_to_end.training_volumes`).
+        solver_iterations: unrolled ADMM-TV iterations.
+        photons: the clean captures' peak, photo-electrons (shot noise).
+        tau: the TV weight the solver starts from (learnt with the surface).
+        seed: the training volumes' and the noise's random seed.
     """
 
     steps: int = 300
@@ -49,11 +62,21 @@ class DesignOptions:
     checkpoint_every: int = 50
     resume: bool = True
     progress: bool = True
+    objective: str = "depth"
+    scenes: int = 4
+    solver_iterations: int = 30
+    photons: float = 1e4
+    tau: float = 0.05
+    seed: int = 0
 
     def __post_init__(self):
-        whole_number("steps", self.steps, 1)
-        whole_number("checkpoint_every", self.checkpoint_every, 1)
-        for name in ("learning_rate", "temperature"):
+        if self.objective not in OBJECTIVES:
+            raise DiffcamError(f"objective must be one of {', '.join(OBJECTIVES)}, got "
+                               f"{self.objective!r}.")
+        for name in ("steps", "checkpoint_every", "scenes", "solver_iterations"):
+            whole_number(name, getattr(self, name), 1)
+        whole_number("seed", self.seed, 0)
+        for name in ("learning_rate", "temperature", "photons", "tau"):
             _positive(name, getattr(self, name))
         if not real_number("sparsity_weight", self.sparsity_weight, "a number ≥ 0") >= 0:
             raise DiffcamError(f"sparsity_weight must be ≥ 0, got {self.sparsity_weight!r}.")
@@ -63,9 +86,13 @@ class DesignOptions:
     def problem(self) -> dict:
         """The settings that define the objective and its optimiser (a continued design
         must keep them)."""
-        return {"learning_rate": float(self.learning_rate),
-                "temperature": float(self.temperature),
-                "sparsity_weight": float(self.sparsity_weight)}
+        problem = {"objective": self.objective, "learning_rate": float(self.learning_rate),
+                   "temperature": float(self.temperature)}
+        if self.objective == "depth":
+            return {**problem, "sparsity_weight": float(self.sparsity_weight)}
+        return {**problem, "scenes": int(self.scenes), "photons": float(self.photons),
+                "solver_iterations": int(self.solver_iterations), "tau": float(self.tau),
+                "seed": int(self.seed)}
 
 
 def _positive(name, value):
@@ -90,6 +117,8 @@ class Design:
         optimiser_state: the optimiser's state after the last step (a pytree).
         stop_reason: why the steps ended.
         seconds: wall-clock time of the steps run in this process and before, s.
+        log_tau: end to end: log of the solver's learnt TV weight (``None`` for the
+            depth objective).
     """
 
     surface: Surface
@@ -102,6 +131,7 @@ class Design:
     optimiser_state: Any
     stop_reason: str
     seconds: float
+    log_tau: Any = None
 
     @property
     def steps(self) -> int:
@@ -113,8 +143,22 @@ class Design:
         `diffcam.model.point_spread.psf` and `diffcam.model.stack.psf_stack` take."""
         return height_map(self.surface, self.refractive_index)
 
-    def objective(self) -> DepthObjective:
-        """The objective the design minimised."""
+    @property
+    def parameters(self):
+        """What the optimiser moves: the surface, or ``(surface, log_tau)`` end to end."""
+        return self.surface if self.log_tau is None else (self.surface, self.log_tau)
+
+    def objective(self) -> DepthObjective | EndToEndObjective:
+        """The objective the design minimises (its training volumes drawn from
+        ``options.seed``)."""
         o = self.options
-        return DepthObjective(self.camera, self.z1, self.refractive_index, o.temperature,
-                              o.sparsity_weight)
+        if o.objective == "depth":
+            return DepthObjective(self.camera, self.z1, self.refractive_index,
+                                  o.temperature, o.sparsity_weight)
+        key = jax.random.key(o.seed)
+        volumes = training_volumes(key, o.scenes, self.z1, self.camera)
+        noise = jax.random.normal(jax.random.fold_in(key, 1),
+                                  (o.scenes, *self.camera.out_shape))
+        return EndToEndObjective(self.camera, self.z1, self.refractive_index, volumes,
+                                 noise, float(o.photons), int(o.solver_iterations),
+                                 o.temperature)

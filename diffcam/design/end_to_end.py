@@ -1,0 +1,124 @@
+"""The end-to-end objective: a diffuser is as good as the volumes reconstructed through it.
+
+Training volumes ``v`` (a few point-like sources at random depths and positions) are
+imaged through the diffuser's PSFs ``h_z`` (`diffcam.model.stack_map.psf_map`) by the
+3-D model the solver assumes, with shot noise at a stated photon count, and
+reconstructed by ``iterations`` unrolled iterations of ADMM-TV
+(`diffcam.reconstruct.admm.admm_tv_3d`, a ``lax.scan``, differentiable in the PSFs and
+in its TV weight τ). The loss is the reconstruction's relative squared error:
+
+    b = s·A_h v + √max(s·A_h v, 1)·ε,    s = photons / max(A_h v),
+    loss = mean_scenes ‖ADMM_K(b; h, τ)/s − v‖² / ‖v‖²,
+
+with ``ε`` standard normal draws fixed for the whole design (Poisson noise in its
+Gaussian limit, at least one count's, so the loss is a smooth function of the
+surface), and ``τ = exp(log τ)``
+optimised beside the surface: the solver's penalty is learnt with the optics. An
+empty reconstruction scores 1 (the volumes are sparse: a per-voxel error would be small
+for any diffuser).
+
+The depth-discrimination terms of the same PSFs (`diffcam.design.objective`) are
+reported beside the loss, so the two objectives' designs can be compared on one scale.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import Float
+
+from diffcam.core.errors import DiffcamError
+from diffcam.design.objective import (CHUNKS, Terms, pair_correlations, smooth_max, spread,
+                                      standardised)
+from diffcam.design.surfaces import Surface, height_map
+from diffcam.model.camera import Camera
+from diffcam.model.point_spread import items_per_chunk
+from diffcam.model.stack_map import psf_map
+from diffcam.reconstruct.admm import admm_tv_3d
+from diffcam.reconstruct.operators import convolution_model, grid_shapes
+
+__all__ = ["EndToEndObjective", "training_volumes", "end_to_end_objective"]
+
+SOURCE_SIGMA = 1.0
+"""Gaussian radius of a training source, object-grid samples."""
+
+
+class EndToEndObjective(NamedTuple):
+    """What the end-to-end loss needs besides the surface and log τ.
+
+    Attributes:
+        camera: the camera the diffuser sits in (its grid is the surface's).
+        z1: the depths of the training volumes' planes, metres, (nz,).
+        refractive_index: n of the diffuser material, unitless.
+        volumes: training volumes on the solver's object grid, (nscenes, nz, oy, ox),
+            peak 1 (`training_volumes`).
+        noise: the fixed standard normal draws ε, (nscenes, ny, nx) on the sensor.
+        photons: the clean capture's peak, photo-electrons (sets the shot noise).
+        iterations: unrolled ADMM-TV iterations.
+        temperature: τ of the reported smooth maximum of the correlations.
+    """
+
+    camera: Camera
+    z1: np.ndarray
+    refractive_index: float
+    volumes: Array
+    noise: Array
+    photons: float
+    iterations: int
+    temperature: float = 0.01
+
+
+def training_volumes(key: Array, count: int, z1, camera: Camera,
+                     sources: int = 8) -> Float[Array, "count nz oy ox"]:
+    """``count`` volumes of ``sources`` point-like sources each (Gaussians of radius
+    `SOURCE_SIGMA` samples, peak 1, random brightness in [0.5, 1]) at random planes of
+    ``z1`` (metres, (nz,)) and random positions inside the sensor's field, on the object
+    grid of the 3-D solver for ``camera`` (its ``out_shape`` sensor)."""
+    if not (isinstance(count, (int, np.integer)) and count >= 1
+            and isinstance(sources, (int, np.integer)) and sources >= 1):
+        raise DiffcamError(f"count and sources must be whole numbers ≥ 1, got {count!r} "
+                           f"and {sources!r}.")
+    nz = np.shape(z1)[0]
+    sensor = camera.out_shape
+    (oy, ox), _ = grid_shapes(sensor, sensor, "crop")
+    ky, kx, kz, kb = jax.random.split(key, 4)
+    shape = (count, sources)
+    y = (oy - sensor[0]) / 2 + jax.random.uniform(ky, shape) * sensor[0]
+    x = (ox - sensor[1]) / 2 + jax.random.uniform(kx, shape) * sensor[1]
+    plane = jax.random.randint(kz, shape, 0, nz)
+    brightness = jax.random.uniform(kb, shape, minval=0.5, maxval=1.0)
+    gy = jnp.exp(-(jnp.arange(oy) - y[..., None]) ** 2 / (2 * SOURCE_SIGMA ** 2))
+    gx = jnp.exp(-(jnp.arange(ox) - x[..., None]) ** 2 / (2 * SOURCE_SIGMA ** 2))
+    on_plane = jax.nn.one_hot(plane, nz) * brightness[..., None]
+    volumes = jnp.einsum("csz,csy,csx->czyx", on_plane, gy, gx)
+    return volumes / jnp.max(volumes, axis=(1, 2, 3), keepdims=True)
+
+
+def end_to_end_objective(parameters: tuple[Surface, Array],
+                         objective: EndToEndObjective) -> tuple[Array, Terms]:
+    """``(loss, Terms)`` at ``parameters = (surface, log_tau)``: the reconstruction's
+    relative squared error (module docstring), and the depth terms of the same PSFs
+    (``Terms.smooth``, ``max_correlation``, ``spread``). Differentiable in the surface's
+    array leaves and in ``log_tau``."""
+    surface, log_tau = parameters
+    diffuser = height_map(surface, objective.refractive_index)
+    nz = np.shape(objective.z1)[0]
+    chunk = min(items_per_chunk(objective.camera, 1), -(-nz // CHUNKS))
+    h = psf_map(lambda p: p, diffuser, objective.camera, objective.z1, batch_size=chunk)
+    model = convolution_model(h, objective.camera.out_shape, "crop", volume=True)
+    clean = jax.vmap(model)(objective.volumes)
+    scale = objective.photons / jax.lax.stop_gradient(
+        jnp.max(clean, axis=(-2, -1), keepdims=True))
+    counts = scale * clean
+    captures = counts + jnp.sqrt(jnp.maximum(counts, 1)) * objective.noise
+    recon = admm_tv_3d(captures, h, objective.iterations, progress=False,
+                       tau=jnp.exp(log_tau)).image
+    error = jnp.sum((recon / scale[:, None] - objective.volumes) ** 2, axis=(1, 2, 3))
+    loss = jnp.mean(error / jnp.sum(objective.volumes ** 2, axis=(1, 2, 3)))
+    pairs = pair_correlations(standardised(h))
+    return loss, Terms(smooth_max(pairs, objective.temperature), jnp.max(pairs),
+                       jnp.mean(spread(h)))
