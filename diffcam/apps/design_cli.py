@@ -114,8 +114,9 @@ def add_design(sub) -> None:
                         "by unrolled ADMM-TV (its TV weight learnt too)")
     p.add_argument("--scenes", type=count(1, 1000), default=4,
                    help="end to end: training volumes")
-    p.add_argument("--photons", type=float, default=1e4,
-                   help="end to end: the captures' peak, photo-electrons (shot noise)")
+    p.add_argument("--photons", type=float, default=100.0,
+                   help="end to end: photo-electrons per sensor pixel on average (shot "
+                        "noise)")
     p.add_argument("--steps", type=iterations_count(), default=300, help="Adam steps in all")
     p.add_argument("--learning-rate", type=float, default=0.2, help="Adam's step size")
     p.add_argument("--time-budget", type=float,

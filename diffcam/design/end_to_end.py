@@ -2,20 +2,21 @@
 
 Training volumes ``v`` (a few point-like sources at random depths and positions) are
 imaged through the diffuser's PSFs ``h_z`` (`diffcam.model.stack_map.psf_map`) by the
-3-D model the solver assumes, with shot noise at a stated photon count, and
-reconstructed by ``iterations`` unrolled iterations of ADMM-TV
+3-D model the solver assumes, with shot noise at a stated mean photon count per sensor
+pixel, and reconstructed as ``diffcam reconstruct --3d`` does — the capture scaled to
+unit L2 norm, ``iterations`` unrolled iterations of ADMM-TV with the `VOLUME` settings
 (`diffcam.reconstruct.admm.admm_tv_3d`, a ``lax.scan``, differentiable in the PSFs and
-in its TV weight τ). The loss is the reconstruction's relative squared error:
+in its TV weights). The loss is the reconstruction's relative squared error after its
+least-squares scale (the capture's scale is gone), one minus the squared cosine:
 
-    b = s·A_h v + √max(s·A_h v, 1)·ε,    s = photons / max(A_h v),
-    loss = mean_scenes ‖ADMM_K(b; h, τ)/s − v‖² / ‖v‖²,
+    b = s·A_h v + √max(s·A_h v, 1)·ε,    s = photons·N_pixels / Σv,
+    x̂ = ADMM_K(b/‖b‖; h, τ),    loss = mean_scenes (1 − ⟨x̂, v⟩² / (‖x̂‖²‖v‖²)),
 
 with ``ε`` standard normal draws fixed for the whole design (Poisson noise in its
 Gaussian limit, at least one count's, so the loss is a smooth function of the
-surface), and ``τ = exp(log τ)``
-optimised beside the surface: the solver's penalty is learnt with the optics. An
-empty reconstruction scores 1 (the volumes are sparse: a per-voxel error would be small
-for any diffuser).
+surface). The lateral TV weight ``τ = exp(log τ)`` is optimised beside the surface, the
+axial one in `VOLUME`'s proportion to it: the solver's penalty is learnt with the
+optics. An empty or unrelated reconstruction scores 1.
 
 The depth-discrimination terms of the same PSFs (`diffcam.design.objective`) are
 reported beside the loss, so the two objectives' designs can be compared on one scale.
@@ -38,7 +39,7 @@ from diffcam.design.surfaces import Surface, height_map
 from diffcam.model.camera import Camera
 from diffcam.model.point_spread import items_per_chunk
 from diffcam.model.stack_map import psf_map
-from diffcam.reconstruct.admm import admm_tv_3d
+from diffcam.reconstruct.admm import VOLUME, admm_tv_3d
 from diffcam.reconstruct.operators import convolution_model, grid_shapes
 
 __all__ = ["EndToEndObjective", "training_volumes", "end_to_end_objective"]
@@ -57,7 +58,7 @@ class EndToEndObjective(NamedTuple):
         volumes: training volumes on the solver's object grid, (nscenes, nz, oy, ox),
             peak 1 (`training_volumes`).
         noise: the fixed standard normal draws ε, (nscenes, ny, nx) on the sensor.
-        photons: the clean capture's peak, photo-electrons (sets the shot noise).
+        photons: the captures' mean per sensor pixel, photo-electrons (shot noise).
         iterations: unrolled ADMM-TV iterations.
         temperature: τ of the reported smooth maximum of the correlations.
     """
@@ -101,7 +102,8 @@ def training_volumes(key: Array, count: int, z1, camera: Camera,
 def end_to_end_objective(parameters: tuple[Surface, Array],
                          objective: EndToEndObjective) -> tuple[Array, Terms]:
     """``(loss, Terms)`` at ``parameters = (surface, log_tau)``: the reconstruction's
-    relative squared error (module docstring), and the depth terms of the same PSFs
+    relative squared error after its least-squares scale (module docstring), and the
+    depth terms of the same PSFs
     (``Terms.smooth``, ``max_correlation``, ``spread``). Differentiable in the surface's
     array leaves and in ``log_tau``."""
     surface, log_tau = parameters
@@ -111,14 +113,19 @@ def end_to_end_objective(parameters: tuple[Surface, Array],
     h = psf_map(lambda p: p, diffuser, objective.camera, objective.z1, batch_size=chunk)
     model = convolution_model(h, objective.camera.out_shape, "crop", volume=True)
     clean = jax.vmap(model)(objective.volumes)
-    scale = objective.photons / jax.lax.stop_gradient(
-        jnp.max(clean, axis=(-2, -1), keepdims=True))
-    counts = scale * clean
+    pixels = np.prod(objective.camera.out_shape)
+    counts = clean * (objective.photons * pixels
+                      / jnp.sum(objective.volumes, axis=(1, 2, 3)))[:, None, None]
     captures = counts + jnp.sqrt(jnp.maximum(counts, 1)) * objective.noise
-    recon = admm_tv_3d(captures, h, objective.iterations, progress=False,
-                       tau=jnp.exp(log_tau)).image
-    error = jnp.sum((recon / scale[:, None] - objective.volumes) ** 2, axis=(1, 2, 3))
-    loss = jnp.mean(error / jnp.sum(objective.volumes ** 2, axis=(1, 2, 3)))
+    unit = captures / jnp.linalg.norm(captures, axis=(-2, -1), keepdims=True)
+    tau = jnp.exp(log_tau)
+    recon = admm_tv_3d(unit, h, objective.iterations, VOLUME, progress=False, tau=tau,
+                       tau_axial=tau * (VOLUME.tau_axial / VOLUME.tau)).image
+    axes = (1, 2, 3)
+    overlap = jnp.sum(recon * objective.volumes, axis=axes)
+    cosine2 = overlap ** 2 / (jnp.sum(recon ** 2, axis=axes)
+                              * jnp.sum(objective.volumes ** 2, axis=axes) + 1e-30)
+    loss = jnp.mean(1 - cosine2)
     pairs = pair_correlations(standardised(h))
     return loss, Terms(smooth_max(pairs, objective.temperature), jnp.max(pairs),
                        jnp.mean(spread(h)))

@@ -48,8 +48,9 @@ class DesignOptions:
         objective: one of `OBJECTIVES`; the rest applies to ``"end_to_end"`` alone.
         scenes: training volumes (`diffcam.design.end_to_end.training_volumes`).
         solver_iterations: unrolled ADMM-TV iterations.
-        photons: the clean captures' peak, photo-electrons (shot noise).
-        tau: the TV weight the solver starts from (learnt with the surface).
+        photons: the captures' mean per sensor pixel, photo-electrons (shot noise).
+        tau: the lateral TV weight the solver starts from, for a capture of unit L2
+            norm (`diffcam.reconstruct.admm.VOLUME`'s; learnt with the surface).
         seed: the training volumes' and the noise's random seed.
     """
 
@@ -65,8 +66,8 @@ class DesignOptions:
     objective: str = "depth"
     scenes: int = 4
     solver_iterations: int = 30
-    photons: float = 1e4
-    tau: float = 0.05
+    photons: float = 100.0
+    tau: float = 1e-5
     seed: int = 0
 
     def __post_init__(self):
