@@ -169,6 +169,14 @@ SECTIONS = {
                ["surface", "seed", "sparsity_weight", "steps", "start", "design", "baseline",
                 "baseline_is", "held_out_start", "held_out_design", "held_out_baseline",
                 "spread_start", "spread_design", "height_um", "wall_s", "wall_per_step_s"]),
+    **{name: (f"Diffuser design judged by 3-D reconstruction of held-out volumes{size}",
+              f"python -m benchmarks.bench_design_3d{args}",
+              ["diffuser", "max_correlation", "psnr_db", "psnr_per_scene", "resolved_dz_mm",
+               "design_s", "reconstruct_s"])
+       for name, size, args in (
+           ("design_3d", ", 128² over 8 depths", ""),
+           ("design_3d_256", ", 256² over 16 depths", " --n 256 --depths 16 --steps 300 "
+            "--scenes 3 --iterations 100 --name design_3d_256"))},
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --pairs 3 "
@@ -179,7 +187,8 @@ SECTIONS = {
 
 
 EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["cost", "large"],
-                "scene_psf_full": ["summary"]}
+                "scene_psf_full": ["summary"], "design_3d": ["gains"],
+                "design_3d_256": ["gains"]}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 
