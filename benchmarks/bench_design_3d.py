@@ -37,7 +37,8 @@ fewer), with Poisson noise and Gaussian read noise of ``READ_NOISE`` photons.
 Every volume is reconstructed by `diffcam.reconstruct.admm_tv_3d` (crop model) from the
 capture scaled to unit L2 norm, with the settings ``diffcam reconstruct --3d`` uses
 (`diffcam.reconstruct.admm.VOLUME`, chosen on the DiffuserCam 3-D capture) and
-``--iterations`` iterations: the same for every diffuser, nothing tuned here. Scores, over the central half of the field where the scenes lie:
+``--iterations`` iterations: the same for every diffuser, nothing tuned here; or, with
+``--tune``, the TV and L1 weights chosen per diffuser on a training scene (`tuned`). Scores, over the central half of the field where the scenes lie:
 
 - volume PSNR (dB) after the least-squares scale of the estimate to the truth, per
   scene, and its mean; ``gain_db_over_random`` is the designed diffuser's mean minus the
@@ -74,7 +75,7 @@ from diffcam.evaluate import psnr
 from diffcam.model import psf_stack
 from diffcam.optics.propagation import effective_distance
 from diffcam.reconstruct import admm_tv_3d, convolution_model
-from diffcam.reconstruct.admm import VOLUME
+from diffcam.reconstruct.admm import VOLUME, AdmmOptions
 from diffcam.reconstruct.operators import grid_shapes
 
 READ_NOISE = 2.0
@@ -82,6 +83,10 @@ READ_NOISE = 2.0
 DIP = 0.8
 """Two points are resolved when the axial profile between their peaks falls to this
 fraction of the lower peak (or below)."""
+TUNING_FACTORS = (0.1, 1.0, 10.0)
+"""With ``--tune``, the factors on `VOLUME`'s TV and L1 weights tried per diffuser."""
+TRAINING_SEED = 2000
+"""The seed of the scene ``--tune`` chooses the weights on (held-out scenes: 1000 + k)."""
 BLOB_SIGMA = 1.0
 """Standard deviation of a scene's Gaussian blobs, object-grid samples."""
 
@@ -204,6 +209,33 @@ def resolved(estimate: np.ndarray, planes: tuple[int, int]) -> bool:
     return bool(profile[i + 1:j].min() <= DIP * min(profile[i], profile[j]))
 
 
+def reconstruct(b: np.ndarray, model_psfs: np.ndarray, iterations: int,
+                options: AdmmOptions) -> np.ndarray:
+    """ADMM-TV volumes of the captures ``b`` (…, n, n), each scaled to unit L2 norm."""
+    unit = b / np.linalg.norm(b, axis=(-2, -1), keepdims=True)
+    return np.asarray(admm_tv_3d(unit, model_psfs, iterations, options,
+                                 progress=False).image)
+
+
+def tuned(truth_psfs, model_psfs, n: int, object_shape, args) -> AdmmOptions:
+    """`VOLUME` with its lateral TV (axial TV in proportion) and L1 weights each scaled
+    by one of `TUNING_FACTORS`: the pair with the best volume PSNR on the training
+    scene (seed `TRAINING_SEED`, not a held-out one)."""
+    volume = scene(TRAINING_SEED, len(model_psfs), n, object_shape)
+    b = capture(volume, truth_psfs, n, args.photons, np.random.default_rng(TRAINING_SEED))
+    best = None
+    for f_tv in TUNING_FACTORS:
+        for f_l1 in TUNING_FACTORS:
+            options = AdmmOptions.of(VOLUME, tau=VOLUME.tau * f_tv,
+                                     tau_axial=VOLUME.tau_axial * f_tv,
+                                     sparsity=VOLUME.sparsity * f_l1)
+            estimate = reconstruct(b, model_psfs, args.iterations, options)
+            score = volume_psnr(estimate, volume, n) if estimate.any() else -np.inf
+            if best is None or score > best[0]:
+                best = (score, options)
+    return best[1]
+
+
 def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
     """One diffuser: captures through its high-fidelity PSFs, reconstructions with its
     model PSFs, and the scores."""
@@ -212,12 +244,13 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
     truth_psfs = model_psfs if args.truth == "model" else high_fidelity_psfs(
         diffuser.phase(cam.wavelength), truth_camera(n), z1)
+    options = VOLUME
+    if args.tune:
+        options = tuned(truth_psfs, model_psfs, n, volumes.shape[-2:], args)
     rng = np.random.default_rng(7)
     b = np.stack([capture(v, truth_psfs, n, args.photons, rng) for v in volumes])
     t = time.perf_counter()
-    unit = b / np.linalg.norm(b, axis=(-2, -1), keepdims=True)
-    estimate = np.asarray(admm_tv_3d(unit, model_psfs, args.iterations, VOLUME,
-                                     progress=False).image)
+    estimate = reconstruct(b, model_psfs, args.iterations, options)
     solve_s = time.perf_counter() - t
     scenes = args.scenes
     scores = [volume_psnr(estimate[s], volumes[s], n) for s in range(scenes)]
@@ -232,6 +265,7 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
             "resolved_dz_mm": None if smallest is None else round(smallest, 2),
             "two_point": [{"dz_mm": round(dz, 2), "resolved": ok} for dz, ok in separations],
             "design_s": None if design_s is None else round(design_s, 1),
+            "tau": options.tau, "sparsity": options.sparsity,
             "reconstruct_s": round(solve_s, 1)}
 
 
@@ -270,6 +304,9 @@ def main(argv=None) -> int:
                         default="high-fidelity",
                         help="the captures' PSFs ('model': the solver's own, an ablation "
                              "without model error)")
+    parser.add_argument("--tune", action="store_true",
+                        help="choose the TV and L1 weights per diffuser on a training "
+                             "scene (TUNING_FACTORS × VOLUME's)")
     parser.add_argument("--lenslets", action="store_true",
                         help="design a lenslet array too")
     parser.add_argument("--name", default="design_3d")
@@ -304,6 +341,7 @@ def main(argv=None) -> int:
                      "steps": args.steps, "scenes": args.scenes,
                      "iterations": args.iterations, "photons_per_pixel": args.photons,
                      "read_noise": READ_NOISE, "truth_psfs": args.truth,
+                     "tuned_per_diffuser": args.tune,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
         "empty_volume_psnr_db": floor,
         "claim": claim})
