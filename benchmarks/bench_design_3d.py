@@ -9,14 +9,16 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
 
 - ``designed``: `diffcam.design.design` of a random smooth surface (seed 0) over
   ``--depths`` depths 10–60 mm even in 1/z1, ``--steps`` Adam steps, sparsity weight
-  0.1 (``diffcam design``'s defaults; ``--weights`` adds designs of other weights),
-  designed in this run;
+  0.1 (``diffcam design``'s defaults), designed in this run; ``designed, w = 0`` the
+  same without the spread term (``--weights``: the weights designed, the first is
+  ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
 - ``random``: another random smooth surface of the same feature size and height range
   (seed 100), the baseline a user would buy;
 - ``regular lenslets``: a regular square microlens array (36 lenses at 256², as many
   per area at other sizes), all lenses alike;
-- ``designed lenslets`` (``--lenslets``): a random lenslet array (seed 0) designed alike.
+- ``designed lenslets`` (``--no-lenslets`` leaves it out): a random lenslet array
+  (seed 0) designed alike.
 
 Each diffuser's truth PSFs come from
 `diffcam.calibrate.simulation.high_fidelity_psfs` (the height map's phase at 532 nm on a
@@ -38,11 +40,13 @@ Every volume is reconstructed by `diffcam.reconstruct.admm_tv_3d` (crop model) f
 capture scaled to unit L2 norm, with the settings ``diffcam reconstruct --3d`` uses
 (`diffcam.reconstruct.admm.VOLUME`, chosen on the DiffuserCam 3-D capture) and
 ``--iterations`` iterations: the same for every diffuser, nothing tuned here; or, with
-``--tune``, the TV and L1 weights chosen per diffuser on a training scene (`tuned`). Scores, over the central half of the field where the scenes lie:
+``--tune``, the TV and L1 weights chosen per diffuser on a training scene (`tuned`).
+Scores, over the central half of the field where the scenes lie:
 
 - volume PSNR (dB) after the least-squares scale of the estimate to the truth, per
   scene, and its mean; ``gain_db_over_random`` is the designed diffuser's mean minus the
-  random one's (and over the regular array, the start);
+  random one's (and over the regular array, the start); ``empty_volume_psnr_db`` is an
+  all-zero estimate's, the floor (the scenes are sparse);
 - two-point depth resolution: the axial profile (the estimate summed over 5 × 5 pixels
   about the points, per plane) is resolved when it has a peak within one plane of each
   point, with a plane between the peaks whose value is ≤ 80 % of the lower peak
@@ -50,9 +54,10 @@ capture scaled to unit L2 norm, with the settings ``diffcam reconstruct --3d`` u
   depths) resolved;
 - the largest cross-depth correlation of the model PSFs (`evaluate_design`).
 
-The default run (128², 8 depths, 4 scenes, 100 design steps, 200 iterations) takes
-about 5 minutes on 2 shared cores; ``--n 256 --depths 16 --steps 300`` is
-`bench_design`'s design (with ``--scenes 3 --iterations 100`` about half an hour).
+The default run (128², 8 depths, 4 scenes, 100 design steps, 200 iterations, six
+diffusers) takes about 8 minutes on 2 shared cores; ``--n 256 --depths 16 --steps
+300`` is `bench_design`'s design (with ``--scenes 3 --iterations 100`` and four
+diffusers about 20 minutes).
 """
 
 from __future__ import annotations
@@ -297,7 +302,7 @@ def main(argv=None) -> int:
                         help="ADMM-TV iterations")
     parser.add_argument("--photons", type=float, default=100.0,
                         help="mean photons per sensor pixel")
-    parser.add_argument("--weights", type=float, nargs="+", default=[0.1],
+    parser.add_argument("--weights", type=float, nargs="+", default=[0.1, 0.0],
                         help="sparsity weights of the smooth designs (the first is "
                              "'designed')")
     parser.add_argument("--truth", choices=("high-fidelity", "model"),
@@ -307,8 +312,8 @@ def main(argv=None) -> int:
     parser.add_argument("--tune", action="store_true",
                         help="choose the TV and L1 weights per diffuser on a training "
                              "scene (TUNING_FACTORS × VOLUME's)")
-    parser.add_argument("--lenslets", action="store_true",
-                        help="design a lenslet array too")
+    parser.add_argument("--lenslets", action=argparse.BooleanOptionalAction,
+                        default=True, help="design a lenslet array too")
     parser.add_argument("--name", default="design_3d")
     args = parser.parse_args(argv)
     n, z1 = args.n, depth_range(NEAR, FAR, args.depths)
