@@ -54,7 +54,7 @@ Scores, over the central half of the field where the scenes lie:
   depths) resolved;
 - the largest cross-depth correlation of the model PSFs (`evaluate_design`).
 
-The default run (128², 8 depths, 4 scenes, 100 design steps, 200 iterations, six
+The default run (128², 8 depths, 4 scenes, 300 design steps, 200 iterations, six
 diffusers) takes about 8 minutes on 2 shared cores; ``--n 256 --depths 16 --steps
 300`` is `bench_design`'s design (with ``--scenes 3 --iterations 100`` and four
 diffusers about 20 minutes).
@@ -296,7 +296,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=128, help="samples across the sensor")
     parser.add_argument("--depths", type=int, default=8)
-    parser.add_argument("--steps", type=int, default=100, help="Adam steps of the design")
+    parser.add_argument("--steps", type=int, default=300, help="Adam steps of the design")
     parser.add_argument("--scenes", type=int, default=4)
     parser.add_argument("--iterations", type=int, default=200,
                         help="ADMM-TV iterations")
