@@ -172,11 +172,16 @@ SECTIONS = {
     **{name: (f"Diffuser design judged by 3-D reconstruction of held-out volumes{size}",
               f"python -m benchmarks.bench_design_3d{args}",
               ["diffuser", "max_correlation", "psnr_db", "psnr_per_scene", "resolved_dz_mm",
-               "design_s", "reconstruct_s"])
+               "tau", "sparsity", "design_s", "reconstruct_s"])
        for name, size, args in (
            ("design_3d", ", 128² over 8 depths", ""),
            ("design_3d_256", ", 256² over 16 depths", " --n 256 --depths 16 --steps 300 "
-            "--scenes 3 --iterations 100 --name design_3d_256"))},
+            "--scenes 3 --iterations 100 --name design_3d_256"),
+           ("design_3d_model_truth", ", captures made with the solver's own PSFs (no "
+            "model error)", " --steps 300 --weights 0.1 0 --truth model "
+            "--name design_3d_model_truth"),
+           ("design_3d_tuned", ", TV and L1 weights chosen per diffuser on a training "
+            "scene", " --tune --name design_3d_tuned"))},
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --pairs 3 "
@@ -187,8 +192,9 @@ SECTIONS = {
 
 
 EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["cost", "large"],
-                "scene_psf_full": ["summary"], "design_3d": ["gains"],
-                "design_3d_256": ["gains"]}
+                "scene_psf_full": ["summary"],
+                **{f"design_3d{v}": ["gains"] for v in ("", "_256", "_model_truth",
+                                                         "_tuned")}}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 
