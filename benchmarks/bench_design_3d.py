@@ -8,7 +8,7 @@ The diffusers (`diffcam design`'s camera: 3 µm pixels, z2 2 mm, aperture radius
 quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` samples across):
 
 - ``designed``: `diffcam.design.design` of a random smooth surface (seed 0) over
-  ``--depths`` depths 10–60 mm even in 1/z1, ``--steps`` Adam steps, sparsity weight
+  ``--depths`` depths 10–60 mm (``--near``, ``--far``) even in 1/z1, ``--steps`` Adam steps, sparsity weight
   0.1 (``diffcam design``'s defaults), designed in this run; ``designed, w = 0`` the
   same without the spread term (``--weights``: the weights designed, the first is
   ``designed``);
@@ -123,12 +123,12 @@ def diffusers(n: int, z1: np.ndarray, steps: int, weights: list[float],
     return out
 
 
-def truth_camera(n: int):
+def truth_camera(n: int, far: float):
     """`camera` padded so that the high-fidelity model's grid (2× finer) samples the
-    Fresnel transfer function of the farthest depth at the longest wavelength
-    (N·dx²/λ ≥ z_eff)."""
+    Fresnel transfer function of the farthest depth ``far`` (m) at the longest
+    wavelength (N·dx²/λ ≥ z_eff)."""
     fine_dx = PIXEL / 2
-    need = effective_distance(FAR, Z2) * HIGH_FIDELITY_SPECTRUM[0].max() / fine_dx ** 2
+    need = effective_distance(far, Z2) * HIGH_FIDELITY_SPECTRUM[0].max() / fine_dx ** 2
     pad = max(0, int(np.ceil((need / 2 - n) / 2)))
     return dataclasses.replace(camera(n), pad=(pad, pad))
 
@@ -248,7 +248,7 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
     diffuser = height_map(surface, INDEX)
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
     truth_psfs = model_psfs if args.truth == "model" else high_fidelity_psfs(
-        diffuser.phase(cam.wavelength), truth_camera(n), z1)
+        diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1)
     options = VOLUME
     if args.tune:
         options = tuned(truth_psfs, model_psfs, n, volumes.shape[-2:], args)
@@ -296,6 +296,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=128, help="samples across the sensor")
     parser.add_argument("--depths", type=int, default=8)
+    parser.add_argument("--near", type=float, default=NEAR * 1e3,
+                        help="nearest depth, mm")
+    parser.add_argument("--far", type=float, default=FAR * 1e3, help="farthest depth, mm")
     parser.add_argument("--steps", type=int, default=300, help="Adam steps of the design")
     parser.add_argument("--scenes", type=int, default=4)
     parser.add_argument("--iterations", type=int, default=200,
@@ -316,7 +319,7 @@ def main(argv=None) -> int:
                         default=True, help="design a lenslet array too")
     parser.add_argument("--name", default="design_3d")
     args = parser.parse_args(argv)
-    n, z1 = args.n, depth_range(NEAR, FAR, args.depths)
+    n, z1 = args.n, depth_range(args.near * 1e-3, args.far * 1e-3, args.depths)
     object_shape = grid_shapes((n, n), (n, n), "crop")[0]
     pairs = two_point_planes(args.depths, max(1, args.depths // 8))
     volumes = np.stack([scene(1000 + s, args.depths, n, object_shape)
@@ -331,7 +334,7 @@ def main(argv=None) -> int:
         print(rows[-1], flush=True)
     by = {r["diffuser"]: r for r in rows}
     gains = gain_rows(by, args.weights)
-    claim = (f"{n}² over {args.depths} depths ({NEAR * 1e3:g}–{FAR * 1e3:g} mm), "
+    claim = (f"{n}² over {args.depths} depths ({args.near:g}–{args.far:g} mm), "
              f"{args.steps} design steps: volume PSNR designed {by['designed']['psnr_db']} "
              f"dB, random {by['random']['psnr_db']} dB, regular lenslets "
              f"{by['regular lenslets']['psnr_db']} dB (empty volume {floor} dB; gain over "
