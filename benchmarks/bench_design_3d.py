@@ -8,10 +8,10 @@ The diffusers (`diffcam design`'s camera: 3 µm pixels, z2 2 mm, aperture radius
 quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` samples across):
 
 - ``designed``: `diffcam.design.design` of a random smooth surface (seed 0) over
-  ``--depths`` depths 10–60 mm (``--near``, ``--far``) even in 1/z1, ``--steps`` Adam steps, sparsity weight
-  0.1 (``diffcam design``'s defaults), designed in this run; ``designed, w = 0`` the
-  same without the spread term (``--weights``: the weights designed, the first is
-  ``designed``);
+  ``--depths`` depths 10–60 mm (``--near``, ``--far``) even in 1/z1, ``--steps`` Adam
+  steps, sparsity weight 0.1 (``diffcam design``'s defaults), designed in this run;
+  ``designed, w = 0`` the same without the spread term (``--weights``: the weights
+  designed, the first is ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
 - ``random``: another random smooth surface of the same feature size and height range
   (seed 100), the baseline a user would buy;
