@@ -181,7 +181,11 @@ SECTIONS = {
             "model error)", " --steps 300 --weights 0.1 0 --truth model "
             "--name design_3d_model_truth"),
            ("design_3d_tuned", ", TV and L1 weights chosen per diffuser on a training "
-            "scene", " --tune --name design_3d_tuned"))},
+            "scene", " --tune --name design_3d_tuned"),
+           ("design_3d_4_depths", ", 4 depths over 10–60 mm",
+            " --depths 4 --name design_3d_4_depths"),
+           ("design_3d_near", ", 8 depths over 5–20 mm",
+            " --near 5 --far 20 --name design_3d_near"))},
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --pairs 3 "
@@ -194,7 +198,7 @@ SECTIONS = {
 EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["cost", "large"],
                 "scene_psf_full": ["summary"],
                 **{f"design_3d{v}": ["gains"] for v in ("", "_256", "_model_truth",
-                                                         "_tuned")}}
+                                                         "_tuned", "_4_depths", "_near")}}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 
