@@ -182,6 +182,10 @@ SECTIONS = {
             "--name design_3d_model_truth"),
            ("design_3d_tuned", ", TV and L1 weights chosen per diffuser on a training "
             "scene", " --tune --name design_3d_tuned"),
+           ("design_3d_256_model_truth", ", 256² over 16 depths, captures made with the "
+            "solver's own PSFs", " --n 256 --depths 16 --steps 300 --scenes 3 "
+            "--iterations 100 --truth model --weights 0.1 0 --no-lenslets "
+            "--name design_3d_256_model_truth"),
            ("design_3d_4_depths", ", 4 depths over 10–60 mm",
             " --depths 4 --name design_3d_4_depths"),
            ("design_3d_near", ", 8 depths over 5–20 mm",
@@ -198,7 +202,8 @@ SECTIONS = {
 EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["cost", "large"],
                 "scene_psf_full": ["summary"],
                 **{f"design_3d{v}": ["gains"] for v in ("", "_256", "_model_truth",
-                                                         "_tuned", "_4_depths", "_near")}}
+                                                         "_tuned", "_4_depths", "_near",
+                                                         "_256_model_truth")}}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 
