@@ -169,6 +169,27 @@ SECTIONS = {
                ["surface", "seed", "sparsity_weight", "steps", "start", "design", "baseline",
                 "baseline_is", "held_out_start", "held_out_design", "held_out_baseline",
                 "spread_start", "spread_design", "height_um", "wall_s", "wall_per_step_s"]),
+    **{name: (f"Diffuser design judged by 3-D reconstruction of held-out volumes{size}",
+              f"python -m benchmarks.bench_design_3d{args}",
+              ["diffuser", "max_correlation", "psnr_db", "psnr_per_scene", "resolved_dz_mm",
+               "tau", "sparsity", "design_s", "reconstruct_s"])
+       for name, size, args in (
+           ("design_3d", ", 128² over 8 depths", ""),
+           ("design_3d_256", ", 256² over 16 depths", " --n 256 --depths 16 --steps 300 "
+            "--scenes 3 --iterations 100 --name design_3d_256"),
+           ("design_3d_model_truth", ", captures made with the solver's own PSFs (no "
+            "model error)", " --steps 300 --weights 0.1 0 --truth model "
+            "--name design_3d_model_truth"),
+           ("design_3d_tuned", ", TV and L1 weights chosen per diffuser on a training "
+            "scene", " --tune --name design_3d_tuned"),
+           ("design_3d_256_model_truth", ", 256² over 16 depths, captures made with the "
+            "solver's own PSFs", " --n 256 --depths 16 --steps 300 --scenes 3 "
+            "--iterations 100 --truth model --weights 0.1 0 --no-lenslets "
+            "--name design_3d_256_model_truth"),
+           ("design_3d_4_depths", ", 4 depths over 10–60 mm",
+            " --depths 4 --name design_3d_4_depths"),
+           ("design_3d_near", ", 8 depths over 5–20 mm",
+            " --near 5 --far 20 --name design_3d_near"))},
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --pairs 3 "
@@ -179,7 +200,10 @@ SECTIONS = {
 
 
 EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["cost", "large"],
-                "scene_psf_full": ["summary"]}
+                "scene_psf_full": ["summary"],
+                **{f"design_3d{v}": ["gains"] for v in ("", "_256", "_model_truth",
+                                                         "_tuned", "_4_depths", "_near",
+                                                         "_256_model_truth")}}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 

@@ -15,7 +15,7 @@ import tifffile
 from jax.test_util import check_grads
 
 from diffcam.apps.cli import main
-from diffcam.core.errors import DiffcamError
+from diffcam.core.errors import DiffcamError, SamplingError
 from diffcam.core.units import parse_length
 from diffcam.design import (DepthObjective, DesignOptions, LensletArray, SmoothSurface,
                             depth_objective, depth_range, design, evaluate_design,
@@ -95,6 +95,16 @@ def test_limits_are_checked():
         design(_smooth(), _camera(), Z1, 1.0)
     with pytest.raises(DiffcamError, match="steps"):
         DesignOptions(steps=0)
+
+
+def test_an_undersampled_geometry_is_refused_with_advice_design_can_follow():
+    """z2 = 2 mm on 64 samples of 3 µm: the Fresnel transfer function of z_eff ≈ 1.9 mm
+    aliases (N·dx²/λ ≈ 1.08 mm); `design` has no accept_undersampling to suggest."""
+    far = dataclasses.replace(_camera(), z2=2e-3)
+    with pytest.raises(SamplingError, match="aliases") as raised:
+        design(_smooth(), far, Z1, INDEX, OPTIONS)
+    assert "accept_undersampling" not in str(raised.value)
+    assert "change the camera or the depth range" in str(raised.value)
 
 
 # --------------------------------------------------------------------------- objective

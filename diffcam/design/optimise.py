@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from pathlib import Path
 
 import equinox as eqx
@@ -28,7 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from diffcam.core.errors import DiffcamError, check_positive
+from diffcam.core.errors import (DiffcamError, SamplingError, UndersamplingWarning,
+                                 check_positive)
 from diffcam.core.progress import new_bar
 from diffcam.design.design_file import load_design, save_design
 from diffcam.design.end_to_end import EndToEndObjective, end_to_end_objective
@@ -105,8 +107,15 @@ def _check(surface, camera, z1, refractive_index) -> np.ndarray:
     if z1.size < 2 or np.unique(z1).size != z1.size:
         raise DiffcamError(f"a depth range needs at least 2 different depths, got "
                            f"{z1.size} ({np.unique(z1).size} different).")
-    check_inputs(height_map(surface, refractive_index), camera, z1, 0.0, camera.wavelength,
-                 False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UndersamplingWarning)
+        try:
+            check_inputs(height_map(surface, refractive_index), camera, z1, 0.0,
+                         camera.wavelength, True)
+        except UndersamplingWarning as problem:
+            raise SamplingError(f"{problem}. A design cannot accept undersampling (it would "
+                                f"optimise the aliasing): change the camera or the depth "
+                                f"range as said.") from None
     return z1
 
 
