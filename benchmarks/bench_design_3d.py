@@ -18,7 +18,11 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
 - ``regular lenslets``: a regular square microlens array (36 lenses at 256², as many
   per area at other sizes), all lenses alike;
 - ``designed lenslets`` (``--no-lenslets`` leaves it out): a random lenslet array
-  (seed 0) designed alike.
+  (seed 0) designed alike;
+- ``designed end to end`` (``--end-to-end-steps N``): the same start designed by the
+  end-to-end objective (`diffcam.design.end_to_end`: 2 training volumes of its own,
+  20 unrolled ADMM-TV iterations with `VOLUME`, ``--photons``, its TV weight learnt),
+  judged like the others (the solver's learnt weight is not used here).
 
 Each diffuser's truth PSFs come from
 `diffcam.calibrate.simulation.high_fidelity_psfs` (the height map's phase at 532 nm on a
@@ -97,9 +101,10 @@ BLOB_SIGMA = 1.0
 
 
 def diffusers(n: int, z1: np.ndarray, steps: int, weights: list[float],
-              lenslets: bool) -> dict:
+              lenslets: bool, end_to_end: DesignOptions | None = None) -> dict:
     """The diffusers by name: (surface, seconds the design took or None). The smooth
-    surface is designed once per sparsity weight (the first is ``designed``)."""
+    surface is designed once per sparsity weight (the first is ``designed``), and with
+    ``end_to_end`` options also by the end-to-end objective (``designed end to end``)."""
     lenses = max(1, round(36 * (n / 256) ** 2))
     region = n * PIXEL / 4
     start = SmoothSurface.random(0, (n, n), PIXEL, FEATURE, H_MAX)
@@ -110,6 +115,10 @@ def diffusers(n: int, z1: np.ndarray, steps: int, weights: list[float],
         surface = design(start, camera(n), z1, INDEX, options).surface
         out["designed" if k == 0 else f"designed, w = {weight:g}"] = (
             surface, time.perf_counter() - t)
+    if end_to_end is not None:
+        t = time.perf_counter()
+        designed = design(start, camera(n), z1, INDEX, end_to_end).surface
+        out["designed end to end"] = (designed, time.perf_counter() - t)
     out["start"] = (start, None)
     out["random"] = (SmoothSurface.random(100, (n, n), PIXEL, FEATURE, H_MAX), None)
     out["regular lenslets"] = (LensletArray.random(0, (n, n), PIXEL, FEATURE, H_MAX, lenses,
@@ -280,10 +289,13 @@ def gain_rows(by: dict, weights: list[float]) -> list[dict]:
     designs = [name for name in by if name.startswith("designed")]
     rows = []
     for name in designs:
-        weight = weights[0] if name in ("designed", "designed lenslets") \
-            else float(name.rsplit("= ", 1)[1])
-        row = {"design": name, "objective": "depth discrimination",
-               "sparsity_weight": weight}
+        if name == "designed end to end":
+            row = {"design": name, "objective": "end to end", "sparsity_weight": None}
+        else:
+            weight = weights[0] if name in ("designed", "designed lenslets") \
+                else float(name.rsplit("= ", 1)[1])
+            row = {"design": name, "objective": "depth discrimination",
+                   "sparsity_weight": weight}
         row.update({f"gain_db_over_{other.replace(' ', '_')}":
                     round(by[name]["psnr_db"] - by[other]["psnr_db"], 2)
                     for other in ("random", "start", "regular lenslets")})
@@ -317,6 +329,10 @@ def main(argv=None) -> int:
                              "scene (TUNING_FACTORS × VOLUME's)")
     parser.add_argument("--lenslets", action=argparse.BooleanOptionalAction,
                         default=True, help="design a lenslet array too")
+    parser.add_argument("--end-to-end-steps", type=int, default=0,
+                        help="also design the start by the end-to-end objective, this "
+                             "many steps (2 training volumes, 20 unrolled iterations, "
+                             "--photons; 0: not)")
     parser.add_argument("--name", default="design_3d")
     args = parser.parse_args(argv)
     n, z1 = args.n, depth_range(args.near * 1e-3, args.far * 1e-3, args.depths)
@@ -328,7 +344,10 @@ def main(argv=None) -> int:
     rows = []
     floor = round(float(np.mean([volume_psnr(np.zeros_like(v), v, n, None)
                                  for v in volumes[:args.scenes]])), 2)
-    made = diffusers(n, z1, args.steps, args.weights, args.lenslets)
+    end_to_end = None if args.end_to_end_steps < 1 else DesignOptions(
+        objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
+        photons=args.photons, progress=False)
+    made = diffusers(n, z1, args.steps, args.weights, args.lenslets, end_to_end)
     for name, (surface, design_s) in made.items():
         rows.append(judge(name, surface, z1, n, volumes, pairs, args, design_s))
         print(rows[-1], flush=True)
@@ -350,6 +369,7 @@ def main(argv=None) -> int:
                      "iterations": args.iterations, "photons_per_pixel": args.photons,
                      "read_noise": READ_NOISE, "truth_psfs": args.truth,
                      "tuned_per_diffuser": args.tune,
+                     "end_to_end_steps": args.end_to_end_steps,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
         "empty_volume_psnr_db": floor,
         "claim": claim})

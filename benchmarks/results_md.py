@@ -189,7 +189,10 @@ SECTIONS = {
            ("design_3d_4_depths", ", 4 depths over 10–60 mm",
             " --depths 4 --name design_3d_4_depths"),
            ("design_3d_near", ", 8 depths over 5–20 mm",
-            " --near 5 --far 20 --name design_3d_near"))},
+            " --near 5 --far 20 --name design_3d_near"),
+           ("design_3d_end_to_end", ", the end-to-end objective beside depth "
+            "discrimination", " --weights 0.1 --no-lenslets --end-to-end-steps 60 "
+            "--name design_3d_end_to_end"))},
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --pairs 3 "
