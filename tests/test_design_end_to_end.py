@@ -3,16 +3,18 @@ reconstruction scores 1 and the solver's TV weight moves, gradients in that weig
 equal to finite differences, and a short design that lowers the loss, saved and
 continued with its learnt weight."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from diffcam.core.errors import DiffcamError
-from diffcam.design import (Design, DesignOptions, SmoothSurface, design, end_to_end_objective,
-                            evaluate_design, load_design, save_design, training_volumes)
+from diffcam.design import (Design, DesignOptions, SmoothSurface, depth_range, design,
+                            end_to_end_objective, evaluate_design, load_design,
+                            training_volumes)
 from diffcam.model import Camera
-from diffcam.design.optimise import depth_range
 
 N, DX = 64, 3e-6
 Z1 = depth_range(10e-3, 60e-3, 4)
@@ -57,7 +59,7 @@ def test_loss_and_its_gradient_in_the_solver_weight(x64):
 
 def test_short_design_lowers_the_loss_and_continues_from_its_file(tmp_path):
     path = tmp_path / "e2e.npz"
-    options = OPTIONS.__class__(**{**OPTIONS.__dict__, "checkpoint": str(path)})
+    options = dataclasses.replace(OPTIONS, checkpoint=str(path))
     result = design(_surface(), _camera(), Z1, options=options)
     assert result.history[-1, 0] < result.history[0, 0]
     assert result.final["loss"] < result.history[0, 0]
@@ -67,7 +69,7 @@ def test_short_design_lowers_the_loss_and_continues_from_its_file(tmp_path):
     assert evaluate_design(loaded.parameters, loaded.objective())["loss"] == pytest.approx(
         result.final["loss"], rel=1e-5)
     more = design(_surface(), _camera(), Z1,
-                  options=options.__class__(**{**options.__dict__, "steps": 8}))
+                  options=dataclasses.replace(options, steps=8))
     assert more.steps == 8
     np.testing.assert_array_equal(more.history[:6], result.history)
 

@@ -21,11 +21,9 @@ import json
 import os
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from diffcam.core.errors import DiffcamError
 from diffcam.design.result import HISTORY_COLUMNS, Design, DesignOptions
@@ -154,8 +152,8 @@ def load_design(path: str | os.PathLike) -> Design:
                         float(meta["refractive_index"]), options,
                         np.asarray(data["history"], np.float64), dict(meta["final"]), None,
                         str(meta["stop_reason"]), float(meta["seconds"]), log_tau)
-        design.optimiser_state = _optimiser_state(
-            design, [leaves[f"optimiser_{i}"] for i in range(n_opt)], path)
+        design = dataclasses.replace(design, optimiser_state=_optimiser_state(
+            design, [leaves[f"optimiser_{i}"] for i in range(n_opt)], path))
     except DiffcamError as err:
         raise DiffcamError(str(err) if str(err).startswith(str(path)) else
                            f"{path}: damaged {_WHAT}: {err}") from None
@@ -176,8 +174,7 @@ def _surface_from(meta: dict, parameters: np.ndarray):
 def _optimiser_state(design: Design, leaves, path):
     """Adam's state from its saved leaves, in the structure `optax.adam` gives the
     design's parameters."""
-    template = optax.adam(design.options.learning_rate).init(
-        eqx.filter(design.parameters, eqx.is_array))
+    template = design.initial_optimiser_state()
     treedef = jax.tree_util.tree_structure(template)
     shapes = [np.shape(v) for v in jax.tree_util.tree_leaves(template)]
     if [np.shape(v) for v in leaves] != shapes:

@@ -33,8 +33,7 @@ from jax import Array
 from jaxtyping import Float
 
 from diffcam.core.errors import DiffcamError
-from diffcam.design.objective import (CHUNKS, Terms, pair_correlations, smooth_max, spread,
-                                      standardised)
+from diffcam.design.objective import CHUNKS, Terms, depth_terms, spread, standardised
 from diffcam.design.surfaces import Surface, height_map
 from diffcam.model.camera import Camera
 from diffcam.model.point_spread import items_per_chunk
@@ -114,18 +113,16 @@ def end_to_end_objective(parameters: tuple[Surface, Array],
     model = convolution_model(h, objective.camera.out_shape, "crop", volume=True)
     clean = jax.vmap(model)(objective.volumes)
     pixels = np.prod(objective.camera.out_shape)
+    axes = (1, 2, 3)
     counts = clean * (objective.photons * pixels
-                      / jnp.sum(objective.volumes, axis=(1, 2, 3)))[:, None, None]
+                      / jnp.sum(objective.volumes, axis=axes))[:, None, None]
     captures = counts + jnp.sqrt(jnp.maximum(counts, 1)) * objective.noise
     unit = captures / jnp.linalg.norm(captures, axis=(-2, -1), keepdims=True)
     tau = jnp.exp(log_tau)
     recon = admm_tv_3d(unit, h, objective.iterations, VOLUME, progress=False, tau=tau,
                        tau_axial=tau * (VOLUME.tau_axial / VOLUME.tau)).image
-    axes = (1, 2, 3)
     overlap = jnp.sum(recon * objective.volumes, axis=axes)
     cosine2 = overlap ** 2 / (jnp.sum(recon ** 2, axis=axes)
                               * jnp.sum(objective.volumes ** 2, axis=axes) + 1e-30)
-    loss = jnp.mean(1 - cosine2)
-    pairs = pair_correlations(standardised(h))
-    return loss, Terms(smooth_max(pairs, objective.temperature), jnp.max(pairs),
-                       jnp.mean(spread(h)))
+    return jnp.mean(1 - cosine2), depth_terms(standardised(h), spread(h),
+                                              objective.temperature)

@@ -42,7 +42,8 @@ from diffcam.model.point_spread import items_per_chunk
 from diffcam.model.stack_map import psf_map
 
 __all__ = ["standardised", "spread", "correlation_matrix", "pair_correlations",
-           "smooth_max", "DepthObjective", "Terms", "depth_objective", "objective_terms"]
+           "smooth_max", "DepthObjective", "Terms", "depth_terms", "depth_objective",
+           "objective_terms"]
 
 
 CHUNKS = 4
@@ -124,11 +125,16 @@ def depth_objective(surface: Surface, objective: DepthObjective) -> tuple[Array,
     return objective_terms(q, s, objective)
 
 
+def depth_terms(q: Float[Array, "nz ny nx"], spreads: Float[Array, " nz"],
+                temperature) -> Terms:
+    """`Terms` from the `standardised` PSFs ``q`` and their `spread`, the smooth maximum
+    at ``temperature`` (correlation units)."""
+    pairs = pair_correlations(q)
+    return Terms(smooth_max(pairs, temperature), jnp.max(pairs), jnp.mean(spreads))
+
+
 def objective_terms(q: Float[Array, "nz ny nx"], spreads: Float[Array, " nz"],
                     objective: DepthObjective) -> tuple[Array, Terms]:
     """``(loss, Terms)`` from the `standardised` PSFs ``q`` and their `spread`."""
-    pairs = pair_correlations(q)
-    smooth = smooth_max(pairs, objective.temperature)
-    mean_spread = jnp.mean(spreads)
-    loss = smooth + objective.sparsity_weight * mean_spread
-    return loss, Terms(smooth, jnp.max(pairs), mean_spread)
+    terms = depth_terms(q, spreads, objective.temperature)
+    return terms.smooth + objective.sparsity_weight * terms.spread, terms

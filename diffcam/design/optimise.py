@@ -24,7 +24,6 @@ import warnings
 from pathlib import Path
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -147,8 +146,7 @@ def design(surface: Surface, camera: Camera, z1, refractive_index: float = 1.5,
     start = Design(surface, camera, z1, float(refractive_index), options,
                    np.zeros((0, len(HISTORY_COLUMNS))), {}, None, "not started", 0.0,
                    log_tau)
-    start.optimiser_state = optax.adam(options.learning_rate).init(
-        eqx.filter(start.parameters, eqx.is_array))
+    start = dataclasses.replace(start, optimiser_state=start.initial_optimiser_state())
     if options.resume and options.checkpoint is not None \
             and Path(options.checkpoint).exists():
         start = _continued(start, load_design(options.checkpoint))
@@ -197,8 +195,7 @@ def _run(current: Design, objective: DepthObjective | EndToEndObjective) -> Desi
             bar.update(1)
             bar.set_postfix(loss=f"{rows[-1][0]:.4f}", max_correlation=f"{rows[-1][2]:.4f}")
             elapsed = time.perf_counter() - t0
-            surface, log_tau = (parameters, None) if current.log_tau is None else parameters
-            current = dataclasses.replace(current, surface=surface, log_tau=log_tau,
+            current = dataclasses.replace(current.with_parameters(parameters),
                                           optimiser_state=state,
                                           history=np.asarray(rows, np.float64),
                                           seconds=seconds + elapsed)

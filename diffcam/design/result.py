@@ -8,9 +8,10 @@ import dataclasses
 import math
 from typing import Any
 
-import numpy as np
-
+import equinox as eqx
 import jax
+import numpy as np
+import optax
 
 from diffcam.core.errors import DiffcamError, real_number, whole_number
 from diffcam.design.end_to_end import EndToEndObjective, training_volumes
@@ -148,6 +149,16 @@ class Design:
     def parameters(self):
         """What the optimiser moves: the surface, or ``(surface, log_tau)`` end to end."""
         return self.surface if self.log_tau is None else (self.surface, self.log_tau)
+
+    def with_parameters(self, parameters) -> "Design":
+        """This design at other `parameters` (the structure `parameters` has)."""
+        surface, log_tau = (parameters, None) if self.log_tau is None else parameters
+        return dataclasses.replace(self, surface=surface, log_tau=log_tau)
+
+    def initial_optimiser_state(self):
+        """Adam's state before a first step from `parameters` (optax)."""
+        return optax.adam(self.options.learning_rate).init(
+            eqx.filter(self.parameters, eqx.is_array))
 
     def objective(self) -> DepthObjective | EndToEndObjective:
         """The objective the design minimises (its training volumes drawn from
