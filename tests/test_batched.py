@@ -28,7 +28,7 @@ WEIGHTS = jax.random.normal(jax.random.key(1), (DEPTHS.size, 56, 48))
 
 
 @pytest.mark.usefixtures("debug_nans")
-@pytest.mark.parametrize("method", ["scaling", "direct"])
+@pytest.mark.parametrize("method", ["scaling", pytest.param("direct", marks=pytest.mark.slow)])
 def test_vmap_and_psf_map_equal_one_psf_per_depth(method):
     """``jit(vmap(psf))`` over depths equals psf at each depth (float32 round-off), and
     the gradient of Σ w·PSF through psf_map (chunks of 2 of 3 depths: a remainder,

@@ -344,7 +344,8 @@ def test_gradients_match_finite_differences(method, x64):
     assert np.isfinite(np.asarray(g_ph)).all()
 
 
-@pytest.mark.parametrize("method", ["scaling", "direct"])
+@pytest.mark.parametrize("method", [pytest.param("scaling", marks=pytest.mark.slow),
+                                    "direct"])  # the scaling path's: 18 s of compilation
 def test_float32_gradient_agrees_with_float64(method):
     """The phase gradient of Σ w·PSF in float32 equals the float64 one (1e-3 of its
     largest entry) for a close source (z1 = 25 mm, 5 µm pitch). The unnormalised

@@ -16,6 +16,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 import weakref
 from pathlib import Path
@@ -283,7 +284,13 @@ def _assert(ok: bool) -> bool:
     return ok
 
 
-@pytest.mark.parametrize("probe", PROBES, ids=[f"{p.kind}: {p.name}" for p in PROBES])
+# tests/test_far_pitch_check.py runs the same case in the default run
+SLOW_PROBES = {"far capture at a 10× wrong pitch"}
+
+
+@pytest.mark.parametrize("probe", [pytest.param(p, marks=pytest.mark.slow)
+                                   if p.name in SLOW_PROBES else p for p in PROBES],
+                         ids=[f"{p.kind}: {p.name}" for p in PROBES])
 def test_probe(probe, tmp_path, capsys):
     expect = probe.expect
     if expect is None or expect == VALID:
@@ -455,8 +462,10 @@ def test_a_signal_python_would_drop_comes_again(tmp_path, where, sig, monkeypatc
     def interrupted(*_):
         if not calls:
             calls.append(where)
-            os.kill(os.getpid(), getattr(signal, sig))
-            time.sleep(0.01)  # the handler runs here and its exception is dropped
+            # to this (the main) thread: delivered now, whatever the machine's load,
+            # so the handler runs inside the callback and its exception is dropped
+            signal.pthread_kill(threading.main_thread().ident, getattr(signal, sig))
+            time.sleep(0.01)
 
     class Owner:
         pass

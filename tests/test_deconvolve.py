@@ -192,6 +192,7 @@ def test_rl_recovers_sparse_scene(x64):
     assert float(out.residual[-1]) < 1e-2
 
 
+@pytest.mark.slow  # variants of the solver: its default is tested throughout
 def test_acceleration_and_tv_variants():
     image, psf = _problem(seed=6)
     plain = richardson_lucy(image, psf, 30)

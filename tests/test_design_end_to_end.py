@@ -42,14 +42,23 @@ def test_training_volumes_are_sparse_sources_inside_the_field():
         training_volumes(jax.random.key(0), 0, Z1, camera)
 
 
-@pytest.mark.slow
-def test_loss_and_its_gradient_in_the_solver_weight(x64):
+def _loss():
     start = Design(_surface(), _camera(), Z1, 1.5, OPTIONS, np.zeros((0, 4)), {}, None, "",
                    0.0, jnp.log(1e-5))
     objective = start.objective()
-    loss = lambda log_tau: end_to_end_objective((start.surface, log_tau), objective)[0]  # noqa: E731
-    values = [float(loss(jnp.float64(t))) for t in (np.log(1e-5), np.log(1e-2))]
+    return jax.jit(lambda log_tau: end_to_end_objective((start.surface, log_tau),
+                                                        objective)[0])
+
+
+def test_loss_is_below_an_empty_estimates_and_rises_with_too_much_tv():
+    loss = _loss()
+    values = [float(loss(jnp.float32(t))) for t in (np.log(1e-5), np.log(1e-2))]
     assert 0 < values[0] < values[1] < 1      # too much TV blurs the sources away
+
+
+@pytest.mark.slow
+def test_loss_gradient_in_the_solver_weight_is_finite_differences(x64):
+    loss = _loss()
     at = np.log(1e-4)
     grad = float(jax.grad(loss)(jnp.float64(at)))
     step = 1e-4
@@ -57,6 +66,7 @@ def test_loss_and_its_gradient_in_the_solver_weight(x64):
     assert grad == pytest.approx(fd, rel=1e-3, abs=1e-7)
 
 
+@pytest.mark.slow  # two designs' compilation: 30 s of CPU
 def test_short_design_lowers_the_loss_and_continues_from_its_file(tmp_path):
     path = tmp_path / "e2e.npz"
     options = dataclasses.replace(OPTIONS, checkpoint=str(path))

@@ -106,7 +106,9 @@ def test_jit_loops_and_vmap():
                                np.fft.rfft2(rr), **_tol(np.complex64))
 
 
-@pytest.mark.parametrize("which", ["fft2", "ifft2", "rfft2", "irfft2_even", "irfft2_odd"])
+@pytest.mark.parametrize("which", ["fft2", pytest.param("ifft2", marks=pytest.mark.slow),
+                                   "rfft2", "irfft2_even",
+                                   pytest.param("irfft2_odd", marks=pytest.mark.slow)])
 def test_derivatives_both_modes(which, x64):
     """Finite differences (check_grads, both modes, second order) and jnp.fft's own
     JVP and VJP, in float64."""

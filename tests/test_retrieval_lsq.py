@@ -62,7 +62,7 @@ def test_model_far_field_matches_the_fourier_lens_up_to_scale(sim):
     assert np.std(ratio[bright]) / np.mean(ratio[bright]) < 1e-3
 
 
-@pytest.mark.parametrize("solver", ["lbfgs", "ncg", "gauss_newton"])
+@pytest.mark.parametrize("solver", [pytest.param("lbfgs", marks=pytest.mark.slow), "ncg", "gauss_newton"])
 def test_solvers_polish_a_warm_start(sim, warm, solver):
     r = retrieve_lsq(sim.near, sim.far, sim.geometry, sim.aperture, init=warm, solver=solver,
                      iterations=40)
@@ -72,6 +72,7 @@ def test_solvers_polish_a_warm_start(sim, warm, solver):
     assert r.stats["method"] == f"lsq/{solver}/weighted_intensity"
 
 
+@pytest.mark.slow  # the optional backend (jaxopt is unmaintained upstream)
 def test_jaxopt_backend(sim, warm):
     r = retrieve_lsq(sim.near, sim.far, sim.geometry, sim.aperture, init=warm,
                      solver="jaxopt_lbfgs", iterations=40)
@@ -79,7 +80,7 @@ def test_jaxopt_backend(sim, warm):
     assert twin_resolved(r, sim) > 0.995
 
 
-@pytest.mark.parametrize("loss", ["amplitude", "poisson"])
+@pytest.mark.parametrize("loss", ["amplitude", pytest.param("poisson", marks=pytest.mark.slow)])
 def test_other_losses(sim, warm, loss):
     r = retrieve_lsq(sim.near * 1e3, sim.far * 1e3, sim.geometry, sim.aperture, init=warm,
                      loss=loss, iterations=40)
@@ -207,6 +208,7 @@ def test_a_second_fit_does_not_compile_again(sim, warm):
     assert before > 0 and len(compiles) == before
 
 
+@pytest.mark.slow  # float64 end to end: the float32 gradient is checked against it by default
 def test_fits_run_in_float64(sim, warm, x64):
     """Under jax_enable_x64 float64 captures fit in float64 end to end (the solver's
     carry keeps one dtype), to the same phase as float32."""
