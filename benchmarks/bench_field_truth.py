@@ -5,6 +5,7 @@ reconstruct the same noisy sensor image.
 
 Usage: python -m benchmarks.bench_field_truth [--spacing 2] [--iterations 200]
        [--halves 12,24] [--stops 0,0.1,0.3,1] [--exponents 0,40] [--seed 0]
+       [--depths 5,10,20]
 
 The camera: a 128² grid at 4 µm (small, so the default run takes minutes on 2 cores),
 λ 532 nm, z2 = 1 mm, a stop of 0.06 mm radius ``d`` in front of the diffuser (``--stops``,
@@ -29,6 +30,17 @@ tolerance 1 % and interpolated across the field (its rank in ``K``). The score i
 PSNR (dB) of the estimate sampled at the scene points against the truth, after the
 least-squares scale; ``gain_db`` is (c) − max((a), (b)). Results go to
 ``benchmarks/results/field_truth.json``.
+
+With ``--depths`` (mm) the scene is a volume: each point is lit at one of the depths
+(drawn with the scene) and has its own PSF at that depth, the chief rays the same at
+every depth (the source at ``−c_p·dx·z1/z2``), each depth's PSFs scaled by its on-axis
+PSF's sum; ``richardson_lucy_3d`` reconstructs the volume with (a) one on-axis PSF per
+depth, (b) the same with each depth's flat field, (c) the field model per depth (a
+volume ``FieldPSF`` from the 5 × 5 grid at every depth, one rank for all). The ranks
+are the worst depth's; the PSNR is over every depth's scene points, the unlit ones
+(zero) included; ``psnr_depth_blind`` scores the truth's lateral values spread evenly
+over the depths, what an estimate that does not resolve depth reaches. Results go to
+``benchmarks/results/field_truth_3d.json``.
 """
 
 from __future__ import annotations
@@ -44,7 +56,7 @@ import numpy as np
 from benchmarks.harness import markdown_table, write_json
 from diffcam.model import Camera, psf_stack, random_diffuser
 from diffcam.model.field import field_psf, thin_plate_weights
-from diffcam.reconstruct import richardson_lucy
+from diffcam.reconstruct import richardson_lucy, richardson_lucy_3d
 from diffcam.reconstruct.operators import field_model
 
 LAM, DX, Z2, Z1 = 532e-9, 4e-6, 1e-3, 20e-3
@@ -60,7 +72,7 @@ def _points(spacing, half):
 
 
 def _rank_for(fp, tolerance):
-    errors = [float(fp.error(k)) for k in range(1, len(fp.singular_values) + 1)]
+    errors = [float(fp.error(k)) for k in range(1, fp.singular_values.shape[-1] + 1)]
     return next((k for k, e in enumerate(errors, 1) if e <= tolerance), len(errors))
 
 
@@ -79,35 +91,52 @@ def _scene(n, seed):
     return 0.2 + np.kron(coarse, np.ones((n // 4 + 1, n // 4 + 1)))[:n, :n].ravel()
 
 
-def run(phase, camera, spacing, half, iterations, seed=0):
-    """One configuration's row: ranks of the per-point stack and the three PSNRs."""
+def run(phase, camera, spacing, half, iterations, seed=0, depths=None):
+    """One configuration's row: ranks of the per-point stack and the three PSNRs; with
+    ``depths`` (metres) of a volume (module docstring)."""
     start = time.perf_counter()
     rays, n = _points(spacing, half)
-    stack = np.asarray(psf_stack(phase, camera, [Z1], offsets=-rays * DX * Z1 / Z2,
-                                 normalise=False)[0])
-    stack /= stack[len(stack) // 2].sum()                     # the on-axis PSF sums to 1
-    scene = _scene(n, seed)
-    clean = np.tensordot(scene, stack, 1)
+    zs, centre = [Z1] if depths is None else depths, len(rays) // 2
+    stack = np.stack([np.asarray(psf_stack(phase, camera, [z], offsets=-rays * DX * z / Z2,
+                                           normalise=False)[0]) for z in zs])
+    stack /= stack[:, centre].sum((1, 2))[:, None, None, None]  # on-axis PSFs sum to 1
+    scene = np.zeros((len(zs), len(rays)))
+    lit = np.random.default_rng(seed).integers(len(zs), size=len(rays))
+    scene[lit, np.arange(len(rays))] = _scene(n, seed)
+    clean = np.einsum("zp,zpyx->yx", scene, stack)
     noise = np.random.default_rng(seed + 1000).normal(0, NOISE * clean.max(), clean.shape)
     image = np.clip(clean + noise, 0, None).astype(np.float32)
-    every = field_psf(stack, rays, tolerance=1e-3)
     grid = np.linspace(-half, half, 5)
     pick = [i for i, (y, x) in enumerate(rays) if y in grid and x in grid]
-    model_psf = field_psf(stack[pick], rays[pick], tolerance=1e-2)
-    flat = np.asarray(thin_plate_weights(rays[pick], stack[pick].sum((1, 2))[None],
-                                         SENSOR))[0]
+    flat = np.stack([np.asarray(thin_plate_weights(rays[pick], s[pick].sum((1, 2))[None],
+                                                   SENSOR))[0] for s in stack])
+    if depths is None:    # the 2-D problem: no depth axis anywhere
+        stack, scene, flat = stack[0], scene[0], flat[0]
+    every = field_psf(stack, rays, tolerance=1e-3)
+    model_psf = field_psf(stack[..., pick, :, :], rays[pick], tolerance=1e-2)
     index = (rays + np.array(SENSOR) // 2).astype(int)
-    sample = lambda est: np.asarray(est)[index[:, 0], index[:, 1]]  # noqa: E731
-    solve = lambda op: richardson_lucy(image, op, iterations, boundary="same",  # noqa: E731
-                                       progress=False).image
-    invariant = solve(stack[len(stack) // 2])
+    sample = lambda est: np.asarray(est)[..., index[:, 0], index[:, 1]]  # noqa: E731
+    solver = richardson_lucy if depths is None else richardson_lucy_3d
+    solve = lambda op: solver(image, op, iterations, boundary="same",  # noqa: E731
+                              progress=False).image
+    invariant = sample(solve(stack[..., centre, :, :]))
+    field = sample(solve(field_model(model_psf, SENSOR, "same")))
+    row = _row(half, every, model_psf, (invariant, invariant / sample(flat), field), scene,
+               start)
+    if depths is not None:  # every point's value, spread evenly over the depths
+        row["psnr_depth_blind"] = _psnr(np.broadcast_to(scene.mean(0), scene.shape).ravel(),
+                                        scene.ravel())
+    return row
+
+
+def _row(half, every, model_psf, estimates, truth, start):
+    """A configuration's row: the per-point ranks and the PSNRs of the ``estimates``
+    (shift-invariant, flat field, field model) at the scene points."""
     row = {"half": half, "field_deg": float(np.degrees(np.arctan(half * DX / Z2))),
            "rank_1pct": _rank_for(every, 1e-2), "rank_0p1pct": _rank_for(every, 1e-3),
-           "K": model_psf.rank,
-           "psnr_shift_invariant": _psnr(sample(invariant), scene),
-           "psnr_flat_field": _psnr(sample(invariant) / sample(flat), scene),
-           "psnr_field_model": _psnr(sample(solve(field_model(model_psf, SENSOR, "same"))),
-                                     scene)}
+           "K": model_psf.rank}
+    for name, estimate in zip(("shift_invariant", "flat_field", "field_model"), estimates):
+        row[f"psnr_{name}"] = _psnr(np.ravel(estimate), np.ravel(truth))
     baseline = max(row["psnr_shift_invariant"], row["psnr_flat_field"])
     row["gain_db"] = (None if row["psnr_field_model"] is None
                       else row["psnr_field_model"] - baseline)
@@ -127,7 +156,10 @@ def main():
     p.add_argument("--exponents", default="0,40", help="pixel response exponents p")
     p.add_argument("--iterations", type=int, default=200)
     p.add_argument("--seed", type=int, default=0, help="of the scene and the noise")
+    p.add_argument("--depths", default=None,
+                   help="source depths z1, mm (e.g. 15,25,40): a volume, field_truth_3d")
     a = p.parse_args()
+    depths = None if a.depths is None else [d * 1e-3 for d in _floats(a.depths)]
     base = Camera(wavelength=LAM, z2=Z2, dx=DX, aperture_radius=APERTURE,
                   shape=(GRID, GRID), crop=SENSOR)
     phase = np.asarray(random_diffuser(jax.random.key(0), (GRID, GRID), DX, LAM, 40e-6))
@@ -137,7 +169,7 @@ def main():
             for exponent in _floats(a.exponents):
                 camera = dataclasses.replace(base, aperture_distance=stop * 1e-3 or None,
                                              acceptance_exponent=exponent or None)
-                row = run(phase, camera, a.spacing, half, a.iterations, a.seed)
+                row = run(phase, camera, a.spacing, half, a.iterations, a.seed, depths)
                 rows.append({"stop_mm": stop, "p": exponent, **row})
                 print({k: round(float(v), 3) if isinstance(v, float) else v
                        for k, v in rows[-1].items()}, flush=True)
@@ -150,11 +182,11 @@ def main():
              f"{strong['rank_1pct']} for 1 %); without the terms "
              f"{', '.join(f'{g:+.2f}' for g in weak)} dB.")
     print(claim)
-    write_json("field_truth", rows, {"claim": claim, "spacing": a.spacing,
-                                     "aperture_mm": APERTURE * 1e3, "noise": NOISE,
-                                     "iterations": a.iterations, "z1": Z1,
-                                     "seed": a.seed,
-                                     "loadavg_after": os.getloadavg()})
+    write_json("field_truth" if depths is None else "field_truth_3d", rows,
+               {"claim": claim, "spacing": a.spacing, "aperture_mm": APERTURE * 1e3,
+                "noise": NOISE, "iterations": a.iterations,
+                "z1": Z1 if depths is None else depths, "seed": a.seed,
+                "loadavg_after": os.getloadavg()})
 
 
 if __name__ == "__main__":
