@@ -5,7 +5,7 @@ reconstruct the same noisy sensor image.
 
 Usage: python -m benchmarks.bench_field_truth [--spacing 2] [--iterations 200]
        [--halves 12,24] [--stops 0,0.1,0.3,1] [--exponents 0,40] [--seed 0]
-       [--depths 5,10,20]
+       [--depths 6,10,20]
 
 The camera: a 128² grid at 4 µm (small, so the default run takes minutes on 2 cores),
 λ 532 nm, z2 = 1 mm, a stop of 0.06 mm radius ``d`` in front of the diffuser (``--stops``,
