@@ -13,8 +13,9 @@ environment variables; a missing peer is a printed note):
   ``diffcam reconstruct captures/usaf_raw.png --psf captures/psfs --3d -o usaf.tif`` in
   a fresh process (:func:`benchmarks.harness.run_probed`: wall time with start-up, peak
   RSS), with ``DIFFCAM_FFT`` unset and ``=fftw``; the volume is read back and judged.
-* ``readme, --psf-envelope none``: the same command with the PSFs as measured (XLA's
-  FFT), the effect of the envelope.
+* ``readme, --psf-envelope auto``, ``readme, --psf-envelope none``: the same command
+  (XLA's FFT) with each PSF plane times a vertical envelope fitted to the capture
+  instead of the sensor window, and with neither: the effect of the window.
 * ``reference``: :func:`diffcam.reconstruct.admm_tv_3d` with DiffuserCam's settings
   (raw minus its 100-count bias, the stack's 2-count dark level removed, τ = 6e-4 on
   raw counts, isotropic 3-D TV), residual balancing and each PSF plane's vertical
@@ -340,8 +341,8 @@ def main(argv=None) -> None:
     rows = [ridge_row("reference", ref_volume, box, ref_record)]
     volumes = {"reference": ref_volume}
     for name, fft, options in (("readme (xla)", None, []), ("readme (fftw)", "fftw", []),
-                               ("readme, --psf-envelope none", None,
-                                ["--psf-envelope", "none"])):
+                               *((f"readme, --psf-envelope {mode}", None,
+                                  ["--psf-envelope", mode]) for mode in ("auto", "none"))):
         record, volumes[name] = readme_run(fft, extra + options)
         rows.append(ridge_row(name, volumes[name], box, record))
     for name in PEERS:

@@ -82,7 +82,8 @@ from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import (FieldModel, convolution_model, divergence,
                                            gradient, operator_norm)
 from diffcam.reconstruct.sensor_terms import (MAX_BACKGROUND_DEGREE,
-                                              check_sensor_response, smooth_background)
+                                              check_sensor_response, sensor_split,
+                                              smooth_background)
 
 __all__ = ["AdmmOptions", "TUTORIAL_2D", "VOLUME", "admm_tv", "admm_tv_3d"]
 _AXES = (-2, -1)
@@ -520,7 +521,7 @@ def _admm_solve(b, psf, response, settings, tol, *, iterations, boundary, axial,
         mu1, mu2, mu3 = mu
         u = _soft(tv_v + eta / mu2, tau / mu2)
         bg = sensor(joint_background(hv + xi / mu1, mu1))
-        x = (mask * (data - bg) + mu1 * hv + xi) / (mask ** 2 + mu1)
+        x = sensor_split(mask, data - bg, hv, xi, mu1)
         w = jnp.maximum(v + (rho - sparsity) / mu3, 0)
         splits = (x, u, w)          # relaxed below; the primal residuals use them as is
         x, u, w = (alpha * s + (1 - alpha) * k for s, k in zip(splits, (hv, tv_v, v)))

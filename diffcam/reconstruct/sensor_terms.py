@@ -24,8 +24,8 @@ from jaxtyping import ArrayLike
 
 from diffcam.core.errors import DiffcamError, ShapeError, is_concrete, real_array
 
-__all__ = ["MAX_BACKGROUND_DEGREE", "check_sensor_response", "legendre_terms",
-           "smooth_background"]
+__all__ = ["MAX_BACKGROUND_DEGREE", "check_sensor_response", "sensor_split",
+           "legendre_terms", "smooth_background"]
 
 MAX_BACKGROUND_DEGREE = 8
 """Highest degree of `AdmmOptions.background` (45 polynomials)."""
@@ -39,7 +39,8 @@ def check_sensor_response(response: ArrayLike | None, sensor_shape: Sequence[int
         return None
     real_array("sensor_response", response)
     shape, sensor_shape = np.shape(response), tuple(int(n) for n in sensor_shape[-2:])
-    if len(shape) > 2 or np.broadcast_shapes(shape, sensor_shape) != sensor_shape:
+    if len(shape) > 2 or any(n not in (1, m) for n, m in zip(shape[::-1],
+                                                            sensor_shape[::-1])):
         raise ShapeError(f"sensor_response must broadcast to the sensor {sensor_shape} "
                          f"(e.g. ({sensor_shape[0]}, 1) for a response along y), got "
                          f"shape {shape}.")
@@ -50,6 +51,15 @@ def check_sensor_response(response: ArrayLike | None, sensor_shape: Sequence[int
                                "records: finite, >= 0 and not all zero; got values from "
                                f"{values.min():.3g} to {values.max():.3g}.")
     return jnp.broadcast_to(jnp.asarray(response, dtype), sensor_shape)
+
+
+def sensor_split(mask, residual, hv, xi, mu1):
+    """The ADMM update of the split ``x = H v`` (DiffuserCam's crop variable) on the FFT
+    grid: ``argmin_x ½ ||S ⊙ C x - r||² + μ1/2 ||H v - x + ξ/μ1||²``, pixel-wise
+    ``x = (CᵀS r + μ1 H v + ξ) / (CᵀS²C + μ1)``; ``mask`` is ``CᵀS`` (``S`` padded with
+    zeros: 0 off the sensor), ``residual`` ``Cᵀr`` (``r`` the image less any
+    background)."""
+    return (mask * residual + mu1 * hv + xi) / (mask ** 2 + mu1)
 
 
 def legendre_terms(shape: tuple, degree: int) -> tuple[np.ndarray, list]:
