@@ -592,7 +592,7 @@ def _plane_background(shape, level, tilt_y, tilt_x):
 def test_admm_background_basis_is_the_least_squares_polynomial(x64):
     """The background's fit equals numpy's least-squares fit of the monomials
     ``y^i x^j``, ``i + j <= degree`` (the same space as the Legendre products)."""
-    from diffcam.reconstruct.admm import _background
+    from diffcam.reconstruct.sensor_terms import smooth_background
 
     rng = np.random.default_rng(32)
     shape, degree = (11, 14), 3
@@ -602,7 +602,7 @@ def test_admm_background_basis_is_the_least_squares_polynomial(x64):
     a = np.stack([(y ** i * x ** j).ravel() for i in range(degree + 1)
                   for j in range(degree + 1 - i)], axis=1)
     expected = (a @ np.linalg.lstsq(a, r.ravel(), rcond=None)[0]).reshape(shape)
-    fitted = np.asarray(_background(shape, degree, jnp.float64).fit(jnp.asarray(r)))
+    fitted = np.asarray(smooth_background(shape, degree, jnp.float64).fit(jnp.asarray(r)))
     assert _rel(fitted, expected) < 1e-10
 
 

@@ -90,13 +90,14 @@ def test_volume_puts_each_point_in_its_plane(scene, capsys):
     assert info["method"] == "rl" and info["iterations"] == 200 and info["residual"] < 0.1
 
 
-@pytest.mark.parametrize("envelope", ["auto", "none"])
+@pytest.mark.parametrize("envelope", ["mask", "auto"])
 def test_printed_residual_is_the_written_volumes(scene, capsys, envelope):
     """ADMM-TV: the residual printed is ||A x - b|| / ||b|| of the volume written
-    (--full-field: the whole object grid), recomputed with the forward model of the
-    PSFs it used (with the envelope of the widths recorded, or as measured); the split
-    gap is printed and recorded beside it."""
-    from diffcam.io import apply_envelope
+    (--full-field: the whole object grid), recomputed with the forward model it used
+    (the sensor window of the σ and centre recorded, or the PSFs with the envelope of
+    the widths recorded); the split gap is printed and recorded beside it. The
+    --background test covers --psf-envelope none."""
+    from diffcam.io import SensorWindow, apply_envelope
     from diffcam.reconstruct import convolution_model
     from diffcam.reconstruct.loop import relative_residual
 
@@ -106,14 +107,16 @@ def test_printed_residual_is_the_written_volumes(scene, capsys, envelope):
                 "--full-field", "--quiet", "--psf-envelope", envelope, "-o", out) == 0
     printed = float(re.search(r"residual ([0-9.eE+-]+)", capsys.readouterr().out).group(1))
     volume, _, meta = _volume(out)
-    widths = json.loads(meta["Info"])["psf_envelope_sigma_px"]
-    assert (widths is None) == (envelope == "none")
+    info = json.loads(meta["Info"])
+    widths, sigma = info["psf_envelope_sigma_px"], info["sensor_window_sigma_px"]
+    assert info["psf_envelope"] == envelope and (sigma is None) == (envelope == "auto")
     used = psfs if widths is None else apply_envelope(psfs, widths)
     raw = np.load(d / "raw.npy")
+    window = 1.0 if sigma is None else SensorWindow(
+        info["sensor_window_centre_row_px"], sigma).response(raw.shape)
     model = convolution_model(jnp.asarray(used), raw.shape, "crop", volume=True)
-    recomputed = float(relative_residual(model(jnp.asarray(volume)), raw))
+    recomputed = float(relative_residual(window * model(jnp.asarray(volume)), raw))
     assert printed == pytest.approx(recomputed, rel=2e-3, abs=1e-4)
-    info = json.loads(meta["Info"])
     assert info["residual"] == pytest.approx(recomputed, rel=2e-3, abs=1e-4)
     assert info["split_gap"] >= 0 and info["options"]["balance"] is True
     assert info["options"]["relaxation"] == VOLUME.relaxation
@@ -125,7 +128,7 @@ def test_background_is_recorded_and_fits_with_the_volume(scene, capsys):
     coefficients rebuild the solve's background, with which the volume written
     reproduces the residual recorded and printed (recomputed with the forward model)."""
     from diffcam.reconstruct import convolution_model
-    from diffcam.reconstruct.admm import legendre_terms
+    from diffcam.reconstruct.sensor_terms import legendre_terms
     from diffcam.reconstruct.loop import relative_residual
 
     d, psfs = scene
@@ -276,6 +279,8 @@ def _bad_inputs(d):
         ((raw, "--psf", psf, "--psf-envelope", "auto"), "with --3d"),
         ((raw, "--psf", psf, "--background", 1), "with --3d"),
         ((raw, "--psf", psf, "--3d", "--method", "rl", "--background", 1), "ADMM solve"),
+        ((raw, "--psf", psf, "--3d", "--method", "rl", "--psf-envelope", "mask"),
+         "--method admm"),
     ]
 
 

@@ -42,8 +42,8 @@ def add_reconstruct(sub) -> None:
                     "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5, "
                     "residual-balanced penalties and over-relaxation 1.85 "
                     "(diffcam.reconstruct.admm.VOLUME), "
-                    "each PSF plane's vertical envelope matched to the capture first "
-                    "(--psf-envelope), all recorded in OUT.tif's metadata. See "
+                    "with a vertical sensor window fitted to the capture in the "
+                    "forward model (--psf-envelope), all recorded in OUT.tif's metadata. See "
                     "docs/cli_reconstruct.md and docs/volume.md.")
     rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
     rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
@@ -91,12 +91,15 @@ def _add_input_arguments(rec) -> None:
     rec.add_argument("--dark-psf", type=dark_arg, metavar="COUNTS|auto",
                      help="dark level of the PSFs, counts, or 'auto': per plane, the "
                           f"median of a {DARK_RING}-pixel ring at the frame border")
-    rec.add_argument("--psf-envelope", choices=["auto", "none"],
-                     help="--3d: 'auto' (default) multiplies each PSF plane by the vertical "
-                          "Gaussian whose footprint explains the capture's row profile best "
-                          "(diffcam.io.envelope_widths; the widths go to OUT.tif's "
-                          "metadata), 'none' uses the PSFs as measured")
-    degree = "diffcam.reconstruct.admm.MAX_BACKGROUND_DEGREE"
+    rec.add_argument("--psf-envelope", choices=["mask", "auto", "none"],
+                     help="--3d: 'auto' (default) multiplies each PSF plane by the "
+                          "vertical Gaussian whose footprint explains the capture's row "
+                          "profile best (diffcam.io.envelope_widths); 'mask' (admm only) "
+                          "keeps the PSFs as measured and puts a vertical Gaussian sensor "
+                          "window S(y), fitted to the capture's row profile, in the "
+                          "forward model b = S·crop(Σ h*v) (diffcam.io.fit_sensor_window); "
+                          "'none' uses the PSFs as measured; σ goes to OUT.tif's metadata")
+    degree = "diffcam.reconstruct.sensor_terms.MAX_BACKGROUND_DEGREE"
     rec.add_argument("--background", type=count(0, module_constant(degree), degree),
                      metavar="DEGREE",
                      help="--3d with admm: solve jointly for a smooth background on the "

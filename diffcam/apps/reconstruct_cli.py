@@ -32,7 +32,8 @@ from diffcam.core.grid import crop_to
 from diffcam.io import atomic_output, check_output_path
 from diffcam.reconstruct import (admm_tv, admm_tv_3d, focus_sweep, richardson_lucy,
                                  richardson_lucy_3d, wiener)
-from diffcam.reconstruct.admm import VOLUME, legendre_terms
+from diffcam.reconstruct.admm import VOLUME
+from diffcam.reconstruct.sensor_terms import legendre_terms
 
 SWEEP_ITERATIONS = 60  # ADMM iterations per plane of the 2-D focus sweep
 
@@ -144,16 +145,28 @@ def volume_paths(out) -> VolumePaths:
     return paths
 
 
-def _solve_3d(raw, psfs, args):
+def _footprint_mode(args) -> str:
+    """``--psf-envelope``, or its default ``auto`` (``mask``, the sensor window, is
+    ADMM's alone: Richardson–Lucy's forward model has none)."""
+    mode = args.psf_envelope or "auto"
+    if mode == "mask" and args.method == "rl":
+        raise DiffcamError("--psf-envelope mask puts a sensor window in the ADMM solve; "
+                           "use --method admm, or --psf-envelope auto|none with rl.")
+    return mode
+
+
+def _solve_3d(raw, psfs, args, window):
     """The volume and its `Reconstruction`; ADMM-TV solves
     for the raw scaled to unit L2 norm (the scale the weights of
-    `diffcam.reconstruct.admm.VOLUME` are for) and the volume is scaled back to counts."""
+    `diffcam.reconstruct.admm.VOLUME` are for), with the sensor window ``window``
+    (`diffcam.io.SensorWindow`, or None), and the volume is scaled back to counts."""
 
     if args.method == "rl":
         rec = richardson_lucy_3d(raw, psfs, _iterations(args), progress=not args.quiet)
         return rec.image, rec
     unit_raw, norm = _unit_norm(raw)
-    rec = admm_tv_3d(unit_raw, psfs, _iterations(args), VOLUME,
+    response = None if window is None else window.response(raw.shape)
+    rec = admm_tv_3d(unit_raw, psfs, _iterations(args), VOLUME, sensor_response=response,
                      background=args.background, progress=not args.quiet)
     if rec.background is not None:
         rec = rec._replace(background=rec.background * norm)
@@ -180,7 +193,7 @@ def _run_3d(args, say) -> int:
     if args.method == "rl" and args.background is not None:
         raise DiffcamError("--background is a term of the ADMM solve; drop it or use "
                            "--method admm.")
-    paths = volume_paths(args.out)
+    paths, mode = volume_paths(args.out), _footprint_mode(args)
     say(f"reading {args.raw} and {args.psf}")
     raw, source = read_inputs(args, say)
     if raw.ndim != 2 or source.colour:
@@ -189,38 +202,44 @@ def _run_3d(args, say) -> int:
     if source.psfs.ndim != 3:
         raise DiffcamError(f"{args.psf}: --3d needs a PSF stack (one PSF per depth), got one "
                            f"PSF of shape {source.psfs.shape}.")
-    psfs, widths = match_envelope(raw, source.psfs, args.psf_envelope or "auto", say)
-    source = source._replace(psfs=psfs)
+    footprint = match_envelope(raw, source.psfs, mode, say)
+    source = source._replace(psfs=footprint.psfs)
     nz, my, mx = source.psfs.shape
     say(f"reconstructing {nz} planes from a {raw.shape[0]}×{raw.shape[1]} image ({my}×{mx} "
         f"PSFs): {args.method}, {_iterations(args)} iterations")
     t0 = time.perf_counter()
-    image, rec = _solve_3d(raw, source.psfs, args)
+    image, rec = _solve_3d(raw, source.psfs, args, footprint.window)
     volume = finite_result(paths.volume, np.asarray(
         image if args.full_field else crop_to(image, raw.shape), np.float32))
     seconds = time.perf_counter() - t0
-    info = _volume_info(args, rec, seconds, widths)
+    info = _volume_info(args, rec, seconds, footprint)
     say(f"writing {paths.volume} and " + ", ".join(p.name for p in paths[1:]))
     write_volume(paths, volume, source, info)
     gap = "" if rec.split_gap is None else f", split gap {info['split_gap']:.2g}"
-    print(f"diffcam reconstruct: {args.method} 3-D, {nz} planes, {info['iterations']} "
-          f"iterations ({seconds:.1f} s), residual {info['residual']:.3g}{gap} → "
-          f"{paths.volume}")
+    model = {"mask": f"sensor window σ {info['sensor_window_sigma_px']} px",
+             "auto": "PSF envelope", "none": "PSFs as measured"}[info["psf_envelope"]]
+    print(f"diffcam reconstruct: {args.method} 3-D, {nz} planes, {model}, "
+          f"{info['iterations']} iterations ({seconds:.1f} s), residual "
+          f"{info['residual']:.3g}{gap} → {paths.volume}")
     return 0
 
 
-def _volume_info(args, rec, seconds: float, widths) -> dict:
+def _volume_info(args, rec, seconds: float, footprint) -> dict:
     """What the volume's metadata records: solver, settings, dark levels, the PSF
-    envelope's widths (pixels, per plane; ``None`` without one), how far it
-    converged."""
+    envelope's widths (pixels, per plane; ``None`` without one) or the sensor window's
+    centre row and σ (pixels of the reconstructed frame; ``None`` without one), how far
+    it converged."""
     import dataclasses
 
-
+    widths, window = footprint.widths, footprint.window
     info = {"method": args.method, "iterations": int(np.max(rec.iterations)),
             "seconds": round(seconds, 2), "residual": final_residual(rec),
             "dark_raw": args.dark_raw, "dark_psf": args.dark_psf, "bias": args.bias,
-            "downsample": args.downsample, "psf_envelope": args.psf_envelope or "auto",
-            "psf_envelope_sigma_px": None if widths is None else np.round(widths, 1).tolist()}
+            "downsample": args.downsample, "psf_envelope": _footprint_mode(args),
+            "psf_envelope_sigma_px": None if widths is None else np.round(widths, 1).tolist(),
+            "sensor_window_sigma_px": None if window is None else round(window.sigma, 1),
+            "sensor_window_centre_row_px":
+                None if window is None else round(window.centre_row, 1)}
     if args.method == "admm":
         info["options"] = {f.name: getattr(VOLUME, f.name)
                            for f in dataclasses.fields(VOLUME)}
@@ -233,7 +252,7 @@ def _volume_info(args, rec, seconds: float, widths) -> dict:
 def _background_summary(background, degree) -> dict | None:
     """The fitted sensor background (``--background``) in the raw's units (as read,
     less any dark level): its coefficients on the polynomials ``P_i(y) P_j(x)``
-    (`diffcam.reconstruct.admm.legendre_terms`), mean, least and largest value;
+    (`diffcam.reconstruct.sensor_terms.legendre_terms`), mean, least and largest value;
     ``None`` without one."""
     if background is None:
         return None

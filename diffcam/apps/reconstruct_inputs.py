@@ -15,9 +15,9 @@ from diffcam.apps.common import has_stack_meta, read_psfs
 from diffcam.apps.fit_cli import model_planes
 from diffcam.core.errors import DiffcamError
 from diffcam import calibrate  # lazy: loaded on use
-from diffcam.io import (BackgroundWarning, IMAGE_SUFFIXES, apply_envelope, as_rgb,
-                        border_dark_level, downsample, envelope_widths, image_files,
-                        read_image, read_psf_stack,
+from diffcam.io import (BackgroundWarning, IMAGE_SUFFIXES, SensorWindow, apply_envelope,
+                        as_rgb, border_dark_level, downsample, envelope_widths,
+                        fit_sensor_window, image_files, read_image, read_psf_stack,
                         subtract_background)
 
 DARK_RING = 6        # pixels: width of the frame-border band whose median is the dark level
@@ -141,17 +141,31 @@ def subtract_dark(images, level, what: str, say=print):
     return out
 
 
-def match_envelope(raw: np.ndarray, psfs: np.ndarray, mode: str, say):
-    """The PSF stack with each plane's vertical footprint matched to the capture's
-    (``mode`` ``"auto"``: `diffcam.io.envelope_widths` then
-    `diffcam.io.apply_envelope`), and the widths used (pixels; ``None`` for
-    ``mode`` ``"none"``)."""
+class Footprint(NamedTuple):
+    """How a volume's PSF footprints are matched to the capture (`match_envelope`)."""
+
+    psfs: np.ndarray                    # the stack to solve with
+    widths: np.ndarray | None           # "auto": the envelope's σ per plane, pixels
+    window: SensorWindow | None         # "mask": the sensor window, pixels
+
+
+def match_envelope(raw: np.ndarray, psfs: np.ndarray, mode: str, say) -> Footprint:
+    """The PSF footprints matched to the capture's light: ``mode`` ``"mask"``: the PSFs
+    as measured and a sensor window fitted to the capture (`diffcam.io.fit_sensor_window`,
+    the solver's ``sensor_response``); ``"auto"``: each plane times a vertical envelope
+    (`diffcam.io.envelope_widths` then `diffcam.io.apply_envelope`); ``"none"``: the
+    PSFs as measured."""
     if mode == "none":
-        return psfs, None
+        return Footprint(psfs, None, None)
+    if mode == "mask":
+        window = fit_sensor_window(raw, psfs)
+        say(f"sensor window fitted to the capture: vertical Gaussian σ {window.sigma:.1f} px "
+            f"about row {window.centre_row:.1f} (the PSFs as measured)")
+        return Footprint(psfs, None, window)
     widths = envelope_widths(raw, psfs)
     say(f"PSF envelope matched to the capture: vertical Gaussian σ {widths[0]:.0f} px "
         f"(plane 0) to {widths[-1]:.0f} px (plane {len(widths) - 1})")
-    return apply_envelope(psfs, widths), widths
+    return Footprint(apply_envelope(psfs, widths), widths, None)
 
 
 def gains_arg(text: str):

@@ -11,7 +11,7 @@ order (LenslessPiCam-style, as the DiffuserCam tutorial does it)::
     image = subtract_background(capture.image, level)     # small negatives clipped
     image = downsample(image, 4)                          # box average
     image = normalise_l2(image)
-    psfs = apply_envelope(psfs, envelope_widths(image, psfs))   # volumes: footprints
+    window = fit_sensor_window(image, psfs)     # volumes: admm_tv_3d's sensor_response
 
 Everything here is NumPy (files are read once, outside ``jit``); the results go to the
 JAX solvers in [`diffcam.reconstruct`][diffcam.reconstruct].
@@ -30,9 +30,10 @@ file is either untouched or wholly replaced.
 from __future__ import annotations
 
 from diffcam.io.preprocessing import (BackgroundWarning, apply_envelope,
-                                      border_dark_level, dark_level, downsample,
-                                      envelope_widths, normalise_l2, plane_light,
-                                      saturation_mask, subtract_background)
+                                      SensorWindow, border_dark_level, dark_level,
+                                      downsample, envelope_widths, fit_sensor_window,
+                                      normalise_l2, plane_light, saturation_mask,
+                                      subtract_background)
 from diffcam.io.reading import (IMAGE_SUFFIXES, Capture, as_rgb, check_read_size,
                                 file_kind, image_files, natural_key, npz_keys, read_image,
                                 read_mat_stack, read_npz, read_psf_stack, read_rgb)
@@ -44,7 +45,8 @@ __all__ = [
     "Capture", "read_image", "read_rgb", "as_rgb", "read_psf_stack", "image_files",
     "natural_key", "IMAGE_SUFFIXES", "border_dark_level", "plane_light", "read_mat_stack", "dark_level",
     "subtract_background", "saturation_mask", "downsample", "normalise_l2",
-    "envelope_widths", "apply_envelope", "BackgroundWarning", "read_npz", "npz_keys",
+    "envelope_widths", "apply_envelope", "SensorWindow", "fit_sensor_window",
+    "BackgroundWarning", "read_npz", "npz_keys",
     "file_kind", "check_read_size",
     "check_output_path", "make_output_folder", "atomic_output", "Terminated",
     "temporary_files",

@@ -1,20 +1,22 @@
 """The preprocessing steps that make a capture fit to reconstruct, each a separate
 function: background subtraction, saturation mask, box downsampling, L2 normalisation,
-and for a volume the PSF stack's vertical envelope matched to the capture."""
+and for a volume the PSF stack's vertical envelope matched to the capture, or the
+sensor window fitted to it."""
 
 from __future__ import annotations
 
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
 from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_finite,
-                                 real_array, whole_number)
+                                 number_in, real_array, whole_number)
 from diffcam.io.reading import Capture
 
 __all__ = ["BackgroundWarning", "border_dark_level", "dark_level", "subtract_background",
            "saturation_mask", "downsample", "normalise_l2", "envelope_widths",
-           "apply_envelope"]
+           "apply_envelope", "SensorWindow", "fit_sensor_window"]
 
 _SATURATION = 0.999  # of full scale: at or above it a pixel counts as saturated
 
@@ -264,14 +266,113 @@ def _profiles(image, psfs):
     return np.maximum(image, 0).sum(axis=1), planes, centres
 
 
+def _valid_matrix(n: int, kernels) -> np.ndarray:
+    """The ``(n, Σ_k (n + m_k - 1))`` matrix of ``s ↦ Σ_k valid(kernel_k * s_k)``: the
+    crop model along one axis, ``n`` sensor samples."""
+    from scipy.linalg import toeplitz
+
+    return np.hstack([toeplitz(np.r_[k[-1], np.zeros(n - 1)],
+                               np.concatenate([k[::-1], np.zeros(n - 1)]))
+                      for k in kernels])
+
+
 def _nnls_misfit(profile, kernels) -> float:
     """``min ||Σ_k valid(kernel_k * s_k) - profile||`` over ``s_k >= 0``: the part of a
     1-D profile that non-negative signals blurred by the ``kernels`` cannot explain."""
-    from scipy.linalg import toeplitz
     from scipy.optimize import nnls
 
-    n = len(profile)
-    matrix = np.hstack([toeplitz(np.r_[k[-1], np.zeros(n - 1)],
-                                 np.concatenate([k[::-1], np.zeros(n - 1)]))
-                        for k in kernels])
+    matrix = _valid_matrix(len(profile), kernels)
     return float(nnls(matrix, profile, maxiter=50 * matrix.shape[1])[1])
+
+
+class SensorWindow(NamedTuple):
+    """A vertical Gaussian sensor response, ``S(y) = exp(-(y - centre_row)² / 2σ²)``:
+    the fraction of the light row ``y`` records, relative to the PSF calibration's
+    ([`fit_sensor_window`][diffcam.io.preprocessing.fit_sensor_window]).
+
+    Attributes:
+        centre_row: pixels, the sensor row of the window's peak (row 0 at the top).
+        sigma: pixels, the window's standard deviation along y.
+    """
+
+    centre_row: float
+    sigma: float
+
+    def response(self, shape) -> np.ndarray:
+        """``S`` on a sensor of ``shape`` ``(ny, nx)``: float32 ``(ny, 1)`` (it
+        broadcasts along x), for the solvers' ``sensor_response``."""
+        rows = np.arange(int(shape[-2]), dtype=np.float64)[:, None]
+        return np.exp(-0.5 * ((rows - self.centre_row) / self.sigma) ** 2).astype(np.float32)
+
+
+def fit_sensor_window(image: np.ndarray, psfs: np.ndarray, samples: int = 5,
+                      light_weight: float = 0.02) -> SensorWindow:
+    """The vertical sensor window ``S(y)`` that makes a PSF stack explain a capture's row
+    profile, estimated from the capture itself.
+
+    A window fixed on the sensor multiplies the crop model, ``b = S ⊙ C Σ_z h_z * v_z``:
+    the same for every scene point, unlike a change of each PSF. Its centre is the
+    optical axis on the sensor, the row about which the stack's planes magnify (the
+    intercept of the planes' row centroids against their rms heights). Its ``σ``
+    minimises ``½ ||S ⊙ Σ_z valid(p_z * s_z) - p||² + λ Σ s`` over ``s_z >= 0``: ``p``
+    the capture's row profile (its sum over columns, at unit norm), ``p_z`` the row
+    profiles of ``samples`` planes spread evenly over the stack (columns at unit
+    norm), binned to at most 100 rows, and ``λ`` a share ``light_weight`` of the
+    weight that empties the fit (a narrow window explains any profile with enough
+    light at its edges; the L1 term makes that light cost). Bounded search over 0.1
+    to 10 times the PSF height; the L1 fit by 400 iterations of projected FISTA.
+
+    Args:
+        image: ``(ny, nx)`` capture, counts (bias subtracted).
+        psfs: ``(nz, my, mx)`` non-negative PSF stack, ``my <= ny``, on the sensor's
+            pixels (the crop model's centring: PSF row ``my // 2`` on sensor row
+            ``ny // 2``).
+        samples: planes in the fit (at least 1, at most ``nz``).
+        light_weight: ``λ`` as a share of the weight that empties the fit, in (0, 1).
+
+    Returns:
+        [`SensorWindow`][diffcam.io.preprocessing.SensorWindow], pixels.
+    """
+    from scipy.optimize import minimize_scalar  # SciPy on first use: fast package import
+
+    samples = whole_number("samples", samples, 1)
+    light_weight = number_in("light_weight", light_weight, 1e-6, 1 - 1e-6,
+                             "a share of the emptying weight in (0, 1)")
+    profile, planes, centres = _profiles(image, psfs)
+    rows = np.arange(planes.shape[1])
+    spread = np.sqrt(planes @ rows ** 2 / planes.sum(axis=1) - centres ** 2)
+    axis = (np.polyfit(spread / spread.max(), centres, 1)[1] if np.ptp(spread) >
+            0.01 * spread.max() else float(np.mean(centres)))
+    centre_row = float(axis + image.shape[0] // 2 - planes.shape[1] // 2)
+    fitted = np.unique(np.linspace(0, len(planes) - 1, max(1, min(samples, len(planes))))
+                       .round()).astype(int)
+    factor = -(-planes.shape[1] // _ENVELOPE_ROWS)
+    profile = _bin(profile, factor)
+    matrix = _valid_matrix(len(profile), _bin(planes[fitted], factor))
+    matrix = matrix / np.linalg.norm(matrix, axis=0).max()
+    profile = profile / np.linalg.norm(profile)
+    weight = light_weight * np.max(matrix.T @ profile)
+    binned_rows = (np.arange(len(profile)) + 0.5) * factor - 0.5
+
+    def objective(log_sigma):
+        window = np.exp(-0.5 * ((binned_rows - centre_row) / np.exp(log_sigma)) ** 2)
+        return _l1_fit(window[:, None] * matrix, profile, weight)
+
+    height = planes.shape[1]
+    best = minimize_scalar(objective, bounds=(np.log(0.1 * height), np.log(10 * height)),
+                           method="bounded", options={"xatol": 0.01})
+    return SensorWindow(centre_row, float(np.exp(best.x)))
+
+
+def _l1_fit(matrix, target, weight, iterations: int = 400) -> float:
+    """``min ½ ||A s - t||² + weight Σ s`` over ``s >= 0`` by projected FISTA: the
+    minimum."""
+    step = 1 / np.linalg.eigvalsh(matrix @ matrix.T)[-1]     # 1 / ||A||²
+    s = y = np.zeros(matrix.shape[1])
+    t = 1.0
+    for _ in range(iterations):
+        s_new = np.maximum(y - step * (matrix.T @ (matrix @ y - target) + weight), 0)
+        t_new = (1 + np.sqrt(1 + 4 * t * t)) / 2
+        y, s, t = s_new + (t - 1) / t_new * (s_new - s), s_new, t_new
+    r = matrix @ s - target
+    return float(0.5 * r @ r + weight * s.sum())

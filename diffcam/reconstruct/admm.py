@@ -20,10 +20,14 @@ taken into the DCT basis once; the DCT of each iterate along depth is a product 
 the ``(nz, nz)`` DCT matrix applied to real volumes (one each way per iteration), so an
 iteration costs one real FFT pair of the stack, one of a plane, and element-wise work.
 
-With ``background`` (a polynomial degree), the data term is ``½ ||C H v + B c - b||²``
-with ``B`` smooth polynomials on the sensor and ``c`` free; the ``x = Hv`` update then
-minimises over ``x`` and ``c`` together, which leaves for ``c`` the least-squares fit of
-``B`` to ``b - C(Hv + ξ/μ1)``.
+With a ``sensor_response`` ``S`` (`diffcam.reconstruct.sensor_terms`: the fraction of
+the light each pixel records, relative to the PSF calibration's) the data term is
+``½ ||S ⊙ C H v - b||²`` and the ``x`` update stays a pixel-wise division,
+``x = (CᵀS b + μ1 H v + ξ) / (CᵀS²C + μ1)``. With ``background`` (a polynomial degree),
+the data term is ``½ ||S ⊙ C H v + B c - b||²`` with ``B`` smooth polynomials on the
+sensor and ``c`` free; the ``x = Hv`` update then minimises over ``x`` and ``c``
+together, which leaves for ``c`` the least-squares fit of ``B`` to
+``b - S ⊙ C(Hv + ξ/μ1)``, weighted by ``μ1 / (S² + μ1)`` (unweighted without ``S``).
 
 A field-dependent model (`FieldModel`) in place of
 the PSF has no ``HᵀH`` diagonal in any basis, so its ``v`` update is *linearised*
@@ -63,7 +67,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import ArrayLike
 
 from diffcam.core.backend import irfft2, rfft2
@@ -78,12 +81,11 @@ from diffcam.reconstruct.checks import (as_psf_stack, batch_shape, check_image,
 from diffcam.reconstruct.loop import Reconstruction, iterate, relative_residual
 from diffcam.reconstruct.operators import (FieldModel, convolution_model, divergence,
                                            gradient, operator_norm)
+from diffcam.reconstruct.sensor_terms import (MAX_BACKGROUND_DEGREE,
+                                              check_sensor_response, sensor_split,
+                                              smooth_background)
 
-__all__ = ["AdmmOptions", "MAX_BACKGROUND_DEGREE", "TUTORIAL_2D", "VOLUME", "admm_tv",
-           "admm_tv_3d", "legendre_terms"]
-
-MAX_BACKGROUND_DEGREE = 8
-"""Highest degree of `AdmmOptions.background` (45 polynomials)."""
+__all__ = ["AdmmOptions", "TUTORIAL_2D", "VOLUME", "admm_tv", "admm_tv_3d"]
 _AXES = (-2, -1)
 _BOUNDARIES = ("crop", "circular")
 
@@ -186,7 +188,7 @@ over-relaxation 1.85. ``diffcam reconstruct --3d`` uses them."""
 
 def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100,
             options: AdmmOptions | None = None, *, progress: bool = True,
-            **overrides) -> Reconstruction:
+            sensor_response: ArrayLike | None = None, **overrides) -> Reconstruction:
     """DiffuserCam ADMM-TV reconstruction of a 2-D scene from one sensor image.
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
@@ -206,19 +208,25 @@ def admm_tv(image: ArrayLike, psf: ArrayLike, iterations: int = 100,
             after its fields replace them.
         progress: a progress bar for runs over 2 s
             ([`diffcam.core.progress`][diffcam.core.progress]).
+        sensor_response: ``S``, dimensionless, broadcasting to ``(ny, nx)``: the
+            fraction of the light each pixel records, relative to the PSF
+            calibration's; the model is ``b = S ⊙ C H v``
+            (`diffcam.reconstruct.sensor_terms`).
+            ``None``: 1 everywhere.
 
     Returns:
         [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction]; ``image`` is the
         non-negative split variable ``w``, ``(..., oy, ox)``.
     """
     options = AdmmOptions.of(options or TUTORIAL_2D, **overrides)
-    return _admm(image, psf, iterations, options, volume=False, progress=progress)
+    return _admm(image, psf, iterations, options, sensor_response, volume=False,
+                 progress=progress)
 
 
 def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100,
                options: AdmmOptions | None = None, *, progress: bool = True,
-               **overrides) -> Reconstruction:
-    """DiffuserCam ADMM-TV reconstruction of a volume: ``b = crop(Σ_z h_z * v_z)``.
+               sensor_response: ArrayLike | None = None, **overrides) -> Reconstruction:
+    """DiffuserCam ADMM-TV reconstruction of a volume: ``b = S ⊙ crop(Σ_z h_z * v_z)``.
 
     Input checks run when called eagerly; under ``jax.jit`` they see tracers and are skipped
     (shapes are still checked) — call once eagerly (``iterations=1`` is enough) to validate.
@@ -235,6 +243,8 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100,
             replace them.
         progress: a progress bar for runs over 2 s
             ([`diffcam.core.progress`][diffcam.core.progress]).
+        sensor_response: ``S`` as in [`admm_tv`][diffcam.reconstruct.admm.admm_tv]
+            (e.g. `diffcam.io.SensorWindow.response`); ``None``: 1 everywhere.
 
     Returns:
         [`Reconstruction`][diffcam.reconstruct.loop.Reconstruction] with ``image`` the
@@ -242,11 +252,11 @@ def admm_tv_3d(image: ArrayLike, psf_stack: ArrayLike, iterations: int = 100,
         sensor background ``(..., ny, nx)`` in the image's units.
     """
     options = AdmmOptions.of(options, **overrides)
-    return _admm(image, as_psf_stack(psf_stack), iterations, options, volume=True,
-                 progress=progress)
+    return _admm(image, as_psf_stack(psf_stack), iterations, options, sensor_response,
+                 volume=True, progress=progress)
 
 
-def _admm(image, psf, iterations, options, *, volume, progress):
+def _admm(image, psf, iterations, options, response, *, volume, progress):
     iterations = check_iterations(iterations)
     check_image(image, nonnegative=False)
     core = 3 if volume else 2
@@ -269,6 +279,7 @@ def _admm(image, psf, iterations, options, *, volume, progress):
             psf = psf[..., None, :, :]
         depth, boundary = psf.shape[-3], options.boundary
     image = jnp.broadcast_to(jnp.asarray(image, dtype), batch + jnp.shape(image)[-2:])
+    response = check_sensor_response(response, jnp.shape(image), dtype)
     tau, tau_axial, sparsity = options.weights()
     axial = depth > 1 and not (is_concrete(tau_axial) and float(tau_axial) == 0)
     flat = lambda a, k: a.reshape((-1,) + a.shape[a.ndim - k:])  # noqa: E731
@@ -277,7 +288,7 @@ def _admm(image, psf, iterations, options, *, volume, progress):
     tol = None if options.tol is None else jnp.asarray(options.tol, dtype)
     with progress_bar(iterations, "ADMM-TV", progress):
         out = jax.block_until_ready(_admm_batched(
-            flat(image, 2), psf if model else flat(psf, 3), settings, tol,
+            flat(image, 2), psf if model else flat(psf, 3), response, settings, tol,
             iterations=iterations, boundary=boundary, axial=axial,
             balance=bool(options.balance), background=options.background))
     if not volume:
@@ -287,12 +298,14 @@ def _admm(image, psf, iterations, options, *, volume, progress):
 
 @partial(jax.jit, static_argnames=("iterations", "boundary", "axial", "balance",
                                    "background"))
-def _admm_batched(image, psf, settings, tol, *, iterations, boundary, axial, balance,
-                  background):
-    """One problem per image; ``psf`` is a batch of PSF stacks or one forward model."""
+def _admm_batched(image, psf, response, settings, tol, *, iterations, boundary, axial,
+                  balance, background):
+    """One problem per image; ``psf`` is a batch of PSF stacks or one forward model;
+    ``response`` the sensor response shared by all (or None)."""
     def one(b, h):
-        return _admm_solve(b, h, settings, tol, iterations=iterations, boundary=boundary,
-                           axial=axial, balance=balance, background=background)
+        return _admm_solve(b, h, response, settings, tol, iterations=iterations,
+                           boundary=boundary, axial=axial, balance=balance,
+                           background=background)
     return jax.vmap(one, in_axes=(0, None if isinstance(psf, FieldModel) else 0))(image, psf)
 
 
@@ -469,45 +482,13 @@ def _norm(a):
     return jnp.sqrt(jnp.sum(a ** 2))
 
 
-class _Background(NamedTuple):
-    """A smooth background on the sensor, ``B c``: ``basis`` holds the ``(k, ny, nx)``
-    orthonormal images spanning it (``k = 0``: no background)."""
-
-    basis: jax.Array
-
-    def fit(self, r):
-        """The background closest to ``r`` (``B Bᵀ r``, the least-squares fit)."""
-        return jnp.tensordot(jnp.tensordot(self.basis, r, 2), self.basis, 1)
-
-
-def legendre_terms(shape: tuple, degree: int) -> tuple[np.ndarray, list]:
-    """The background's polynomials: ``P_i(y) P_j(x)`` for ``i + j <= degree``, with
-    ``y``, ``x`` mapped to [-1, 1] over an image of ``shape`` (pixels).
-
-    Returns:
-        ``(k, ny, nx)`` float64 images and the ``k`` pairs ``(i, j)``.
-    """
-    y = np.polynomial.legendre.legvander(np.linspace(-1, 1, shape[0]), degree)
-    x = np.polynomial.legendre.legvander(np.linspace(-1, 1, shape[1]), degree)
-    pairs = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
-    return np.stack([np.outer(y[:, i], x[:, j]) for i, j in pairs]), pairs
-
-
-def _background(shape, degree, dtype) -> _Background:
-    """`legendre_terms` orthonormalised on the sensor's pixels."""
-    if degree is None:
-        return _Background(jnp.zeros((0,) + tuple(shape), dtype))
-    terms = legendre_terms(shape, degree)[0]
-    q = np.linalg.qr(terms.reshape(len(terms), -1).T)[0]
-    return _Background(jnp.asarray(q.T.reshape((-1,) + tuple(shape)), dtype))
-
-
-def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
+def _admm_solve(b, psf, response, settings, tol, *, iterations, boundary, axial, balance,
                 background):
-    """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``; everything on the object grid.
+    """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``, sensor response ``(ny, nx)``
+    or None; everything on the object grid.
     With a ``background`` (polynomial degree), the ``x = Hv`` update minimises jointly
     over ``x`` and the background's coefficients: eliminating ``x`` leaves the
-    least-squares fit of the background to ``b - C(Hv + ξ/μ1)``. The background
+    weighted least-squares fit of the background to ``b - S C(Hv + ξ/μ1)``. The background
     returned is that fit at the last iterate, and ``final_residual`` is that of the
     volume returned plus it (the residual history: each iterate with its best
     background)."""
@@ -521,12 +502,16 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
     data_term, h_norm = _data_term(psf, b, boundary, a)
     grid, nz = data_term.basis.grid, _planes(psf)
     sensor = (lambda a: pad_to(a, grid)) if boundary == "crop" else (lambda a: a)
-    crop_mask, data = sensor(jnp.ones_like(b)), sensor(b)
-    smooth = _background(b.shape, background, b.dtype)
+    data = sensor(b)
+    mask = sensor(jnp.ones_like(b) if response is None else response)    # CᵀS
+    smooth = smooth_background(b.shape, background, b.dtype)
+
+    def joint_background(z, mu1):     # minimising jointly with x, for z = Hv + ξ/μ1
+        return smooth.fit_joint(b - crop_to(mask * z, b.shape), response, mu1)
 
     def fit(v, hv, tv_v, bg):
         """Relative residual and objective of a volume with a sensor background."""
-        predicted = crop_to(hv, b.shape) + bg
+        predicted = crop_to(mask * hv, b.shape) + bg
         objective = (0.5 * jnp.sum((predicted - b) ** 2) + tau * jnp.sum(jnp.abs(tv_v))
                      + sparsity * jnp.sum(v))
         return relative_residual(predicted, b), objective
@@ -535,8 +520,8 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
         v, hv, tv_v, xi, eta, rho, mu = state
         mu1, mu2, mu3 = mu
         u = _soft(tv_v + eta / mu2, tau / mu2)
-        bg = sensor(smooth.fit(b - crop_to(hv + xi / mu1, b.shape)))
-        x = (data - bg + mu1 * hv + xi) / (crop_mask + mu1)
+        bg = sensor(joint_background(hv + xi / mu1, mu1))
+        x = sensor_split(mask, data - bg, hv, xi, mu1)
         w = jnp.maximum(v + (rho - sparsity) / mu3, 0)
         splits = (x, u, w)          # relaxed below; the primal residuals use them as is
         x, u, w = (alpha * s + (1 - alpha) * k for s, k in zip(splits, (hv, tv_v, v)))
@@ -549,7 +534,7 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
         eta = eta + mu2 * (tv_new - u)
         rho = rho + mu3 * (v_new - w)
         mu = _balanced(mu, primal, dual) if balance else mu
-        best = smooth.fit(b - crop_to(hv, b.shape))
+        best = smooth.fit(b - crop_to(mask * hv, b.shape))
         return (v_new, hv_new, tv_new, xi, eta, rho, mu), fit(v, hv, tv_v, best)
 
     v0 = jnp.zeros((nz,) + grid, b.dtype)
@@ -559,7 +544,7 @@ def _admm_solve(b, psf, settings, tol, *, iterations, boundary, axial, balance,
     state, res, obj, its, done = iterate(step, state, iterations, tol)
     v, hv, _, xi, _, rho, mu = state
     w = jnp.maximum(v + (rho - sparsity) / mu[2], 0)
-    bg = smooth.fit(b - crop_to(hv + xi / mu[0], b.shape))      # the solve's background
+    bg = joint_background(hv + xi / mu[0], mu[0])      # the solve's background
     final_residual, final_objective = fit(w, data_term.blur(w), _tv(w, a), bg)
     fitted = None if background is None else bg * b_norm
     return Reconstruction(image=w * (b_norm / h_norm), residual=res,
