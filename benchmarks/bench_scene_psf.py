@@ -2,8 +2,10 @@
 scored against the ground truth of captures the calibration did not see.
 
     python -m benchmarks.bench_scene_psf [--source DIR] [--downsample F] [--figure PNG]
-    python -m benchmarks.bench_scene_psf --source DIR --pairs 3 --pairs-used 6 \
-        --solvers admm fista --name scene_psf_full        # the published 270 × 480
+    python -m benchmarks.bench_scene_psf --source DIR --folds im43 --pairs-used 6 \
+        --solvers admm fista --name scene_psf_full_im43   # the published 270 × 480,
+    python -m benchmarks.bench_scene_psf --combine benchmarks/results/scene_psf_full_*.json \
+        --name scene_psf_full                            # one fold a run, then combined
 
 Data: the seven Lensless Learning pairs (a DiffuserCam colour capture of a picture on a
 monitor, and a lensed photograph of it registered to the sensor), as shipped
