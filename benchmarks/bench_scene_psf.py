@@ -2,8 +2,10 @@
 scored against the ground truth of captures the calibration did not see.
 
     python -m benchmarks.bench_scene_psf [--source DIR] [--downsample F] [--figure PNG]
-    python -m benchmarks.bench_scene_psf --source DIR --pairs 3 --pairs-used 6 \
-        --solvers admm fista --name scene_psf_full        # the published 270 × 480
+    python -m benchmarks.bench_scene_psf --source DIR --folds im43 --pairs-used 6 \
+        --solvers admm fista --name scene_psf_full_im43   # the published 270 × 480,
+    python -m benchmarks.bench_scene_psf --combine benchmarks/results/scene_psf_full_*.json \
+        --name scene_psf_full                            # one fold a run, then combined
 
 Data: the seven Lensless Learning pairs (a DiffuserCam colour capture of a picture on a
 monitor, and a lensed photograph of it registered to the sensor), as shipped
@@ -217,12 +219,29 @@ def figure(shown: dict, path: Path, name: str) -> None:
     save_figure(fig, path)
 
 
+def combine(paths: list[Path], name: str) -> None:
+    """One results JSON from the rows of several runs over different folds."""
+    import json
+
+    records = [json.loads(p.read_text()) for p in paths]
+    rows = [r for rec in records for r in rec["rows"]]
+    table = summary(rows)
+    print(markdown_table(table, list(table[0])))
+    extra = {k: records[0][k] for k in ("data", "shape", "downsample")}
+    parts = [{k: rec[k] for k in ("command_line", "date", "load", "git")} for rec in records]
+    print(f"wrote {write_json(name, rows, {**extra, 'summary': table, 'parts': parts})}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--source", type=Path, help="folder of the original .npy pairs")
     p.add_argument("--downsample", type=int, default=1, help="box-average factor")
     p.add_argument("--figure", type=Path, help="write the figure of the first pair here")
     p.add_argument("--pairs", type=int, default=len(NAMES), help="held-out pairs to run")
+    p.add_argument("--folds", nargs="+", choices=NAMES, help="held-out pairs by name "
+                   "(instead of the first --pairs)")
+    p.add_argument("--combine", type=Path, nargs="+", metavar="JSON",
+                   help="summarise the rows of these results JSONs (folds run apart)")
     p.add_argument("--pairs-used", type=int, nargs="+", default=list(PAIRS_USED),
                    help="calibrate on this many of the other pairs")
     p.add_argument("--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS))
@@ -231,12 +250,15 @@ def main(argv=None):
     p.add_argument("--name", default="scene_psf", help="results JSON name")
     args = p.parse_args(argv)
     args.grid = args.grid if min(args.grid) > 0 else None
+    if args.combine:
+        return combine(args.combine, args.name)
     raws, truths = load(args.source, args.downsample)
     t, rows = time.perf_counter(), []
-    for k in range(args.pairs):
+    folds = [NAMES.index(n) for n in args.folds] if args.folds else range(args.pairs)
+    for k in folds:
         fold_rows, shown = fold(raws, truths, k, args)
         rows += fold_rows
-        if k == 0 and args.figure:
+        if k == folds[0] and args.figure:
             figure(shown, args.figure, NAMES[k])
             print(f"wrote {args.figure}")
         print(f"- {NAMES[k]} done ({time.perf_counter() - t:.0f} s)", flush=True)

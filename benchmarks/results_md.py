@@ -202,8 +202,12 @@ SECTIONS = {
             "--name design_3d_end_to_end"))},
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
-                       "python -m benchmarks.bench_scene_psf --source DIR --pairs 3 "
-                       "--pairs-used 6 --solvers admm fista --name scene_psf_full", None),
+                       "python -m benchmarks.bench_scene_psf --source DIR --folds … "
+                       "--pairs-used 6 --solvers admm fista --name scene_psf_full_…, then "
+                       "--combine", None),
+    "scene_psf_seams": ("The fitted PSF's horizontal seams: where they sit as the sensor is "
+                        "cut, and the border taper that removes them",
+                        "python -m benchmarks.bench_scene_psf_seams", None),
     "fig6_seeds": ("The demo's Fig. 6 calibration over capture-noise seeds",
                    "python -m benchmarks.bench_fig6_seeds", None),
 }
