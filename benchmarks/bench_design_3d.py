@@ -27,10 +27,14 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
 Each diffuser's truth PSFs come from
 `diffcam.calibrate.simulation.high_fidelity_psfs` (the height map's phase at 532 nm on a
 2× finer grid, three wavelengths 526–538 nm, a source of 50 µm radius, pixel
-integration) at the reconstruction depths; its model PSFs, which the solver inverts
-with, from `diffcam.model.stack.psf_stack` (one wavelength, a point source, the sensor
-grid; ``--truth model`` makes the captures with these too, an ablation without model
-error). The scenes are made here and seen by nothing else: ``--scenes`` sparse volumes
+integration) at the reconstruction depths; its model PSFs from
+`diffcam.model.stack.psf_stack` (one wavelength, a point source, the sensor grid;
+``--truth model`` makes the captures with these, an ablation without model error). The
+solver inverts with the diffuser's calibration (``--calibration``): by default the PSF
+stack a user of the fabricated diffuser measures, a point source at each depth recorded
+through the truth PSFs with Poisson noise at ``--calibration-photons`` photons at each
+PSF's brightest pixel (``measured``); or the model PSFs (``model``, the diffuser used
+as designed, uncalibrated). The scenes are made here and seen by nothing else: ``--scenes`` sparse volumes
 (Gaussian blobs of σ 1 pixel, 2 per depth plane on average, at random planes and
 positions within the central half of the field) and the two-point test (two blobs at the
 field's centre, on planes k apart, one volume per k: k = 2 … nz − 1 in steps of
@@ -96,6 +100,8 @@ TUNING_FACTORS = (0.1, 1.0, 10.0)
 """With ``--tune``, the factors on `VOLUME`'s TV and L1 weights tried per diffuser."""
 TRAINING_SEED = 2000
 """The seed of the scene ``--tune`` chooses the weights on (held-out scenes: 1000 + k)."""
+CALIBRATION_SEED = 3000
+"""The seed of the calibration PSFs' noise (captures: 7; scenes: 1000 + k, 2000)."""
 BLOB_SIGMA = 1.0
 """Standard deviation of a scene's Gaussian blobs, object-grid samples."""
 
@@ -223,19 +229,19 @@ def resolved(estimate: np.ndarray, planes: tuple[int, int]) -> bool:
     return bool(profile[i + 1:j].min() <= DIP * min(profile[i], profile[j]))
 
 
-def reconstruct(b: np.ndarray, model_psfs: np.ndarray, iterations: int,
+def reconstruct(b: np.ndarray, psfs: np.ndarray, iterations: int,
                 options: AdmmOptions) -> np.ndarray:
     """ADMM-TV volumes of the captures ``b`` (…, n, n), each scaled to unit L2 norm."""
     unit = b / np.linalg.norm(b, axis=(-2, -1), keepdims=True)
-    return np.asarray(admm_tv_3d(unit, model_psfs, iterations, options,
+    return np.asarray(admm_tv_3d(unit, psfs, iterations, options,
                                  progress=False).image)
 
 
-def tuned(truth_psfs, model_psfs, n: int, object_shape, args) -> AdmmOptions:
+def tuned(truth_psfs, solver_psfs, n: int, object_shape, args) -> AdmmOptions:
     """`VOLUME` with its lateral TV (axial TV in proportion) and L1 weights each scaled
     by one of `TUNING_FACTORS`: the pair with the best volume PSNR on the training
     scene (seed `TRAINING_SEED`, not a held-out one)."""
-    volume = scene(TRAINING_SEED, len(model_psfs), n, object_shape)
+    volume = scene(TRAINING_SEED, len(solver_psfs), n, object_shape)
     b = capture(volume, truth_psfs, n, args.photons, np.random.default_rng(TRAINING_SEED))
     best = None
     for f_tv in TUNING_FACTORS:
@@ -243,28 +249,39 @@ def tuned(truth_psfs, model_psfs, n: int, object_shape, args) -> AdmmOptions:
             options = AdmmOptions.of(VOLUME, tau=VOLUME.tau * f_tv,
                                      tau_axial=VOLUME.tau_axial * f_tv,
                                      sparsity=VOLUME.sparsity * f_l1)
-            estimate = reconstruct(b, model_psfs, args.iterations, options)
+            estimate = reconstruct(b, solver_psfs, args.iterations, options)
             score = volume_psnr(estimate, volume, n) if estimate.any() else -np.inf
             if best is None or score > best[0]:
                 best = (score, options)
     return best[1]
 
 
+def calibration(truth_psfs: np.ndarray, photons: float) -> np.ndarray:
+    """The PSF stack measured through ``truth_psfs`` (each of unit sum): Poisson noise
+    at ``photons`` at each PSF's brightest pixel, each normalised to unit sum."""
+    rng = np.random.default_rng(CALIBRATION_SEED)
+    peak = truth_psfs.max(axis=(-2, -1), keepdims=True)
+    counts = rng.poisson(np.asarray(truth_psfs, np.float64) / peak * photons)
+    return (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
+
+
 def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
-    """One diffuser: captures through its high-fidelity PSFs, reconstructions with its
-    model PSFs, and the scores."""
+    """One diffuser: captures through its truth PSFs, reconstructions with its
+    calibration (measured or model PSFs), and the scores."""
     cam = camera(n)
     diffuser = height_map(surface, INDEX)
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
     truth_psfs = model_psfs if args.truth == "model" else high_fidelity_psfs(
         diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1)
+    solver_psfs = model_psfs if args.calibration == "model" else calibration(
+        np.asarray(truth_psfs), args.calibration_photons)
     options = VOLUME
     if args.tune:
-        options = tuned(truth_psfs, model_psfs, n, volumes.shape[-2:], args)
+        options = tuned(truth_psfs, solver_psfs, n, volumes.shape[-2:], args)
     rng = np.random.default_rng(7)
     b = np.stack([capture(v, truth_psfs, n, args.photons, rng) for v in volumes])
     t = time.perf_counter()
-    estimate = reconstruct(b, model_psfs, args.iterations, options)
+    estimate = reconstruct(b, solver_psfs, args.iterations, options)
     solve_s = time.perf_counter() - t
     scenes = args.scenes
     scores = [volume_psnr(estimate[s], volumes[s], n) for s in range(scenes)]
@@ -324,6 +341,13 @@ def main(argv=None) -> int:
                         default="high-fidelity",
                         help="the captures' PSFs ('model': the solver's own, an ablation "
                              "without model error)")
+    parser.add_argument("--calibration", choices=("measured", "model"),
+                        default="measured",
+                        help="the PSFs the solver inverts with ('measured': recorded "
+                             "through the truth PSFs with noise; 'model': the model's, "
+                             "uncalibrated)")
+    parser.add_argument("--calibration-photons", type=float, default=1e4,
+                        help="photons at each calibration PSF's brightest pixel")
     parser.add_argument("--tune", action="store_true",
                         help="choose the TV and L1 weights per diffuser on a training "
                              "scene (TUNING_FACTORS × VOLUME's)")
@@ -354,7 +378,8 @@ def main(argv=None) -> int:
     by = {r["diffuser"]: r for r in rows}
     gains = gain_rows(by, args.weights)
     claim = (f"{n}² over {args.depths} depths ({args.near:g}–{args.far:g} mm), "
-             f"{args.steps} design steps: volume PSNR designed {by['designed']['psnr_db']} "
+             f"{args.steps} design steps, {args.photons:g} photons per pixel, "
+             f"{args.calibration} PSFs: volume PSNR designed {by['designed']['psnr_db']} "
              f"dB, random {by['random']['psnr_db']} dB, regular lenslets "
              f"{by['regular lenslets']['psnr_db']} dB (empty volume {floor} dB; gain over "
              f"random {gains[0]['gain_db_over_random']} dB); two points resolved from "
@@ -368,6 +393,8 @@ def main(argv=None) -> int:
                      "steps": args.steps, "scenes": args.scenes,
                      "iterations": args.iterations, "photons_per_pixel": args.photons,
                      "read_noise": READ_NOISE, "truth_psfs": args.truth,
+                     "calibration": args.calibration,
+                     "calibration_photons_at_peak": args.calibration_photons,
                      "tuned_per_diffuser": args.tune,
                      "end_to_end_steps": args.end_to_end_steps,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
