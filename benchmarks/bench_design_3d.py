@@ -289,7 +289,8 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
                    for m, (i, j) in enumerate(pairs)]
     smallest = min((dz for dz, ok in separations if ok), default=None)
     objective = DepthObjective(cam, z1, INDEX)
-    return {"diffuser": name, "max_correlation": round(
+    shown = (np.asarray(truth_psfs), estimate[scenes:])
+    return shown, {"diffuser": name, "max_correlation": round(
                 evaluate_design(surface, objective)["max_correlation"], 4),
             "psnr_db": round(float(np.mean(scores)), 2),
             "psnr_per_scene": [round(s, 2) for s in scores],
@@ -298,6 +299,41 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
             "design_s": None if design_s is None else round(design_s, 1),
             "tau": options.tau, "sparsity": options.sparsity,
             "reconstruct_s": round(solve_s, 1)}
+
+
+def figure(shown: dict, rows: list[dict], z1: np.ndarray, path) -> None:
+    """Per diffuser (a row of panels): its truth PSFs at the nearest and farthest depth,
+    and the x–z section through the two points of the smallest separation any diffuser
+    resolves (the smallest tried if none does)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from diffcam.apps.common import save_figure
+
+    resolved_by_any = [k for k in range(len(rows[0]["two_point"]))
+                       if any(r["two_point"][k]["resolved"] for r in rows)]
+    m = min(resolved_by_any, default=0)
+    dz = rows[0]["two_point"][m]["dz_mm"]
+    fig, axes = plt.subplots(len(shown), 3, figsize=(9, 2.6 * len(shown)),
+                             layout="constrained", squeeze=False)
+    for ax, (name, (psfs, estimates)) in zip(axes, shown.items()):
+        ax[0].imshow(psfs[0], cmap="gray")
+        ax[0].set_title(f"{name}: PSF, {z1[0] * 1e3:.0f} mm", fontsize=9)
+        ax[1].imshow(psfs[-1], cmap="gray")
+        ax[1].set_title(f"PSF, {z1[-1] * 1e3:.0f} mm", fontsize=9)
+        cy, cx = (o // 2 for o in estimates.shape[-2:])
+        section = estimates[m][:, cy, cx - 16:cx + 17]
+        ax[2].imshow(section, cmap="magma", aspect="auto", extent=(
+            -16.5, 16.5, len(section) - 0.5, -0.5))
+        ax[2].set_xlabel("x, pixels from the points")
+        ax[2].set_title(f"two points {dz:g} mm apart: x–z", fontsize=9)
+        ax[2].set_ylabel("plane (0 = nearest)")
+        for a in ax[:2]:
+            a.set_xticks([])
+            a.set_yticks([])
+    save_figure(fig, path)
 
 
 def gain_rows(by: dict, weights: list[float]) -> list[dict]:
@@ -357,6 +393,8 @@ def main(argv=None) -> int:
                         help="also design the start by the end-to-end objective, this "
                              "many steps (2 training volumes, 20 unrolled iterations, "
                              "--photons; 0: not)")
+    parser.add_argument("--figure", help="also draw each diffuser's PSFs and a "
+                        "two-point reconstruction to this image file")
     parser.add_argument("--name", default="design_3d")
     args = parser.parse_args(argv)
     n, z1 = args.n, depth_range(args.near * 1e-3, args.far * 1e-3, args.depths)
@@ -372,9 +410,13 @@ def main(argv=None) -> int:
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
         photons=args.photons, progress=False)
     made = diffusers(n, z1, args.steps, args.weights, args.lenslets, end_to_end)
+    shown = {}
     for name, (surface, design_s) in made.items():
-        rows.append(judge(name, surface, z1, n, volumes, pairs, args, design_s))
-        print(rows[-1], flush=True)
+        shown[name], row = judge(name, surface, z1, n, volumes, pairs, args, design_s)
+        rows.append(row)
+        print(row, flush=True)
+    if args.figure:
+        figure(shown, rows, z1, args.figure)
     by = {r["diffuser"]: r for r in rows}
     gains = gain_rows(by, args.weights)
     claim = (f"{n}² over {args.depths} depths ({args.near:g}–{args.far:g} mm), "
