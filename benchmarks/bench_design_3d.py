@@ -9,7 +9,10 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
 
 - ``designed``: `diffcam.design.design` of a random smooth surface (seed 0) over
   ``--depths`` depths 10–60 mm (``--near``, ``--far``) even in 1/z1, ``--steps`` Adam
-  steps, sparsity weight 0.1 (``diffcam design``'s defaults), designed in this run;
+  steps, sparsity weight 0.1 (``diffcam design``'s defaults), designed in this run
+  through the model's PSFs (one wavelength, a point source) or, with ``--design-model
+  high-fidelity``, through PSFs of the truth's three lines and 50 µm source disc
+  (`DesignOptions` ``bandwidth``, ``source_radius``);
   ``designed, w = 0`` the same without the spread term (``--weights``: the weights
   designed, the first is ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
@@ -102,21 +105,24 @@ TRAINING_SEED = 2000
 """The seed of the scene ``--tune`` chooses the weights on (held-out scenes: 1000 + k)."""
 CALIBRATION_SEED = 3000
 """The seed of the calibration PSFs' noise (captures: 7; scenes: 1000 + k, 2000)."""
+SOURCE_RADIUS = 50e-6
+"""Radius of the truth PSFs' source (and of the calibration's), metres."""
 BLOB_SIGMA = 1.0
 """Standard deviation of a scene's Gaussian blobs, object-grid samples."""
 
 
-def diffusers(n: int, z1: np.ndarray, steps: int, weights: list[float],
+def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float],
               lenslets: bool, end_to_end: DesignOptions | None = None) -> dict:
     """The diffusers by name: (surface, seconds the design took or None). The smooth
-    surface is designed once per sparsity weight (the first is ``designed``), and with
-    ``end_to_end`` options also by the end-to-end objective (``designed end to end``)."""
+    surface is designed by ``depth`` once per sparsity weight (the first is
+    ``designed``), and with ``end_to_end`` options also by the end-to-end objective
+    (``designed end to end``)."""
     lenses = max(1, round(36 * (n / 256) ** 2))
     region = n * PIXEL / 4
     start = SmoothSurface.random(0, (n, n), PIXEL, FEATURE, H_MAX)
     out = {}
     for k, weight in enumerate(weights):
-        options = DesignOptions(steps=steps, sparsity_weight=weight, progress=False)
+        options = dataclasses.replace(depth, sparsity_weight=weight)
         t = time.perf_counter()
         surface = design(start, camera(n), z1, INDEX, options).surface
         out["designed" if k == 0 else f"designed, w = {weight:g}"] = (
@@ -132,9 +138,8 @@ def diffusers(n: int, z1: np.ndarray, steps: int, weights: list[float],
     if lenslets:
         first = LensletArray.random(0, (n, n), PIXEL, FEATURE, H_MAX, lenses, region)
         t = time.perf_counter()
-        out["designed lenslets"] = (design(first, camera(n), z1, INDEX, DesignOptions(
-            steps=steps, sparsity_weight=weights[0], progress=False)).surface,
-            time.perf_counter() - t)
+        out["designed lenslets"] = (design(first, camera(n), z1, INDEX, dataclasses.replace(
+            depth, sparsity_weight=weights[0])).surface, time.perf_counter() - t)
     return out
 
 
@@ -272,7 +277,8 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
     diffuser = height_map(surface, INDEX)
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
     truth_psfs = model_psfs if args.truth == "model" else high_fidelity_psfs(
-        diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1)
+        diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1,
+        source_radius=SOURCE_RADIUS)
     solver_psfs = model_psfs if args.calibration == "model" else calibration(
         np.asarray(truth_psfs), args.calibration_photons)
     options = VOLUME
@@ -384,6 +390,11 @@ def main(argv=None) -> int:
                              "uncalibrated)")
     parser.add_argument("--calibration-photons", type=float, default=1e4,
                         help="photons at each calibration PSF's brightest pixel")
+    parser.add_argument("--design-model", choices=("point", "high-fidelity"),
+                        default="point",
+                        help="the PSFs the depth designs optimise ('point': one "
+                             "wavelength, a point source; 'high-fidelity': the truth's "
+                             "three lines and source disc)")
     parser.add_argument("--tune", action="store_true",
                         help="choose the TV and L1 weights per diffuser on a training "
                              "scene (TUNING_FACTORS × VOLUME's)")
@@ -409,7 +420,11 @@ def main(argv=None) -> int:
     end_to_end = None if args.end_to_end_steps < 1 else DesignOptions(
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
         photons=args.photons, progress=False)
-    made = diffusers(n, z1, args.steps, args.weights, args.lenslets, end_to_end)
+    light = {} if args.design_model == "point" else {
+        "bandwidth": float(np.ptp(HIGH_FIDELITY_SPECTRUM[0])) / 2,
+        "source_radius": SOURCE_RADIUS}
+    depth = DesignOptions(steps=args.steps, progress=False, **light)
+    made = diffusers(n, z1, depth, args.weights, args.lenslets, end_to_end)
     shown = {}
     for name, (surface, design_s) in made.items():
         shown[name], row = judge(name, surface, z1, n, volumes, pairs, args, design_s)
@@ -435,7 +450,7 @@ def main(argv=None) -> int:
                      "steps": args.steps, "scenes": args.scenes,
                      "iterations": args.iterations, "photons_per_pixel": args.photons,
                      "read_noise": READ_NOISE, "truth_psfs": args.truth,
-                     "calibration": args.calibration,
+                     "calibration": args.calibration, "design_model": args.design_model,
                      "calibration_photons_at_peak": args.calibration_photons,
                      "tuned_per_diffuser": args.tune,
                      "end_to_end_steps": args.end_to_end_steps,
