@@ -37,12 +37,12 @@ solver inverts with the diffuser's calibration (``--calibration``): by default t
 stack a user of the fabricated diffuser measures, a point source at each depth recorded
 through the truth PSFs with Poisson noise at ``--calibration-photons`` photons at each
 PSF's brightest pixel (``measured``); or the model PSFs (``model``, the diffuser used
-as designed, uncalibrated). The scenes are made here and seen by nothing else: ``--scenes`` sparse volumes
-(Gaussian blobs of σ 1 pixel, 2 per depth plane on average, at random planes and
-positions within the central half of the field) and the two-point test (two blobs at the
-field's centre, on planes k apart, one volume per k: k = 2 … nz − 1 in steps of
-nz // 8). A capture is the solvers' crop
-model, ``b = crop(Σ_z h_z^hf * x_z)`` (`diffcam.reconstruct.operators.convolution_model`,
+as designed, uncalibrated). The scenes are made here and seen by nothing else:
+``--scenes`` sparse volumes (Gaussian blobs of σ 1 pixel, 2 per depth plane on average,
+at random planes and positions within the central half of the field) and the two-point
+test (two blobs at the field's centre, on planes k apart, one volume per k: k = 2 …
+nz − 1 in steps of nz // 8). A capture is the solvers' crop model,
+``b = crop(Σ_z h_z^hf * x_z)`` (`diffcam.reconstruct.operators.convolution_model`,
 boundary ``"crop"``), scaled to ``--photons`` photons per sensor pixel on average for
 the same scene whatever the diffuser (a diffuser that loses light off the sensor gets
 fewer), with Poisson noise and Gaussian read noise of ``READ_NOISE`` photons.
@@ -270,9 +270,10 @@ def calibration(truth_psfs: np.ndarray, photons: float) -> np.ndarray:
     return (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
 
 
-def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
+def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, dict]:
     """One diffuser: captures through its truth PSFs, reconstructions with its
-    calibration (measured or model PSFs), and the scores."""
+    calibration (measured or model PSFs); (its truth PSFs and two-point volumes, for
+    `figure`) and its scores."""
     cam = camera(n)
     diffuser = height_map(surface, INDEX)
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)

@@ -49,8 +49,8 @@ from diffcam.model.point_spread import items_per_chunk
 from diffcam.model.stack_map import psf_map
 
 __all__ = ["standardised", "spread", "correlation_matrix", "pair_correlations",
-           "smooth_max", "source_blurred", "DepthObjective", "Terms", "depth_terms", "depth_objective",
-           "objective_terms"]
+           "smooth_max", "source_blurred", "DepthObjective", "Terms", "depth_terms",
+           "depth_objective", "objective_terms"]
 
 
 CHUNKS = 4
