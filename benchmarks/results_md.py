@@ -185,7 +185,7 @@ SECTIONS = {
             "--name design_3d_hf_design"),
            ("design_3d_10000_photons_hf_design", ", 10000 photons per pixel, designed "
             "through broadband disc-source PSFs", " --photons 10000 --design-model "
-            "high-fidelity --weights 0.1 0 --no-lenslets "
+            "high-fidelity --weights 0.1 0 --no-lenslets --figure docs/design_3d.png "
             "--name design_3d_10000_photons_hf_design"),
            ("design_3d_256", ", 256² over 16 depths, model PSFs", " --n 256 --depths 16 "
             "--steps 300 --scenes 3 --iterations 100 --calibration model "
