@@ -180,6 +180,9 @@ SECTIONS = {
             "--name design_3d_1000_photons"),
            ("design_3d_10000_photons", ", 10000 photons per pixel",
             " --photons 10000 --weights 0.1 0 --no-lenslets --name design_3d_10000_photons"),
+           ("design_3d_10000_photons_model_psfs", ", 10000 photons per pixel, model PSFs",
+            " --photons 10000 --calibration model --weights 0.1 0 --no-lenslets "
+            "--name design_3d_10000_photons_model_psfs"),
            ("design_3d_hf_design", ", designed through broadband disc-source PSFs",
             " --design-model high-fidelity --weights 0.1 0 --no-lenslets "
             "--name design_3d_hf_design"),
@@ -220,7 +223,7 @@ EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["c
                 **{f"design_3d{v}": ["gains"] for v in (
                     "", "_256", "_model_truth", "_tuned", "_4_depths", "_near",
                     "_256_model_truth", "_end_to_end", "_1000_photons", "_10000_photons",
-                    "_hf_design", "_10000_photons_hf_design")}}
+                    "_hf_design", "_10000_photons_hf_design", "_10000_photons_model_psfs")}}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 
