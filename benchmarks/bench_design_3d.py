@@ -9,7 +9,10 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
 
 - ``designed``: `diffcam.design.design` of a random smooth surface (seed 0) over
   ``--depths`` depths 10–60 mm (``--near``, ``--far``) even in 1/z1, ``--steps`` Adam
-  steps, sparsity weight 0.1 (``diffcam design``'s defaults), designed in this run;
+  steps, sparsity weight 0.1 (``diffcam design``'s defaults), designed in this run
+  through the model's PSFs (one wavelength, a point source) or, with ``--design-model
+  high-fidelity``, through PSFs of the truth's three lines and 50 µm source disc
+  (`DesignOptions` ``bandwidth``, ``source_radius``);
   ``designed, w = 0`` the same without the spread term (``--weights``: the weights
   designed, the first is ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
@@ -27,15 +30,19 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
 Each diffuser's truth PSFs come from
 `diffcam.calibrate.simulation.high_fidelity_psfs` (the height map's phase at 532 nm on a
 2× finer grid, three wavelengths 526–538 nm, a source of 50 µm radius, pixel
-integration) at the reconstruction depths; its model PSFs, which the solver inverts
-with, from `diffcam.model.stack.psf_stack` (one wavelength, a point source, the sensor
-grid; ``--truth model`` makes the captures with these too, an ablation without model
-error). The scenes are made here and seen by nothing else: ``--scenes`` sparse volumes
-(Gaussian blobs of σ 1 pixel, 2 per depth plane on average, at random planes and
-positions within the central half of the field) and the two-point test (two blobs at the
-field's centre, on planes k apart, one volume per k: k = 2 … nz − 1 in steps of
-nz // 8). A capture is the solvers' crop
-model, ``b = crop(Σ_z h_z^hf * x_z)`` (`diffcam.reconstruct.operators.convolution_model`,
+integration) at the reconstruction depths; its model PSFs from
+`diffcam.model.stack.psf_stack` (one wavelength, a point source, the sensor grid;
+``--truth model`` makes the captures with these, an ablation without model error). The
+solver inverts with the diffuser's calibration (``--calibration``): by default the PSF
+stack a user of the fabricated diffuser measures, a point source at each depth recorded
+through the truth PSFs with Poisson noise at ``--calibration-photons`` photons at each
+PSF's brightest pixel (``measured``); or the model PSFs (``model``, the diffuser used
+as designed, uncalibrated). The scenes are made here and seen by nothing else:
+``--scenes`` sparse volumes (Gaussian blobs of σ 1 pixel, 2 per depth plane on average,
+at random planes and positions within the central half of the field) and the two-point
+test (two blobs at the field's centre, on planes k apart, one volume per k: k = 2 …
+nz − 1 in steps of nz // 8). A capture is the solvers' crop model,
+``b = crop(Σ_z h_z^hf * x_z)`` (`diffcam.reconstruct.operators.convolution_model`,
 boundary ``"crop"``), scaled to ``--photons`` photons per sensor pixel on average for
 the same scene whatever the diffuser (a diffuser that loses light off the sensor gets
 fewer), with Poisson noise and Gaussian read noise of ``READ_NOISE`` photons.
@@ -96,21 +103,26 @@ TUNING_FACTORS = (0.1, 1.0, 10.0)
 """With ``--tune``, the factors on `VOLUME`'s TV and L1 weights tried per diffuser."""
 TRAINING_SEED = 2000
 """The seed of the scene ``--tune`` chooses the weights on (held-out scenes: 1000 + k)."""
+CALIBRATION_SEED = 3000
+"""The seed of the calibration PSFs' noise (captures: 7; scenes: 1000 + k, 2000)."""
+SOURCE_RADIUS = 50e-6
+"""Radius of the truth PSFs' source (and of the calibration's), metres."""
 BLOB_SIGMA = 1.0
 """Standard deviation of a scene's Gaussian blobs, object-grid samples."""
 
 
-def diffusers(n: int, z1: np.ndarray, steps: int, weights: list[float],
+def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float],
               lenslets: bool, end_to_end: DesignOptions | None = None) -> dict:
     """The diffusers by name: (surface, seconds the design took or None). The smooth
-    surface is designed once per sparsity weight (the first is ``designed``), and with
-    ``end_to_end`` options also by the end-to-end objective (``designed end to end``)."""
+    surface is designed by ``depth`` once per sparsity weight (the first is
+    ``designed``), and with ``end_to_end`` options also by the end-to-end objective
+    (``designed end to end``)."""
     lenses = max(1, round(36 * (n / 256) ** 2))
     region = n * PIXEL / 4
     start = SmoothSurface.random(0, (n, n), PIXEL, FEATURE, H_MAX)
     out = {}
     for k, weight in enumerate(weights):
-        options = DesignOptions(steps=steps, sparsity_weight=weight, progress=False)
+        options = dataclasses.replace(depth, sparsity_weight=weight)
         t = time.perf_counter()
         surface = design(start, camera(n), z1, INDEX, options).surface
         out["designed" if k == 0 else f"designed, w = {weight:g}"] = (
@@ -126,9 +138,8 @@ def diffusers(n: int, z1: np.ndarray, steps: int, weights: list[float],
     if lenslets:
         first = LensletArray.random(0, (n, n), PIXEL, FEATURE, H_MAX, lenses, region)
         t = time.perf_counter()
-        out["designed lenslets"] = (design(first, camera(n), z1, INDEX, DesignOptions(
-            steps=steps, sparsity_weight=weights[0], progress=False)).surface,
-            time.perf_counter() - t)
+        out["designed lenslets"] = (design(first, camera(n), z1, INDEX, dataclasses.replace(
+            depth, sparsity_weight=weights[0])).surface, time.perf_counter() - t)
     return out
 
 
@@ -223,19 +234,19 @@ def resolved(estimate: np.ndarray, planes: tuple[int, int]) -> bool:
     return bool(profile[i + 1:j].min() <= DIP * min(profile[i], profile[j]))
 
 
-def reconstruct(b: np.ndarray, model_psfs: np.ndarray, iterations: int,
+def reconstruct(b: np.ndarray, psfs: np.ndarray, iterations: int,
                 options: AdmmOptions) -> np.ndarray:
     """ADMM-TV volumes of the captures ``b`` (…, n, n), each scaled to unit L2 norm."""
     unit = b / np.linalg.norm(b, axis=(-2, -1), keepdims=True)
-    return np.asarray(admm_tv_3d(unit, model_psfs, iterations, options,
+    return np.asarray(admm_tv_3d(unit, psfs, iterations, options,
                                  progress=False).image)
 
 
-def tuned(truth_psfs, model_psfs, n: int, object_shape, args) -> AdmmOptions:
+def tuned(truth_psfs, solver_psfs, n: int, object_shape, args) -> AdmmOptions:
     """`VOLUME` with its lateral TV (axial TV in proportion) and L1 weights each scaled
     by one of `TUNING_FACTORS`: the pair with the best volume PSNR on the training
     scene (seed `TRAINING_SEED`, not a held-out one)."""
-    volume = scene(TRAINING_SEED, len(model_psfs), n, object_shape)
+    volume = scene(TRAINING_SEED, len(solver_psfs), n, object_shape)
     b = capture(volume, truth_psfs, n, args.photons, np.random.default_rng(TRAINING_SEED))
     best = None
     for f_tv in TUNING_FACTORS:
@@ -243,28 +254,41 @@ def tuned(truth_psfs, model_psfs, n: int, object_shape, args) -> AdmmOptions:
             options = AdmmOptions.of(VOLUME, tau=VOLUME.tau * f_tv,
                                      tau_axial=VOLUME.tau_axial * f_tv,
                                      sparsity=VOLUME.sparsity * f_l1)
-            estimate = reconstruct(b, model_psfs, args.iterations, options)
+            estimate = reconstruct(b, solver_psfs, args.iterations, options)
             score = volume_psnr(estimate, volume, n) if estimate.any() else -np.inf
             if best is None or score > best[0]:
                 best = (score, options)
     return best[1]
 
 
-def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
-    """One diffuser: captures through its high-fidelity PSFs, reconstructions with its
-    model PSFs, and the scores."""
+def calibration(truth_psfs: np.ndarray, photons: float) -> np.ndarray:
+    """The PSF stack measured through ``truth_psfs`` (each of unit sum): Poisson noise
+    at ``photons`` at each PSF's brightest pixel, each normalised to unit sum."""
+    rng = np.random.default_rng(CALIBRATION_SEED)
+    peak = truth_psfs.max(axis=(-2, -1), keepdims=True)
+    counts = rng.poisson(np.asarray(truth_psfs, np.float64) / peak * photons)
+    return (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
+
+
+def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, dict]:
+    """One diffuser: captures through its truth PSFs, reconstructions with its
+    calibration (measured or model PSFs); (its truth PSFs and two-point volumes, for
+    `figure`) and its scores."""
     cam = camera(n)
     diffuser = height_map(surface, INDEX)
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
     truth_psfs = model_psfs if args.truth == "model" else high_fidelity_psfs(
-        diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1)
+        diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1,
+        source_radius=SOURCE_RADIUS)
+    solver_psfs = model_psfs if args.calibration == "model" else calibration(
+        np.asarray(truth_psfs), args.calibration_photons)
     options = VOLUME
     if args.tune:
-        options = tuned(truth_psfs, model_psfs, n, volumes.shape[-2:], args)
+        options = tuned(truth_psfs, solver_psfs, n, volumes.shape[-2:], args)
     rng = np.random.default_rng(7)
     b = np.stack([capture(v, truth_psfs, n, args.photons, rng) for v in volumes])
     t = time.perf_counter()
-    estimate = reconstruct(b, model_psfs, args.iterations, options)
+    estimate = reconstruct(b, solver_psfs, args.iterations, options)
     solve_s = time.perf_counter() - t
     scenes = args.scenes
     scores = [volume_psnr(estimate[s], volumes[s], n) for s in range(scenes)]
@@ -272,7 +296,8 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
                    for m, (i, j) in enumerate(pairs)]
     smallest = min((dz for dz, ok in separations if ok), default=None)
     objective = DepthObjective(cam, z1, INDEX)
-    return {"diffuser": name, "max_correlation": round(
+    shown = (np.asarray(truth_psfs), estimate[scenes:])
+    return shown, {"diffuser": name, "max_correlation": round(
                 evaluate_design(surface, objective)["max_correlation"], 4),
             "psnr_db": round(float(np.mean(scores)), 2),
             "psnr_per_scene": [round(s, 2) for s in scores],
@@ -281,6 +306,41 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> dict:
             "design_s": None if design_s is None else round(design_s, 1),
             "tau": options.tau, "sparsity": options.sparsity,
             "reconstruct_s": round(solve_s, 1)}
+
+
+def figure(shown: dict, rows: list[dict], z1: np.ndarray, path) -> None:
+    """Per diffuser (a row of panels): its truth PSFs at the nearest and farthest depth,
+    and the x–z section through the two points of the smallest separation any diffuser
+    resolves (the smallest tried if none does)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from diffcam.apps.common import save_figure
+
+    resolved_by_any = [k for k in range(len(rows[0]["two_point"]))
+                       if any(r["two_point"][k]["resolved"] for r in rows)]
+    m = min(resolved_by_any, default=0)
+    dz = rows[0]["two_point"][m]["dz_mm"]
+    fig, axes = plt.subplots(len(shown), 3, figsize=(9, 2.6 * len(shown)),
+                             layout="constrained", squeeze=False)
+    for ax, (name, (psfs, estimates)) in zip(axes, shown.items()):
+        ax[0].imshow(psfs[0], cmap="gray")
+        ax[0].set_title(f"{name}: PSF, {z1[0] * 1e3:.0f} mm", fontsize=9)
+        ax[1].imshow(psfs[-1], cmap="gray")
+        ax[1].set_title(f"PSF, {z1[-1] * 1e3:.0f} mm", fontsize=9)
+        cy, cx = (o // 2 for o in estimates.shape[-2:])
+        section = estimates[m][:, cy, cx - 16:cx + 17]
+        ax[2].imshow(section, cmap="magma", aspect="auto", extent=(
+            -16.5, 16.5, len(section) - 0.5, -0.5))
+        ax[2].set_xlabel("x, pixels from the points")
+        ax[2].set_title(f"two points {dz:g} mm apart: x–z", fontsize=9)
+        ax[2].set_ylabel("plane (0 = nearest)")
+        for a in ax[:2]:
+            a.set_xticks([])
+            a.set_yticks([])
+    save_figure(fig, path)
 
 
 def gain_rows(by: dict, weights: list[float]) -> list[dict]:
@@ -324,6 +384,18 @@ def main(argv=None) -> int:
                         default="high-fidelity",
                         help="the captures' PSFs ('model': the solver's own, an ablation "
                              "without model error)")
+    parser.add_argument("--calibration", choices=("measured", "model"),
+                        default="measured",
+                        help="the PSFs the solver inverts with ('measured': recorded "
+                             "through the truth PSFs with noise; 'model': the model's, "
+                             "uncalibrated)")
+    parser.add_argument("--calibration-photons", type=float, default=1e4,
+                        help="photons at each calibration PSF's brightest pixel")
+    parser.add_argument("--design-model", choices=("point", "high-fidelity"),
+                        default="point",
+                        help="the PSFs the depth designs optimise ('point': one "
+                             "wavelength, a point source; 'high-fidelity': the truth's "
+                             "three lines and source disc)")
     parser.add_argument("--tune", action="store_true",
                         help="choose the TV and L1 weights per diffuser on a training "
                              "scene (TUNING_FACTORS × VOLUME's)")
@@ -333,6 +405,8 @@ def main(argv=None) -> int:
                         help="also design the start by the end-to-end objective, this "
                              "many steps (2 training volumes, 20 unrolled iterations, "
                              "--photons; 0: not)")
+    parser.add_argument("--figure", help="also draw each diffuser's PSFs and a "
+                        "two-point reconstruction to this image file")
     parser.add_argument("--name", default="design_3d")
     args = parser.parse_args(argv)
     n, z1 = args.n, depth_range(args.near * 1e-3, args.far * 1e-3, args.depths)
@@ -347,14 +421,23 @@ def main(argv=None) -> int:
     end_to_end = None if args.end_to_end_steps < 1 else DesignOptions(
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
         photons=args.photons, progress=False)
-    made = diffusers(n, z1, args.steps, args.weights, args.lenslets, end_to_end)
+    light = {} if args.design_model == "point" else {
+        "bandwidth": float(np.ptp(HIGH_FIDELITY_SPECTRUM[0])) / 2,
+        "source_radius": SOURCE_RADIUS}
+    depth = DesignOptions(steps=args.steps, progress=False, **light)
+    made = diffusers(n, z1, depth, args.weights, args.lenslets, end_to_end)
+    shown = {}
     for name, (surface, design_s) in made.items():
-        rows.append(judge(name, surface, z1, n, volumes, pairs, args, design_s))
-        print(rows[-1], flush=True)
+        shown[name], row = judge(name, surface, z1, n, volumes, pairs, args, design_s)
+        rows.append(row)
+        print(row, flush=True)
+    if args.figure:
+        figure(shown, rows, z1, args.figure)
     by = {r["diffuser"]: r for r in rows}
     gains = gain_rows(by, args.weights)
     claim = (f"{n}² over {args.depths} depths ({args.near:g}–{args.far:g} mm), "
-             f"{args.steps} design steps: volume PSNR designed {by['designed']['psnr_db']} "
+             f"{args.steps} design steps, {args.photons:g} photons per pixel, "
+             f"{args.calibration} PSFs: volume PSNR designed {by['designed']['psnr_db']} "
              f"dB, random {by['random']['psnr_db']} dB, regular lenslets "
              f"{by['regular lenslets']['psnr_db']} dB (empty volume {floor} dB; gain over "
              f"random {gains[0]['gain_db_over_random']} dB); two points resolved from "
@@ -368,6 +451,8 @@ def main(argv=None) -> int:
                      "steps": args.steps, "scenes": args.scenes,
                      "iterations": args.iterations, "photons_per_pixel": args.photons,
                      "read_noise": READ_NOISE, "truth_psfs": args.truth,
+                     "calibration": args.calibration, "design_model": args.design_model,
+                     "calibration_photons_at_peak": args.calibration_photons,
                      "tuned_per_diffuser": args.tune,
                      "end_to_end_steps": args.end_to_end_steps,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},

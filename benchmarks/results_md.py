@@ -181,25 +181,41 @@ SECTIONS = {
               ["diffuser", "max_correlation", "psnr_db", "psnr_per_scene", "resolved_dz_mm",
                "tau", "sparsity", "design_s", "reconstruct_s"])
        for name, size, args in (
-           ("design_3d", ", 128² over 8 depths", ""),
-           ("design_3d_256", ", 256² over 16 depths", " --n 256 --depths 16 --steps 300 "
-            "--scenes 3 --iterations 100 --name design_3d_256"),
+           ("design_3d", ", 128² over 8 depths, measured calibration", ""),
+           ("design_3d_1000_photons", ", 1000 photons per pixel, both objectives",
+            " --photons 1000 --weights 0.1 0 --no-lenslets --end-to-end-steps 60 "
+            "--name design_3d_1000_photons"),
+           ("design_3d_10000_photons", ", 10000 photons per pixel",
+            " --photons 10000 --weights 0.1 0 --no-lenslets --name design_3d_10000_photons"),
+           ("design_3d_10000_photons_model_psfs", ", 10000 photons per pixel, model PSFs",
+            " --photons 10000 --calibration model --weights 0.1 0 --no-lenslets "
+            "--name design_3d_10000_photons_model_psfs"),
+           ("design_3d_hf_design", ", designed through broadband disc-source PSFs",
+            " --design-model high-fidelity --weights 0.1 0 --no-lenslets "
+            "--name design_3d_hf_design"),
+           ("design_3d_10000_photons_hf_design", ", 10000 photons per pixel, designed "
+            "through broadband disc-source PSFs", " --photons 10000 --design-model "
+            "high-fidelity --weights 0.1 0 --no-lenslets --figure docs/design_3d.png "
+            "--name design_3d_10000_photons_hf_design"),
+           ("design_3d_256", ", 256² over 16 depths, model PSFs", " --n 256 --depths 16 "
+            "--steps 300 --scenes 3 --iterations 100 --calibration model "
+            "--name design_3d_256"),
            ("design_3d_model_truth", ", captures made with the solver's own PSFs (no "
-            "model error)", " --steps 300 --weights 0.1 0 --truth model "
-            "--name design_3d_model_truth"),
+            "model error)", " --steps 300 --weights 0.1 0 --truth model --calibration "
+            "model --name design_3d_model_truth"),
            ("design_3d_tuned", ", TV and L1 weights chosen per diffuser on a training "
-            "scene", " --tune --name design_3d_tuned"),
+            "scene, model PSFs", " --tune --calibration model --name design_3d_tuned"),
            ("design_3d_256_model_truth", ", 256² over 16 depths, captures made with the "
             "solver's own PSFs", " --n 256 --depths 16 --steps 300 --scenes 3 "
-            "--iterations 100 --truth model --weights 0.1 0 --no-lenslets "
-            "--name design_3d_256_model_truth"),
-           ("design_3d_4_depths", ", 4 depths over 10–60 mm",
-            " --depths 4 --name design_3d_4_depths"),
-           ("design_3d_near", ", 8 depths over 5–20 mm",
-            " --near 5 --far 20 --name design_3d_near"),
+            "--iterations 100 --truth model --calibration model --weights 0.1 0 "
+            "--no-lenslets --name design_3d_256_model_truth"),
+           ("design_3d_4_depths", ", 4 depths over 10–60 mm, model PSFs",
+            " --depths 4 --calibration model --name design_3d_4_depths"),
+           ("design_3d_near", ", 8 depths over 5–20 mm, model PSFs",
+            " --near 5 --far 20 --calibration model --name design_3d_near"),
            ("design_3d_end_to_end", ", the end-to-end objective beside depth "
-            "discrimination", " --weights 0.1 --no-lenslets --end-to-end-steps 60 "
-            "--name design_3d_end_to_end"))},
+            "discrimination, model PSFs", " --weights 0.1 --no-lenslets "
+            "--end-to-end-steps 60 --calibration model --name design_3d_end_to_end"))},
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --folds … "
@@ -215,9 +231,10 @@ SECTIONS = {
 
 EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["cost", "large"],
                 "scene_psf_full": ["summary"],
-                **{f"design_3d{v}": ["gains"] for v in ("", "_256", "_model_truth",
-                                                         "_tuned", "_4_depths", "_near",
-                                                         "_256_model_truth")}}
+                **{f"design_3d{v}": ["gains"] for v in (
+                    "", "_256", "_model_truth", "_tuned", "_4_depths", "_near",
+                    "_256_model_truth", "_end_to_end", "_1000_photons", "_10000_photons",
+                    "_hf_design", "_10000_photons_hf_design", "_10000_photons_model_psfs")}}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 

@@ -20,6 +20,7 @@ from diffcam.core.units import parse_length
 from diffcam.design import (DepthObjective, DesignOptions, LensletArray, SmoothSurface,
                             depth_objective, depth_range, design, evaluate_design,
                             load_design, save_design, tiff_path)
+from diffcam.design.objective import source_blurred
 from diffcam.design.surfaces import height_map
 from diffcam.model import Camera, HeightMap, psf
 
@@ -124,6 +125,54 @@ def test_objective_is_the_largest_pearson_correlation_of_numpy():
     assert want - 1e-6 <= terms["smooth_max"] <= want + 0.01 * np.log(pairs) + 1e-6
     l1_l2 = np.abs(psfs).sum(1) / (np.sqrt(N * N) * np.sqrt((psfs ** 2).sum(1)))
     assert terms["spread"] == pytest.approx(l1_l2.mean(), rel=1e-5)
+
+
+def test_source_blur_is_the_mean_of_the_disc_points_images():
+    """A Gaussian spot (σ 2 px) blurred by a disc of radius 3 px: the mean of the same
+    Gaussian, in closed form, at the disc's centre and six rim points (60° apart)."""
+    yy, xx = np.mgrid[:N, :N] - N // 2
+
+    def spot(y, x):
+        return np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 2.0 ** 2))
+    angles = np.arange(6) * np.pi / 3
+    points = [(0.0, 0.0)] + [(3 * np.sin(a), 3 * np.cos(a)) for a in angles]
+    want = np.mean([spot(y, x) for y, x in points], axis=0)
+    got = source_blurred(jnp.asarray(spot(0, 0), jnp.float32), 3.0)
+    np.testing.assert_allclose(np.asarray(got), want, atol=2e-5)
+
+
+@pytest.mark.slow
+def test_broadband_disc_source_objective_matches_numpy():
+    """ρ_max with a 3-line spectrum and a 20 µm source against np.corrcoef of `psf`'s
+    broadband PSFs, each moved to the disc's 7 points (image radius 20 µm·z2/z1) by
+    scipy.ndimage.fourier_shift and averaged."""
+    from scipy import ndimage
+    s, cam = _smooth(1), _camera()
+    lines = (cam.wavelength + 6e-9 * np.array([-1.0, 0.0, 1.0]), np.array([0.5, 1.0, 0.5]))
+    objective = DepthObjective(cam, Z1, INDEX, spectrum=lines, source_radius=20e-6)
+    terms = evaluate_design(s, objective)
+    angles = np.arange(6) * np.pi / 3
+    unit = np.concatenate([[[0.0, 0.0]], np.stack([np.sin(angles), np.cos(angles)], 1)])
+    hm, blurred = height_map(s, INDEX), []
+    for z in Z1:
+        spectrum = np.fft.fft2(np.asarray(psf(hm, cam, z, spectrum=lines), np.float64))
+        shifts = unit * 20e-6 * cam.z2 / (z * cam.dx)
+        blurred.append(np.mean([np.fft.ifft2(ndimage.fourier_shift(spectrum, d)).real
+                                for d in shifts], axis=0).ravel())
+    c = np.corrcoef(np.stack(blurred))
+    assert terms["max_correlation"] == pytest.approx(c[np.triu_indices(len(Z1), 1)].max(),
+                                                     abs=5e-6)
+    assert terms["max_correlation"] > evaluate_design(
+        s, DepthObjective(cam, Z1, INDEX))["max_correlation"]
+
+
+def test_light_and_source_options_are_checked():
+    with pytest.raises(DiffcamError, match="bandwidth must be ≥ 0"):
+        DesignOptions(bandwidth=-1e-9)
+    with pytest.raises(DiffcamError, match="depth objective alone"):
+        DesignOptions(objective="end_to_end", source_radius=50e-6)
+    o = DesignOptions(bandwidth=6e-9, source_radius=50e-6)
+    assert o.problem()["source_radius"] == 50e-6
 
 
 @pytest.mark.usefixtures("x64")

@@ -18,6 +18,12 @@ weight:
 
     loss = ρ_τ + w · mean_z spread(h_z).
 
+The PSFs are those of a point source and one wavelength unless the objective says
+otherwise: a ``spectrum`` (wavelengths and weights, as `psf_map` takes it) and a
+``source_radius`` make them what a camera records from a disc source in a band of light,
+whose blur hides structure finer than the source's image (a radius of
+source_radius·z2/z1 on the sensor): `source_blurred`.
+
 The PSFs come from `diffcam.model.stack_map.psf_map`, a chunk of depths at a time
 (at least `CHUNKS` chunks) and recomputed in the reverse pass, so the gradient's memory
 is a chunk's fields plus the nz standardised PSFs the correlations need. ``jax.vmap`` of
@@ -37,13 +43,14 @@ from jax.scipy.special import logsumexp
 from jaxtyping import Float
 
 from diffcam.design.surfaces import Surface, height_map
+from diffcam.evaluate.metrics import fourier_shift
 from diffcam.model.camera import Camera
 from diffcam.model.point_spread import items_per_chunk
 from diffcam.model.stack_map import psf_map
 
 __all__ = ["standardised", "spread", "correlation_matrix", "pair_correlations",
-           "smooth_max", "DepthObjective", "Terms", "depth_terms", "depth_objective",
-           "objective_terms"]
+           "smooth_max", "source_blurred", "DepthObjective", "Terms", "depth_terms",
+           "depth_objective", "objective_terms"]
 
 
 CHUNKS = 4
@@ -87,6 +94,18 @@ def smooth_max(values: Float[Array, " n"], temperature) -> Float[Array, ""]:
     return temperature * logsumexp(values / temperature)
 
 
+def source_blurred(psf: Float[Array, "ny nx"], radius) -> Float[Array, "ny nx"]:
+    """``psf`` as a disc source records it: the mean of ``psf`` moved to the centre and
+    six points on the rim of a disc of ``radius`` (sensor pixels; the source's image,
+    source radius · z2/z1), the sampling of
+    `diffcam.calibrate.simulation.high_fidelity_psfs`. Circular (``fourier_shift``):
+    keep the PSF a radius inside the frame."""
+    angles = jnp.arange(6) * (jnp.pi / 3)
+    rim = radius * jnp.stack([jnp.sin(angles), jnp.cos(angles)], axis=1)
+    shifts = jnp.concatenate([jnp.zeros((1, 2)), rim])
+    return jnp.mean(fourier_shift(jnp.broadcast_to(psf, (7, *psf.shape)), shifts), axis=0)
+
+
 class DepthObjective(NamedTuple):
     """What the objective needs besides the surface.
 
@@ -96,6 +115,10 @@ class DepthObjective(NamedTuple):
         refractive_index: n of the diffuser material, unitless.
         temperature: τ of the smooth maximum, in correlation units.
         sparsity_weight: w of the spread term, unitless.
+        spectrum: ``(wavelengths in metres, weights)`` of the light, or ``None`` for
+            ``camera.wavelength`` alone.
+        source_radius: radius of the disc source, metres (0: a point); the PSFs are
+            `source_blurred` by its image, source_radius·z2/z1.
     """
 
     camera: Camera
@@ -103,6 +126,8 @@ class DepthObjective(NamedTuple):
     refractive_index: float
     temperature: float = 0.01
     sparsity_weight: float = 0.1
+    spectrum: tuple | None = None
+    source_radius: float = 0.0
 
 
 class Terms(NamedTuple):
@@ -120,8 +145,14 @@ def depth_objective(surface: Surface, objective: DepthObjective) -> tuple[Array,
     diffuser = height_map(surface, objective.refractive_index)
     nz = np.shape(objective.z1)[0]
     chunk = min(items_per_chunk(objective.camera, 1), -(-nz // CHUNKS))
-    q, s = psf_map(lambda h: (standardised(h), spread(h)), diffuser, objective.camera,
-                   objective.z1, batch_size=chunk)
+    camera = objective.camera
+    radius = objective.source_radius * camera.z2 / (jnp.asarray(objective.z1) * camera.dx)
+
+    def terms(h, r):
+        h = source_blurred(h, r) if objective.source_radius > 0 else h
+        return standardised(h), spread(h)
+    q, s = psf_map(terms, diffuser, camera, objective.z1, radius,
+                   spectrum=objective.spectrum, batch_size=chunk)
     return objective_terms(q, s, objective)
 
 

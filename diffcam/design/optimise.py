@@ -89,8 +89,9 @@ def _row(loss, terms: Terms) -> dict:
     return dict(zip(HISTORY_COLUMNS, (float(v) for v in values)))
 
 
-def _check(surface, camera, z1, refractive_index) -> np.ndarray:
-    """The concrete checks before anything is traced; the depths as float64 (nz,)."""
+def _check(surface, camera, z1, refractive_index, bandwidth: float = 0.0) -> np.ndarray:
+    """The concrete checks before anything is traced (sampling at the longest
+    wavelength, ``camera.wavelength`` + ``bandwidth``); the depths as float64 (nz,)."""
     if not isinstance(surface, (SmoothSurface, LensletArray)):
         raise DiffcamError(f"surface must be a SmoothSurface or a LensletArray, got "
                            f"{type(surface).__name__}.")
@@ -110,7 +111,7 @@ def _check(surface, camera, z1, refractive_index) -> np.ndarray:
         warnings.simplefilter("error", UndersamplingWarning)
         try:
             check_inputs(height_map(surface, refractive_index), camera, z1, 0.0,
-                         camera.wavelength, True)
+                         float(camera.wavelength) + bandwidth, True)
         except UndersamplingWarning as problem:
             raise SamplingError(f"{problem}. A design cannot accept undersampling (it would "
                                 f"optimise the aliasing): change the camera or the depth "
@@ -141,7 +142,7 @@ def design(surface: Surface, camera: Camera, z1, refractive_index: float = 1.5,
             geometry the PSF cannot sample, or a checkpoint of another problem.
     """
     options = DesignOptions() if options is None else options
-    z1 = _check(surface, camera, z1, refractive_index)
+    z1 = _check(surface, camera, z1, refractive_index, float(options.bandwidth))
     log_tau = None if options.objective == "depth" else jnp.log(jnp.float32(options.tau))
     start = Design(surface, camera, z1, float(refractive_index), options,
                    np.zeros((0, len(HISTORY_COLUMNS))), {}, None, "not started", 0.0,

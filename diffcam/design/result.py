@@ -53,6 +53,11 @@ class DesignOptions:
         tau: the lateral TV weight the solver starts from, for a capture of unit L2
             norm (`diffcam.reconstruct.admm.VOLUME`'s; learnt with the surface).
         seed: the training volumes' and the noise's random seed.
+        bandwidth: depth objective: the light's half-width about
+            ``camera.wavelength``, metres: three lines at λ − bandwidth, λ,
+            λ + bandwidth (weights ½, 1, ½); 0 for one line.
+        source_radius: depth objective: radius of the disc source the PSFs are of,
+            metres (0: a point; `diffcam.design.objective.source_blurred`).
     """
 
     steps: int = 300
@@ -70,6 +75,8 @@ class DesignOptions:
     photons: float = 100.0
     tau: float = 1e-5
     seed: int = 0
+    bandwidth: float = 0.0
+    source_radius: float = 0.0
 
     def __post_init__(self):
         if self.objective not in OBJECTIVES:
@@ -80,8 +87,12 @@ class DesignOptions:
         whole_number("seed", self.seed, 0)
         for name in ("learning_rate", "temperature", "photons", "tau"):
             _positive(name, getattr(self, name))
-        if not real_number("sparsity_weight", self.sparsity_weight, "a number ≥ 0") >= 0:
-            raise DiffcamError(f"sparsity_weight must be ≥ 0, got {self.sparsity_weight!r}.")
+        for name in ("sparsity_weight", "bandwidth", "source_radius"):
+            if not real_number(name, getattr(self, name), "a number ≥ 0") >= 0:
+                raise DiffcamError(f"{name} must be ≥ 0, got {getattr(self, name)!r}.")
+        if self.objective != "depth" and (self.bandwidth or self.source_radius):
+            raise DiffcamError("bandwidth and source_radius apply to the depth objective "
+                               "alone: leave them 0 with objective='end_to_end'.")
         if self.time_budget is not None:
             _positive("time_budget", self.time_budget)
 
@@ -91,7 +102,9 @@ class DesignOptions:
         problem = {"objective": self.objective, "learning_rate": float(self.learning_rate),
                    "temperature": float(self.temperature)}
         if self.objective == "depth":
-            return {**problem, "sparsity_weight": float(self.sparsity_weight)}
+            return {**problem, "sparsity_weight": float(self.sparsity_weight),
+                    "bandwidth": float(self.bandwidth),
+                    "source_radius": float(self.source_radius)}
         return {**problem, "scenes": int(self.scenes), "photons": float(self.photons),
                 "solver_iterations": int(self.solver_iterations), "tau": float(self.tau),
                 "seed": int(self.seed)}
@@ -165,8 +178,11 @@ class Design:
         ``options.seed``)."""
         o = self.options
         if o.objective == "depth":
+            lines = self.camera.wavelength + o.bandwidth * np.array([-1.0, 0.0, 1.0])
+            spectrum = (lines, np.array([0.5, 1.0, 0.5])) if o.bandwidth > 0 else None
             return DepthObjective(self.camera, self.z1, self.refractive_index,
-                                  o.temperature, o.sparsity_weight)
+                                  o.temperature, o.sparsity_weight, spectrum,
+                                  float(o.source_radius))
         key = jax.random.key(o.seed)
         volumes = training_volumes(key, o.scenes, self.z1, self.camera)
         noise = jax.random.normal(jax.random.fold_in(key, 1),
