@@ -16,6 +16,7 @@ from diffcam.core.options import Options
 from diffcam.core.grid import pad_to
 from diffcam.model import Camera
 from diffcam.model.camera import random_diffuser
+from diffcam.model.off_axis import disc_samples
 from diffcam.model.sensor import bin_pixels, resample
 from diffcam.model.stack import psf_stack
 from diffcam.optics.elements import circular_aperture
@@ -82,9 +83,7 @@ def _disc(radius: float):
     """Source offsets (y1, x1) sampling a disc of ``radius`` (m): None for a point."""
     if radius <= 0:
         return None
-    angles = np.arange(6) * np.pi / 3
-    ring = 0.7 * radius * np.stack([np.sin(angles), np.cos(angles)], axis=1)
-    return np.concatenate([np.zeros((1, 2)), ring])
+    return np.asarray(disc_samples(0.7 * radius), np.float64)
 
 
 class StackSimulation(Options):
@@ -207,9 +206,7 @@ def high_fidelity_psfs(phase, camera, z1, *, oversample: int = 2,
                                shape=tuple(k * n for n in camera.shape),
                                pad=tuple(k * n for n in camera.pad),
                                crop=tuple(k * n for n in camera.out_shape))
-    angles = np.arange(6) * np.pi / 3
-    offsets = np.concatenate([[[0.0, 0.0]], source_radius * np.stack(
-        [np.sin(angles), np.cos(angles)], axis=1)])
+    offsets = np.asarray(disc_samples(source_radius), np.float64)
     stack = psf_stack(_finer(phase, k), fine, np.atleast_1d(z1), offsets=offsets,
                       spectrum=spectrum, progress=False)          # (nz, 7, ny, nx)
     pixels = np.asarray(bin_pixels(jnp.asarray(stack.mean(axis=1)), fine.dx, camera.dx,

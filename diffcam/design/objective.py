@@ -45,6 +45,7 @@ from jaxtyping import Float
 from diffcam.design.surfaces import Surface, height_map
 from diffcam.evaluate.metrics import fourier_shift
 from diffcam.model.camera import Camera
+from diffcam.model.off_axis import disc_samples
 from diffcam.model.point_spread import items_per_chunk
 from diffcam.model.stack_map import psf_map
 
@@ -100,9 +101,7 @@ def source_blurred(psf: Float[Array, "ny nx"], radius) -> Float[Array, "ny nx"]:
     source radius · z2/z1), the sampling of
     `diffcam.calibrate.simulation.high_fidelity_psfs`. Circular (``fourier_shift``):
     keep the PSF a radius inside the frame."""
-    angles = jnp.arange(6) * (jnp.pi / 3)
-    rim = radius * jnp.stack([jnp.sin(angles), jnp.cos(angles)], axis=1)
-    shifts = jnp.concatenate([jnp.zeros((1, 2)), rim])
+    shifts = disc_samples(radius)
     return jnp.mean(fourier_shift(jnp.broadcast_to(psf, (7, *psf.shape)), shifts), axis=0)
 
 

@@ -52,12 +52,21 @@ from diffcam.core.grid import fft_freqs, pad_to
 from diffcam.core.phasor import expj
 from diffcam.optics.elements import circular_aperture
 
-__all__ = ["acceptance", "response_amplitude", "stop_shadow", "lit_radius",
+__all__ = ["disc_samples", "acceptance", "response_amplitude", "stop_shadow", "lit_radius",
            "accepted_on_sensor", "vignetting", "check_off_axis", "MARGIN"]
 
 MARGIN = 8
 """Samples added per side of the sensor crop over which the scaling path filters the
 field by the angular response (wrap-around stays outside the crop)."""
+
+
+def disc_samples(radius) -> Float[Array, "7 2"]:
+    """Points standing for an extended source, a disc: its centre and six points on a
+    circle of ``radius`` (any length unit, returned in it), 60° apart, weighted alike.
+    ``(7, 2)`` offsets ``(y, x)``; ``radius`` may be traced."""
+    angles = jnp.arange(6) * (jnp.pi / 3)
+    rim = radius * jnp.stack([jnp.sin(angles), jnp.cos(angles)], axis=1)
+    return jnp.concatenate([jnp.zeros((1, 2), rim.dtype), rim])
 
 
 def acceptance(sin2_theta, exponent) -> Array:

@@ -482,6 +482,12 @@ def _norm(a):
     return jnp.sqrt(jnp.sum(a ** 2))
 
 
+def _on_sensor(z, response, shape):
+    """``S ⊙ C z``: ``z`` cropped to the sensor, times the sensor response (if any)."""
+    z = crop_to(z, shape)
+    return z if response is None else response * z
+
+
 def _admm_solve(b, psf, response, settings, tol, *, iterations, boundary, axial, balance,
                 background):
     """One problem: ``b (ny, nx)``, ``psf (nz, my, mx)``, sensor response ``(ny, nx)``
@@ -506,12 +512,13 @@ def _admm_solve(b, psf, response, settings, tol, *, iterations, boundary, axial,
     mask = sensor(jnp.ones_like(b) if response is None else response)    # CᵀS
     smooth = smooth_background(b.shape, background, b.dtype)
 
+    on_sensor = partial(_on_sensor, response=response, shape=b.shape)
     def joint_background(z, mu1):     # minimising jointly with x, for z = Hv + ξ/μ1
-        return smooth.fit_joint(b - crop_to(mask * z, b.shape), response, mu1)
+        return smooth.fit_joint(b - on_sensor(z), response, mu1)
 
     def fit(v, hv, tv_v, bg):
         """Relative residual and objective of a volume with a sensor background."""
-        predicted = crop_to(mask * hv, b.shape) + bg
+        predicted = on_sensor(hv) + bg
         objective = (0.5 * jnp.sum((predicted - b) ** 2) + tau * jnp.sum(jnp.abs(tv_v))
                      + sparsity * jnp.sum(v))
         return relative_residual(predicted, b), objective
@@ -534,7 +541,7 @@ def _admm_solve(b, psf, response, settings, tol, *, iterations, boundary, axial,
         eta = eta + mu2 * (tv_new - u)
         rho = rho + mu3 * (v_new - w)
         mu = _balanced(mu, primal, dual) if balance else mu
-        best = smooth.fit(b - crop_to(mask * hv, b.shape))
+        best = smooth.fit(b - on_sensor(hv))
         return (v_new, hv_new, tv_new, xi, eta, rho, mu), fit(v, hv, tv_v, best)
 
     v0 = jnp.zeros((nz,) + grid, b.dtype)
