@@ -166,13 +166,49 @@ def test_broadband_disc_source_objective_matches_numpy():
         s, DepthObjective(cam, Z1, INDEX))["max_correlation"]
 
 
-def test_light_and_source_options_are_checked():
+@pytest.mark.slow
+def test_pixel_integrated_objective_matches_a_finer_field_binned_by_hand():
+    """ρ_max with ``oversample`` 2 against np.corrcoef of `psf` on a hand-made camera of
+    half the pitch (the height cubic-interpolated) integrated over each pixel: both
+    grids are centred on the axis, so a pixel holds the fine sample at its centre whole
+    and the ones on its edges by half (weights ½, 1, ½ per axis). Pixels average detail
+    that the centre samples keep, so the correlation differs from the point-sampled
+    one."""
+    s, cam = _smooth(1), dataclasses.replace(_camera(), pad=(32, 32))
+    terms = evaluate_design(s, DepthObjective(cam, Z1, INDEX, oversample=2))
+    fine = Camera(wavelength=cam.wavelength, z2=cam.z2, dx=cam.dx / 2,
+                  aperture_radius=cam.aperture_radius, shape=(2 * N, 2 * N), pad=64)
+    height = jax.image.resize(height_map(s, INDEX).height, (2 * N, 2 * N), "cubic")
+    def integrated(a, axis):
+        g = np.moveaxis(np.pad(a, [(1, 1) if k == axis else (0, 0) for k in (0, 1)]),
+                        axis, 0)
+        return np.moveaxis(0.5 * g[0:-2:2] + g[1:-1:2] + 0.5 * g[2::2], 0, axis)
+    binned = [integrated(integrated(np.asarray(psf(HeightMap(height, INDEX), fine, z),
+                                               np.float64), 0), 1).ravel() for z in Z1]
+    c = np.corrcoef(np.stack(binned))[np.triu_indices(len(Z1), 1)].max()
+    assert terms["max_correlation"] == pytest.approx(c, abs=5e-6)
+    point = evaluate_design(s, DepthObjective(cam, Z1, INDEX))["max_correlation"]
+    assert abs(point - c) > 1e-4
+
+
+def test_light_source_and_pixel_options_are_checked():
     with pytest.raises(DiffcamError, match="bandwidth must be ≥ 0"):
         DesignOptions(bandwidth=-1e-9)
     with pytest.raises(DiffcamError, match="depth objective alone"):
         DesignOptions(objective="end_to_end", source_radius=50e-6)
-    o = DesignOptions(bandwidth=6e-9, source_radius=50e-6)
-    assert o.problem()["source_radius"] == 50e-6
+    with pytest.raises(DiffcamError, match="depth objective alone"):
+        DesignOptions(objective="end_to_end", oversample=2)
+    with pytest.raises(DiffcamError, match="oversample"):
+        DesignOptions(oversample=0)
+    o = DesignOptions(bandwidth=6e-9, source_radius=50e-6, oversample=2)
+    assert o.problem()["source_radius"] == 50e-6 and o.problem()["oversample"] == 2
+
+
+def test_oversampled_design_checks_the_finer_grid():
+    """The unpadded camera samples the transfer function at its pitch but not at half
+    of it: a pixel-integrated design refuses it and says what to change."""
+    with pytest.raises(SamplingError, match="pad"):
+        design(_smooth(), _camera(), Z1, INDEX, dataclasses.replace(OPTIONS, oversample=2))
 
 
 @pytest.mark.usefixtures("x64")
@@ -291,6 +327,10 @@ def test_bad_design_files_are_one_line_errors(saved, tmp_path):
         np.savez(bad, **{**arrays, "metadata": np.array(json.dumps({**meta, **change}))})
         with pytest.raises(DiffcamError, match=match):
             load_design(bad)
+    older = dict(meta, version=3, options={k: v for k, v in meta["options"].items()
+                                           if k != "oversample"})
+    np.savez(tmp_path / "v3.npz", **{**arrays, "metadata": np.array(json.dumps(older))})
+    assert load_design(tmp_path / "v3.npz").options.oversample == 1
     edited = tmp_path / "edited.npz"
     np.savez(edited, **{**arrays, "height": arrays["height"] * 0.5})
     with pytest.raises(DiffcamError, match="edited"):

@@ -15,7 +15,7 @@ from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.core.options import Options
 from diffcam.core.grid import pad_to
 from diffcam.model import Camera
-from diffcam.model.camera import random_diffuser
+from diffcam.model.camera import finer_diffuser, oversampled, random_diffuser
 from diffcam.model.off_axis import disc_samples
 from diffcam.model.sensor import bin_pixels, resample
 from diffcam.model.stack import psf_stack
@@ -163,14 +163,6 @@ HIGH_FIDELITY_SPECTRUM = (np.array([526e-9, 532e-9, 538e-9]), np.array([0.5, 1.0
 the higher-fidelity simulations below (a filtered LED or a laser diode's width)."""
 
 
-def _finer(phase, oversample: int):
-    """The diffuser phase cubic-interpolated onto a grid ``oversample``× finer (the true
-    diffuser is continuous; diffcam's model sees it at the sensor pitch)."""
-    phase = jnp.asarray(phase)
-    ny, nx = phase.shape[-2:]
-    return jax.image.resize(phase, (ny * oversample, nx * oversample), "cubic")
-
-
 def high_fidelity_psfs(phase, camera, z1, *, oversample: int = 2,
                        spectrum=HIGH_FIDELITY_SPECTRUM, source_radius: float = 50e-6,
                        photons: float | None = None, seed: int = 0) -> np.ndarray:
@@ -195,20 +187,13 @@ def high_fidelity_psfs(phase, camera, z1, *, oversample: int = 2,
     Returns:
         float32 ``(nz, *camera.out_shape)``, each PSF of unit sum.
     """
-    import dataclasses
-
-
     if camera.aperture_radius is None:
         raise DiffcamError("high_fidelity_psfs draws the aperture on its finer grid: give "
                            "the camera an aperture_radius.")
-    k = int(oversample)
-    fine = dataclasses.replace(camera, dx=camera.dx / k,
-                               shape=tuple(k * n for n in camera.shape),
-                               pad=tuple(k * n for n in camera.pad),
-                               crop=tuple(k * n for n in camera.out_shape))
+    fine = oversampled(camera, oversample)
     offsets = np.asarray(disc_samples(source_radius), np.float64)
-    stack = psf_stack(_finer(phase, k), fine, np.atleast_1d(z1), offsets=offsets,
-                      spectrum=spectrum, progress=False)          # (nz, 7, ny, nx)
+    stack = psf_stack(finer_diffuser(phase, oversample), fine, np.atleast_1d(z1),
+                      offsets=offsets, spectrum=spectrum, progress=False)  # (nz, 7, ny, nx)
     pixels = np.asarray(bin_pixels(jnp.asarray(stack.mean(axis=1)), fine.dx, camera.dx,
                                    camera.out_shape), np.float64)
     if photons is not None:
@@ -246,7 +231,7 @@ def high_fidelity_captures(phase, aperture_radius: float, geometry: CalibrationG
 
 
     k = int(oversample)
-    fine_phase = _finer(phase, k)
+    fine_phase = finer_diffuser(phase, k)
     shape = np.shape(phase)[-2:]
     fine_dx = geometry.dx / k
     aperture = circular_aperture(fine_phase.shape, fine_dx, aperture_radius)

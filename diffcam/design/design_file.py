@@ -34,7 +34,7 @@ from diffcam.model.camera import Camera
 __all__ = ["save_design", "load_design", "tiff_path", "FORMAT", "FORMAT_VERSION"]
 
 FORMAT = "diffcam-design"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 _KINDS = {"smooth": SmoothSurface, "lenslets": LensletArray}
 _WHAT = "a diffcam design file"
 

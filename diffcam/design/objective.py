@@ -22,7 +22,12 @@ The PSFs are those of a point source and one wavelength unless the objective say
 otherwise: a ``spectrum`` (wavelengths and weights, as `psf_map` takes it) and a
 ``source_radius`` make them what a camera records from a disc source in a band of light,
 whose blur hides structure finer than the source's image (a radius of
-source_radius·z2/z1 on the sensor): `source_blurred`.
+source_radius·z2/z1 on the sensor): `source_blurred`. With ``oversample`` k > 1 the
+field is computed on a grid k× finer (the height cubic-interpolated,
+`diffcam.model.camera.finer_diffuser`) and its irradiance integrated over each sensor
+pixel (`diffcam.model.sensor.resample`, area), as a sensor records it; at k = 1 the
+irradiance is sampled at each pixel's centre, which keeps detail up to the grid's
+Nyquist frequency that pixels average away.
 
 The PSFs come from `diffcam.model.stack_map.psf_map`, a chunk of depths at a time
 (at least `CHUNKS` chunks) and recomputed in the reverse pass, so the gradient's memory
@@ -44,9 +49,10 @@ from jaxtyping import Float
 
 from diffcam.design.surfaces import Surface, height_map
 from diffcam.evaluate.metrics import fourier_shift
-from diffcam.model.camera import Camera
+from diffcam.model.camera import Camera, finer_diffuser, oversampled
 from diffcam.model.off_axis import disc_samples
 from diffcam.model.point_spread import items_per_chunk
+from diffcam.model.sensor import resample
 from diffcam.model.stack_map import psf_map
 
 __all__ = ["standardised", "spread", "correlation_matrix", "pair_correlations",
@@ -118,6 +124,8 @@ class DepthObjective(NamedTuple):
             ``camera.wavelength`` alone.
         source_radius: radius of the disc source, metres (0: a point); the PSFs are
             `source_blurred` by its image, source_radius·z2/z1.
+        oversample: field samples per sensor pixel, per side (1: the irradiance at
+            each pixel's centre; k > 1: on a k× finer grid, integrated over each pixel).
     """
 
     camera: Camera
@@ -127,6 +135,7 @@ class DepthObjective(NamedTuple):
     sparsity_weight: float = 0.1
     spectrum: tuple | None = None
     source_radius: float = 0.0
+    oversample: int = 1
 
 
 class Terms(NamedTuple):
@@ -143,15 +152,17 @@ def depth_objective(surface: Surface, objective: DepthObjective) -> tuple[Array,
     Differentiable in the surface's array leaves."""
     diffuser = height_map(surface, objective.refractive_index)
     nz = np.shape(objective.z1)[0]
-    chunk = min(items_per_chunk(objective.camera, 1), -(-nz // CHUNKS))
-    camera = objective.camera
+    camera, k = objective.camera, objective.oversample
+    fine = oversampled(camera, k)
+    chunk = min(items_per_chunk(fine, 1), -(-nz // CHUNKS))
     radius = objective.source_radius * camera.z2 / (jnp.asarray(objective.z1) * camera.dx)
 
     def terms(h, r):
+        h = resample(h, fine.dx, camera.dx, camera.out_shape, max_width=k) if k > 1 else h
         h = source_blurred(h, r) if objective.source_radius > 0 else h
         return standardised(h), spread(h)
-    q, s = psf_map(terms, diffuser, camera, objective.z1, radius,
-                   spectrum=objective.spectrum, batch_size=chunk)
+    q, s = psf_map(terms, finer_diffuser(diffuser, k), fine,
+                   objective.z1, radius, spectrum=objective.spectrum, batch_size=chunk)
     return objective_terms(q, s, objective)
 
 

@@ -36,7 +36,7 @@ from diffcam.design.end_to_end import EndToEndObjective, end_to_end_objective
 from diffcam.design.objective import DepthObjective, Terms, depth_objective
 from diffcam.design.result import HISTORY_COLUMNS, Design, DesignOptions
 from diffcam.design.surfaces import LensletArray, SmoothSurface, Surface, height_map
-from diffcam.model.camera import Camera
+from diffcam.model.camera import Camera, finer_diffuser, oversampled
 from diffcam.model.point_spread import check_inputs, depth_list
 
 __all__ = ["design", "evaluate_design", "depth_range"]
@@ -89,9 +89,10 @@ def _row(loss, terms: Terms) -> dict:
     return dict(zip(HISTORY_COLUMNS, (float(v) for v in values)))
 
 
-def _check(surface, camera, z1, refractive_index, bandwidth: float = 0.0) -> np.ndarray:
+def _check(surface, camera, z1, refractive_index, options: DesignOptions) -> np.ndarray:
     """The concrete checks before anything is traced (sampling at the longest
-    wavelength, ``camera.wavelength`` + ``bandwidth``); the depths as float64 (nz,)."""
+    wavelength, ``camera.wavelength`` + ``options.bandwidth``, on the grid
+    ``options.oversample``× finer); the depths as float64 (nz,)."""
     if not isinstance(surface, (SmoothSurface, LensletArray)):
         raise DiffcamError(f"surface must be a SmoothSurface or a LensletArray, got "
                            f"{type(surface).__name__}.")
@@ -110,8 +111,10 @@ def _check(surface, camera, z1, refractive_index, bandwidth: float = 0.0) -> np.
     with warnings.catch_warnings():
         warnings.simplefilter("error", UndersamplingWarning)
         try:
-            check_inputs(height_map(surface, refractive_index), camera, z1, 0.0,
-                         float(camera.wavelength) + bandwidth, True)
+            k = options.oversample
+            check_inputs(finer_diffuser(height_map(surface, refractive_index), k),
+                         oversampled(camera, k), z1, 0.0,
+                         float(camera.wavelength) + options.bandwidth, True)
         except UndersamplingWarning as problem:
             raise SamplingError(f"{problem}. A design cannot accept undersampling (it would "
                                 f"optimise the aliasing): change the camera or the depth "
@@ -142,7 +145,7 @@ def design(surface: Surface, camera: Camera, z1, refractive_index: float = 1.5,
             geometry the PSF cannot sample, or a checkpoint of another problem.
     """
     options = DesignOptions() if options is None else options
-    z1 = _check(surface, camera, z1, refractive_index, float(options.bandwidth))
+    z1 = _check(surface, camera, z1, refractive_index, options)
     log_tau = None if options.objective == "depth" else jnp.log(jnp.float32(options.tau))
     start = Design(surface, camera, z1, float(refractive_index), options,
                    np.zeros((0, len(HISTORY_COLUMNS))), {}, None, "not started", 0.0,

@@ -58,6 +58,9 @@ class DesignOptions:
             λ + bandwidth (weights ½, 1, ½); 0 for one line.
         source_radius: depth objective: radius of the disc source the PSFs are of,
             metres (0: a point; `diffcam.design.objective.source_blurred`).
+        oversample: depth objective: field samples per sensor pixel, per side: 1, the
+            irradiance at each pixel's centre; k > 1, the field on a k× finer grid and
+            its irradiance integrated over each pixel (pixel integration).
     """
 
     steps: int = 300
@@ -77,12 +80,14 @@ class DesignOptions:
     seed: int = 0
     bandwidth: float = 0.0
     source_radius: float = 0.0
+    oversample: int = 1
 
     def __post_init__(self):
         if self.objective not in OBJECTIVES:
             raise DiffcamError(f"objective must be one of {', '.join(OBJECTIVES)}, got "
                                f"{self.objective!r}.")
-        for name in ("steps", "checkpoint_every", "scenes", "solver_iterations"):
+        for name in ("steps", "checkpoint_every", "scenes", "solver_iterations",
+                     "oversample"):
             whole_number(name, getattr(self, name), 1)
         whole_number("seed", self.seed, 0)
         for name in ("learning_rate", "temperature", "photons", "tau"):
@@ -90,9 +95,11 @@ class DesignOptions:
         for name in ("sparsity_weight", "bandwidth", "source_radius"):
             if not real_number(name, getattr(self, name), "a number ≥ 0") >= 0:
                 raise DiffcamError(f"{name} must be ≥ 0, got {getattr(self, name)!r}.")
-        if self.objective != "depth" and (self.bandwidth or self.source_radius):
-            raise DiffcamError("bandwidth and source_radius apply to the depth objective "
-                               "alone: leave them 0 with objective='end_to_end'.")
+        if self.objective != "depth" and (self.bandwidth or self.source_radius
+                                          or self.oversample != 1):
+            raise DiffcamError("bandwidth, source_radius and oversample apply to the depth "
+                               "objective alone: leave them 0, 0 and 1 with "
+                               "objective='end_to_end'.")
         if self.time_budget is not None:
             _positive("time_budget", self.time_budget)
 
@@ -104,7 +111,8 @@ class DesignOptions:
         if self.objective == "depth":
             return {**problem, "sparsity_weight": float(self.sparsity_weight),
                     "bandwidth": float(self.bandwidth),
-                    "source_radius": float(self.source_radius)}
+                    "source_radius": float(self.source_radius),
+                    "oversample": int(self.oversample)}
         return {**problem, "scenes": int(self.scenes), "photons": float(self.photons),
                 "solver_iterations": int(self.solver_iterations), "tau": float(self.tau),
                 "seed": int(self.seed)}
@@ -182,7 +190,7 @@ class Design:
             spectrum = (lines, np.array([0.5, 1.0, 0.5])) if o.bandwidth > 0 else None
             return DepthObjective(self.camera, self.z1, self.refractive_index,
                                   o.temperature, o.sparsity_weight, spectrum,
-                                  float(o.source_radius))
+                                  float(o.source_radius), int(o.oversample))
         key = jax.random.key(o.seed)
         volumes = training_volumes(key, o.scenes, self.z1, self.camera)
         noise = jax.random.normal(jax.random.fold_in(key, 1),

@@ -30,7 +30,7 @@ from diffcam.core.grid import check_grid_size, int_pair
 from diffcam.optics.elements import circular_aperture
 
 __all__ = ["Camera", "HeightMap", "Spectrum", "as_spectrum", "diffuser_phase", "random_diffuser",
-           "real_dtype", "with_method", "METHODS"]
+           "real_dtype", "with_method", "oversampled", "finer_diffuser", "METHODS"]
 
 METHODS = ("scaling", "direct")
 OFF_AXIS_TERMS = ("aperture_distance", "acceptance_exponent", "vignetting_exponent")
@@ -278,3 +278,36 @@ def as_spectrum(spectrum, camera):
 def with_method(camera: Camera, method: str) -> Camera:
     """The same camera evaluated by ``method`` ("scaling" or "direct")."""
     return dataclasses.replace(camera, method=method)
+
+
+def oversampled(camera: Camera, factor: int) -> Camera:
+    """``camera`` on a grid ``factor``× finer over the same field: pitch dx/factor, and
+    shape, pad and PSF crop ``factor``× (a circular aperture is drawn on the finer
+    grid). Bin its PSFs to ``camera``'s pixels with
+    `diffcam.model.sensor.bin_pixels`."""
+    k = int(factor)
+    if k != factor or k < 1 or camera.aperture_mask is not None:
+        raise DiffcamError(f"oversampling needs a whole factor ≥ 1 and a circular aperture "
+                           f"(aperture_radius), got factor {factor!r}"
+                           f"{'' if camera.aperture_mask is None else ' and a mask'}.")
+    if k == 1:
+        return camera
+    return dataclasses.replace(camera, dx=camera.dx / k,
+                               shape=tuple(k * n for n in camera.shape),
+                               pad=tuple(k * n for n in camera.pad),
+                               crop=tuple(k * n for n in camera.out_shape))
+
+
+def finer_diffuser(diffuser, factor: int):
+    """A `HeightMap` (heights) or a phase array cubic-interpolated onto a grid
+    ``factor``× finer, the grid of `oversampled`: the surface is continuous, the model
+    samples it at the camera's pitch. Differentiable; ``factor`` 1 returns it as it is."""
+    if factor == 1:
+        return diffuser
+
+    def finer(values):
+        ny, nx = np.shape(values)[-2:]
+        return jax.image.resize(jnp.asarray(values), (ny * factor, nx * factor), "cubic")
+    if isinstance(diffuser, HeightMap):
+        return HeightMap(finer(diffuser.height), diffuser.refractive_index)
+    return finer(diffuser)
