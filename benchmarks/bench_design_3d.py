@@ -10,9 +10,11 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
 - ``designed``: `diffcam.design.design` of a random smooth surface (seed 0) over
   ``--depths`` depths 10–60 mm (``--near``, ``--far``) even in 1/z1, ``--steps`` Adam
   steps, sparsity weight 0.1 (``diffcam design``'s defaults), designed in this run
-  through the model's PSFs (one wavelength, a point source) or, with ``--design-model
+  through the model's PSFs (one wavelength, a point source); with ``--design-model
   high-fidelity``, through PSFs of the truth's three lines and 50 µm source disc
-  (`DesignOptions` ``bandwidth``, ``source_radius``);
+  (`DesignOptions` ``bandwidth``, ``source_radius``); with ``--design-model truth``,
+  through the truth's own PSFs: its lines and source disc, and its field on a 2× finer
+  grid integrated over each pixel (``oversample`` 2, on `truth_camera`);
   ``designed, w = 0`` the same without the spread term (``--weights``: the weights
   designed, the first is ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
@@ -63,7 +65,8 @@ Scores, over the central half of the field where the scenes lie:
   point, with a plane between the peaks whose value is ≤ 80 % of the lower peak
   (``DIP``, a Rayleigh-like dip); the smallest separation Δz (mm, between the planes'
   depths) resolved;
-- the largest cross-depth correlation of the model PSFs (`evaluate_design`).
+- the largest cross-depth correlation of the model PSFs (`evaluate_design`), and of the
+  truth PSFs (``truth_max_correlation``).
 
 The default run (128², 8 depths, 4 scenes, 300 design steps, 200 iterations, six
 diffusers) takes about 8 minutes on 2 shared cores; ``--n 256 --depths 16 --steps
@@ -85,7 +88,7 @@ from benchmarks.harness import write_json
 from diffcam.calibrate.simulation import HIGH_FIDELITY_SPECTRUM, high_fidelity_psfs
 from diffcam.design import (DesignOptions, LensletArray, SmoothSurface, depth_range,
                             design, evaluate_design)
-from diffcam.design.objective import DepthObjective
+from diffcam.design.objective import DepthObjective, pair_correlations, standardised
 from diffcam.design.surfaces import height_map
 from diffcam.evaluate import psnr
 from diffcam.model import psf_stack
@@ -109,6 +112,13 @@ SOURCE_RADIUS = 50e-6
 """Radius of the truth PSFs' source (and of the calibration's), metres."""
 BLOB_SIGMA = 1.0
 """Standard deviation of a scene's Gaussian blobs, object-grid samples."""
+DESIGN_MODELS = {
+    "point": {},
+    "high-fidelity": {"bandwidth": float(np.ptp(HIGH_FIDELITY_SPECTRUM[0])) / 2,
+                      "source_radius": SOURCE_RADIUS},
+    "truth": {"bandwidth": float(np.ptp(HIGH_FIDELITY_SPECTRUM[0])) / 2,
+              "source_radius": SOURCE_RADIUS, "oversample": 2}}
+"""``--design-model``: the `DesignOptions` of the PSFs the depth designs optimise."""
 
 
 def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float],
@@ -116,7 +126,9 @@ def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float]
     """The diffusers by name: (surface, seconds the design took or None). The smooth
     surface is designed by ``depth`` once per sparsity weight (the first is
     ``designed``), and with ``end_to_end`` options also by the end-to-end objective
-    (``designed end to end``)."""
+    (``designed end to end``); the depth designs on `truth_camera` if ``depth``
+    oversamples (its finer grid needs the padding)."""
+    cam = camera(n) if depth.oversample == 1 else truth_camera(n, float(np.max(z1)))
     lenses = max(1, round(36 * (n / 256) ** 2))
     region = n * PIXEL / 4
     start = SmoothSurface.random(0, (n, n), PIXEL, FEATURE, H_MAX)
@@ -124,7 +136,7 @@ def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float]
     for k, weight in enumerate(weights):
         options = dataclasses.replace(depth, sparsity_weight=weight)
         t = time.perf_counter()
-        surface = design(start, camera(n), z1, INDEX, options).surface
+        surface = design(start, cam, z1, INDEX, options).surface
         out["designed" if k == 0 else f"designed, w = {weight:g}"] = (
             surface, time.perf_counter() - t)
     if end_to_end is not None:
@@ -138,7 +150,7 @@ def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float]
     if lenslets:
         first = LensletArray.random(0, (n, n), PIXEL, FEATURE, H_MAX, lenses, region)
         t = time.perf_counter()
-        out["designed lenslets"] = (design(first, camera(n), z1, INDEX, dataclasses.replace(
+        out["designed lenslets"] = (design(first, cam, z1, INDEX, dataclasses.replace(
             depth, sparsity_weight=weights[0])).surface, time.perf_counter() - t)
     return out
 
@@ -297,8 +309,10 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, 
     smallest = min((dz for dz, ok in separations if ok), default=None)
     objective = DepthObjective(cam, z1, INDEX)
     shown = (np.asarray(truth_psfs), estimate[scenes:])
+    truth_max = jnp.max(pair_correlations(standardised(jnp.asarray(truth_psfs))))
     return shown, {"diffuser": name, "max_correlation": round(
                 evaluate_design(surface, objective)["max_correlation"], 4),
+            "truth_max_correlation": round(float(truth_max), 4),
             "psnr_db": round(float(np.mean(scores)), 2),
             "psnr_per_scene": [round(s, 2) for s in scores],
             "resolved_dz_mm": None if smallest is None else round(smallest, 2),
@@ -391,11 +405,12 @@ def main(argv=None) -> int:
                              "uncalibrated)")
     parser.add_argument("--calibration-photons", type=float, default=1e4,
                         help="photons at each calibration PSF's brightest pixel")
-    parser.add_argument("--design-model", choices=("point", "high-fidelity"),
+    parser.add_argument("--design-model", choices=tuple(DESIGN_MODELS),
                         default="point",
                         help="the PSFs the depth designs optimise ('point': one "
                              "wavelength, a point source; 'high-fidelity': the truth's "
-                             "three lines and source disc)")
+                             "three lines and source disc; 'truth': those and the "
+                             "truth's 2× finer grid integrated over each pixel)")
     parser.add_argument("--tune", action="store_true",
                         help="choose the TV and L1 weights per diffuser on a training "
                              "scene (TUNING_FACTORS × VOLUME's)")
@@ -421,10 +436,8 @@ def main(argv=None) -> int:
     end_to_end = None if args.end_to_end_steps < 1 else DesignOptions(
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
         photons=args.photons, progress=False)
-    light = {} if args.design_model == "point" else {
-        "bandwidth": float(np.ptp(HIGH_FIDELITY_SPECTRUM[0])) / 2,
-        "source_radius": SOURCE_RADIUS}
-    depth = DesignOptions(steps=args.steps, progress=False, **light)
+    depth = DesignOptions(steps=args.steps, progress=False,
+                          **DESIGN_MODELS[args.design_model])
     made = diffusers(n, z1, depth, args.weights, args.lenslets, end_to_end)
     shown = {}
     for name, (surface, design_s) in made.items():

@@ -176,6 +176,11 @@ SECTIONS = {
                ["surface", "seed", "sparsity_weight", "steps", "start", "design", "baseline",
                 "baseline_is", "held_out_start", "held_out_design", "held_out_baseline",
                 "spread_start", "spread_design", "height_um", "wall_s", "wall_per_step_s"]),
+    "design_fidelity": ("Diffuser design: the neighbouring depths' PSF correlation with "
+                        "the high-fidelity simulator's effects one at a time",
+                        "python -m benchmarks.bench_design_fidelity",
+                        ["diffuser", "model", "box", "none", "grid", "bandwidth", "source",
+                         "all but grid", "all but bandwidth", "all but source", "all"]),
     **{name: (f"Diffuser design judged by 3-D reconstruction of held-out volumes{size}",
               f"python -m benchmarks.bench_design_3d{args}",
               ["diffuser", "max_correlation", "psnr_db", "psnr_per_scene", "resolved_dz_mm",
@@ -216,6 +221,13 @@ SECTIONS = {
            ("design_3d_end_to_end", ", the end-to-end objective beside depth "
             "discrimination, model PSFs", " --weights 0.1 --no-lenslets "
             "--end-to-end-steps 60 --calibration model --name design_3d_end_to_end"))},
+    "design_3d_1000_photons_truth_design": (
+        "Diffuser design judged by 3-D reconstruction of held-out volumes, 1000 photons per "
+        "pixel, designed through the truth's PSFs (light, source, pixel integration)",
+        "python -m benchmarks.bench_design_3d --photons 1000 --design-model truth "
+        "--weights 0.1 0 --name design_3d_1000_photons_truth_design",
+        ["diffuser", "max_correlation", "truth_max_correlation", "psnr_db", "psnr_per_scene",
+         "resolved_dz_mm", "tau", "sparsity", "design_s", "reconstruct_s"]),
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --folds … "
@@ -234,7 +246,8 @@ EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["c
                 **{f"design_3d{v}": ["gains"] for v in (
                     "", "_256", "_model_truth", "_tuned", "_4_depths", "_near",
                     "_256_model_truth", "_end_to_end", "_1000_photons", "_10000_photons",
-                    "_hf_design", "_10000_photons_hf_design", "_10000_photons_model_psfs")}}
+                    "_hf_design", "_10000_photons_hf_design", "_10000_photons_model_psfs",
+                    "_1000_photons_truth_design")}}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 
