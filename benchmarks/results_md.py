@@ -228,6 +228,12 @@ SECTIONS = {
         "--weights 0.1 0 --name design_3d_1000_photons_truth_design",
         ["diffuser", "max_correlation", "truth_max_correlation", "psnr_db", "psnr_per_scene",
          "resolved_dz_mm", "tau", "sparsity", "design_s", "reconstruct_s"]),
+    "design_3d_1000_photons_truth_design_tuned": (
+        "The same, TV and L1 weights chosen per diffuser on a training scene",
+        "python -m benchmarks.bench_design_3d --photons 1000 --design-model truth "
+        "--weights 0.1 --no-lenslets --tune --name design_3d_1000_photons_truth_design_tuned",
+        ["diffuser", "max_correlation", "truth_max_correlation", "psnr_db", "psnr_per_scene",
+         "resolved_dz_mm", "tau", "sparsity", "design_s", "reconstruct_s"]),
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --folds … "
@@ -247,7 +253,7 @@ EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["c
                     "", "_256", "_model_truth", "_tuned", "_4_depths", "_near",
                     "_256_model_truth", "_end_to_end", "_1000_photons", "_10000_photons",
                     "_hf_design", "_10000_photons_hf_design", "_10000_photons_model_psfs",
-                    "_1000_photons_truth_design")}}
+                    "_1000_photons_truth_design", "_1000_photons_truth_design_tuned")}}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 
