@@ -32,7 +32,8 @@ from diffcam.calibrate.stack_result import FORMAT, StackFit, load_stack_fit
 from diffcam.core.errors import DiffcamError
 from diffcam.io import npz_keys, read_npz
 
-__all__ = ["model_kind", "load_model", "load_stack_model", "not_a_model", "MODEL_FILES"]
+__all__ = ["model_kind", "load_model", "load_stack_model", "not_a_model", "field_psf_refused",
+           "MODEL_FILES"]
 
 MODEL_FILES = "a phase file from `diffcam calibrate` or a stack fit from `diffcam fit`"
 
@@ -75,10 +76,7 @@ def load_model(path: str | os.PathLike) -> PhaseFile | StackFit:
     if kind == "stack-fit":
         return load_stack_fit(path)
     if kind == "field-psf":
-        raise DiffcamError(f"{path} is a field-dependent PSF (diffcam calibrate-psf "
-                           f"--field): the camera across its field at one depth, not at "
-                           f"depths or plane indices; reconstruct with it: `diffcam "
-                           f"reconstruct RAW --psf {path}`.")
+        raise field_psf_refused(path)
     raise not_a_model(path)
 
 
@@ -91,6 +89,14 @@ def load_stack_model(path: str | os.PathLike) -> StackFit:
         raise DiffcamError(f"{path} is a phase file: it gives PSFs at depths z1, not plane "
                            f"indices; render them with `diffcam psf {path} --z1 … --z2 …`.")
     return model
+
+
+def field_psf_refused(path: str | os.PathLike) -> DiffcamError:
+    """The one-line error for a field-dependent PSF where depths or planes are needed."""
+    return DiffcamError(f"{path} is a field-dependent PSF (diffcam calibrate-psf --field): "
+                        f"the camera across its field at one depth, not at depths or plane "
+                        f"indices; reconstruct with it: `diffcam reconstruct RAW --psf "
+                        f"{path}`.")
 
 
 def not_a_model(path: str | os.PathLike) -> DiffcamError:
