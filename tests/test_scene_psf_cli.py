@@ -224,3 +224,17 @@ def test_reconstruct_grayscale_with_a_field_file(tmp_path, capsys):
     misfit = np.linalg.norm(np.asarray(operator(pad_to(jnp.asarray(estimate),
                                                        operator.object_shape))) - (raw - 0.5))
     assert misfit / np.linalg.norm(raw - 0.5) < 0.02
+
+
+def test_channel_order_is_the_raws_and_an_rgb_psf_file_stays_rgb(scenes, tmp_path):
+    """A BGR .npy raw with an RGB TIFF PSF (calibrate-psf's) reconstructs as its RGB
+    TIFF with the same PSF: --channel-order reorders the raw, not the PSF file."""
+    d, pairs = scenes
+    psf = tmp_path / "psf.tif"
+    tifffile.imwrite(psf, np.moveaxis(pairs.truths[1] * [[[1.0]], [[0.5]], [[0.2]]], 0, -1)
+                     .astype(np.float32), photometric="rgb")
+    for raw, order in ((d / "raw_bgr.npy", ["--channel-order", "BGR"]), (d / "raw_im43.tif", [])):
+        assert main(["reconstruct", str(raw), *order, "--psf", str(psf), "--method", "wiener",
+                     "--quiet", "-o", str(tmp_path / f"{raw.suffix[1:]}.npy")]) == 0
+    np.testing.assert_allclose(np.load(tmp_path / "npy.npy"), np.load(tmp_path / "tif.npy"),
+                               rtol=1e-5, atol=1e-6)

@@ -39,7 +39,8 @@ def add_reconstruct(sub) -> None:
                     "whose PSF explains the capture best (least data misfit); with --3d, "
                     "reconstruct every plane as a volume "
                     "(OUT.tif, OUT_max.png, OUT_depth.png, OUT_projections.png, "
-                    "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm; "
+                    "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm "
+                    "(each colour channel on its own); "
                     "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5, "
                     "residual-balanced penalties and over-relaxation 1.85 "
                     "(diffcam.reconstruct.admm.VOLUME), "
@@ -48,8 +49,9 @@ def add_reconstruct(sub) -> None:
                     "docs/cli_reconstruct.md and docs/volume.md.")
     rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
     rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
-                     help="channel order of colour files, RGB or BGR (OpenCV .npy arrays); "
-                          "needed for colour .npy, PNG/TIFF are RGB by default")
+                     help="channel order of the colour raw (and of a colour .npy PSF), RGB "
+                          "or BGR (OpenCV .npy arrays); needed for colour .npy; PNG/TIFF "
+                          "raws are RGB by default, PNG/TIFF PSFs always")
     rec.add_argument("--white-balance", type=gains_arg, metavar="auto|R,G,B",
                      help="colour: gains per channel, or 'auto' (grey world); default none "
                           "(a PSF per channel from calibrate-psf already balances them)")

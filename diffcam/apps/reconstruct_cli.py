@@ -76,11 +76,12 @@ def _pick_plane(raw, source: PsfSource, args, say) -> np.ndarray:
     return psfs[plane]
 
 
-def _unit_norm(a) -> tuple[np.ndarray, float]:
-    """``a / ||a||₂`` (float32) and ``||a||₂``, both computed in float64: float32
-    squares overflow from 1.8e19, and the norm of a raw ×1e37 exceeds float32."""
+def _unit_norm(a) -> tuple[np.ndarray, np.ndarray]:
+    """``a / ||a||₂`` per image (over the last two axes: each colour channel, each PSF
+    on its own; float32) and the norms ``(..., 1, 1)``, both computed in float64:
+    float32 squares overflow from 1.8e19, and the norm of a raw ×1e37 exceeds float32."""
     a = np.asarray(a, np.float64)
-    norm = float(np.linalg.norm(a))
+    norm = np.linalg.norm(a, axis=(-2, -1), keepdims=True)
     return (a / norm).astype(np.float32), norm
 
 

@@ -294,13 +294,16 @@ def read_raw(path, channel_order: str | None) -> np.ndarray:
 def colour_psf(source: str, raw: np.ndarray, channel_order: str | None) -> PsfSource | None:
     """One PSF per colour channel if ``source`` is one colour image file (e.g. from
     ``diffcam calibrate-psf``), else ``None`` (a grayscale PSF is shared by the channels).
+    ``channel_order`` (the raw's) applies to a colour ``.npy``; a PNG or TIFF PSF is RGB
+    by its format, whatever the raw's order (``calibrate-psf`` writes RGB TIFFs).
     """
 
     path = Path(source)
     if (path.suffix.lower() not in IMAGE_SUFFIXES or not path.is_file()
             or Path(f"{path}.json").exists() or has_stack_meta(path)):
         return None
-    capture = read_image(path, channel_order=channel_order)
+    npy = path.suffix.lower() == ".npy"
+    capture = read_image(path, channel_order=channel_order if npy else None)
     if capture.channels is None:
         return None
     if raw.ndim == 2:
