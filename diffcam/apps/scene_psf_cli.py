@@ -100,25 +100,27 @@ def _cmd_calibrate_psf(args) -> int:
                "flip_residuals": cal.flip_residuals, "offset": cal.offset.tolist(),
                "residual": float(cal.residual[-1]), "iterations": args.iterations}
     again = calibrate.ScenePsfOptions.of(options, flip=cal.flip)
-    check = k >= 2 and not args.no_check
-    if check:
+    if k >= 2 and not args.no_check:
         summary["holdout_pearson"] = holdout_scores(raws, truths, again).tolist()
     if args.field:
         summary = _field_calibration(raws, truths, again, summary, args)
-        print(f"diffcam calibrate-psf: {_field_line(summary)} → {out}")
     else:
         write_psf(out, cal.psf)
     if args.json:
         with atomic_output(args.json) as tmp:
             tmp.write_text(json.dumps(summary, indent=2))
-    if args.field:
-        return 0
-    held = ("" if not check else "; held-out pair predicted with "
-            "Pearson " + ", ".join(f"{v:.3f}" for v in summary["holdout_pearson"]))
-    print(f"diffcam calibrate-psf: one PSF per channel (rank 1), flip {cal.flip}, offset "
-          f"{', '.join(f'{v:.3g}' for v in cal.offset)}, relative misfit "
-          f"{summary['residual']:.3g}{held} → {out}")
+    line = _field_line(summary) if args.field else _one_psf_line(summary)
+    print(f"diffcam calibrate-psf: {line} → {out}")
     return 0
+
+
+def _one_psf_line(summary: dict) -> str:
+    """One line on a one-PSF calibration: flip, offset, misfit, held-out scores."""
+    held = ("" if "holdout_pearson" not in summary else "; held-out pair predicted with "
+            "Pearson " + ", ".join(f"{v:.3f}" for v in summary["holdout_pearson"]))
+    return (f"one PSF per channel (rank 1), flip {summary['flip']}, offset "
+            f"{', '.join(f'{v:.3g}' for v in summary['offset'])}, relative misfit "
+            f"{summary['residual']:.3g}{held}")
 
 
 def _field_calibration(raws, truths, options, one_psf: dict, args) -> dict:
