@@ -6,6 +6,8 @@ scored against the ground truth of captures the calibration did not see.
         --solvers admm fista --name scene_psf_full_im43   # the published 270 × 480,
     python -m benchmarks.bench_scene_psf --combine benchmarks/results/scene_psf_full_*.json \
         --name scene_psf_full                            # one fold a run, then combined
+    python -m benchmarks.bench_scene_psf --source DIR --folds im43 --via-cli RUNDIR \
+        --name scene_psf_cli              # the same fold through `diffcam` commands
 
 Data: the seven Lensless Learning pairs (a DiffuserCam colour capture of a picture on a
 monitor, and a lensed photograph of it registered to the sensor), as shipped
@@ -31,6 +33,14 @@ held-out raw is
 
 The PSF carries the gain between the truth's units and the sensor's, so every estimate
 is in the truth's units: nothing is rescaled after the fact.
+
+``--via-cli RUNDIR`` runs the same fold as a user would, with ``diffcam calibrate-psf``
+(one PSF; ``--field``) on the other six pairs' files and ``diffcam reconstruct`` of the
+held-out raw (the one PSF with ``--dark-raw`` set to its fitted offset; the field file
+subtracts its own), ADMM-TV and FISTA at their command-line defaults, and scores the
+``.npy`` results as above, beside this benchmark's rows for the fold from
+``benchmarks/results/scene_psf_full.json``. A command whose output is already in
+RUNDIR is not run again (its row says so).
 """
 
 from __future__ import annotations
@@ -232,6 +242,82 @@ def combine(paths: list[Path], name: str) -> None:
     print(f"wrote {write_json(name, rows, {**extra, 'summary': table, 'parts': parts})}")
 
 
+def via_cli(source: Path, name: str, run_dir: Path, grid) -> list[dict]:
+    """Rows of fold ``name`` through the ``diffcam`` commands (module docstring)."""
+    import json
+
+    from diffcam.calibrate.scene_psf import flip_scene
+    from diffcam.io import read_rgb
+
+    k = NAMES.index(name)
+    others = [NAMES[(k + j) % len(NAMES)] for j in range(1, len(NAMES))]
+    pairs = [str(source / "diffuser" / f"{n}.npy") for n in others] + ["--truth"] + [
+        str(source / "lensed" / f"{n}.npy") for n in others] + ["--channel-order", "BGR"]
+    field = f"{grid[0]}x{grid[1]}"
+    ran = {"psf": _run_once(run_dir, "psf.tif", ["calibrate-psf", *pairs, "-o", "psf.tif",
+                                                  "--json", "psf.json"]),
+           "field": _run_once(run_dir, "field.npz", ["calibrate-psf", *pairs, "--field",
+                                                      field, "-o", "field.npz", "--json",
+                                                      "field.json"])}
+    cal = {m: json.loads((run_dir / f"{m}.json").read_text()) for m in ("psf", "field")}
+    dark = ",".join(repr(v) for v in cal["psf"]["offset"])
+    raw = str(source / "diffuser" / f"{name}.npy")
+    truth = flip_scene(read_rgb(source / "lensed" / f"{name}.npy", channel_order="BGR"),
+                       cal["psf"]["flip"])
+    rows = []
+    for model, psf, extra in (("one PSF", "psf.tif", [f"--dark-raw={dark}"]),
+                              (f"field {grid[0]}×{grid[1]}", "field.npz", [])):
+        for method in FIELD_SOLVERS:
+            out = f"{psf.split('.')[0]}_{method}.npy"
+            t = time.perf_counter()
+            command = ["reconstruct", raw, "--channel-order", "BGR", "--psf", psf, *extra,
+                       "--method", method, "-o", out]
+            run = _run_once(run_dir, out, command)
+            wall = time.perf_counter() - t if run else None
+            estimate = np.moveaxis(np.load(run_dir / out), -1, 0).astype(np.float64)
+            rows.append({"pair": name, "model": model, "method": method,
+                         **scores(estimate, truth), "reconstruct_wall_s": wall,
+                         "calibration_run": ran["psf" if psf == "psf.tif" else "field"],
+                         "command": "diffcam " + " ".join(command)})
+    return rows
+
+
+def _run_once(run_dir: Path, output: str, command: list[str]) -> bool:
+    """``diffcam COMMAND`` in ``run_dir`` (this checkout's package), unless ``output``
+    is there already; whether it ran."""
+    import os
+    import subprocess
+    import sys
+
+    if (run_dir / output).exists():
+        print(f"reusing {run_dir / output}")
+        return False
+    print("diffcam " + " ".join(command), flush=True)
+    root = Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, "-m", "diffcam", *command], cwd=run_dir, check=True,
+                   env={**os.environ, "PYTHONPATH": str(root)})
+    return True
+
+
+def cli_table(rows: list[dict], name: str) -> list[dict]:
+    """The command-line rows beside this benchmark's rows of the same fold, pair and
+    model from ``benchmarks/results/scene_psf_full.json``."""
+    import json
+
+    from benchmarks.harness import RESULTS
+
+    bench = json.loads((RESULTS / "scene_psf_full.json").read_text())["rows"]
+    table = []
+    for r in rows:
+        b = next(x for x in bench if (x["pair"], x["model"], x["method"], x["pairs_used"])
+                 == (name, r["model"], r["method"], 6))
+        table.append({"model": r["model"], "method": r["method"], "psnr_cli": r["psnr"],
+                      "psnr_bench": b["psnr"], "ssim_cli": r["ssim"], "ssim_bench": b["ssim"],
+                      "psnr_picture_cli": r["psnr_picture"],
+                      "psnr_picture_bench": b["psnr_picture"]})
+    return table
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--source", type=Path, help="folder of the original .npy pairs")
@@ -247,11 +333,24 @@ def main(argv=None):
     p.add_argument("--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS))
     p.add_argument("--grid", type=int, nargs=2, default=[2, 2], metavar=("GY", "GX"),
                    help="field positions of the field-dependent PSF (0 0: none)")
+    p.add_argument("--via-cli", type=Path, metavar="RUNDIR",
+                   help="run the first of --folds through the diffcam commands in RUNDIR")
     p.add_argument("--name", default="scene_psf", help="results JSON name")
     args = p.parse_args(argv)
     args.grid = args.grid if min(args.grid) > 0 else None
     if args.combine:
         return combine(args.combine, args.name)
+    if args.via_cli:
+        if args.source is None or not args.folds or args.grid is None:
+            p.error("--via-cli needs --source, --folds and a --grid")
+        args.via_cli.mkdir(parents=True, exist_ok=True)
+        rows = via_cli(args.source.resolve(), args.folds[0], args.via_cli.resolve(),
+                       args.grid)
+        table = cli_table(rows, args.folds[0])
+        print(markdown_table(table, list(table[0])))
+        extra = {"data": args.source.name, "comparison": table}
+        print(f"wrote {write_json(args.name, rows, extra)}")
+        return
     raws, truths = load(args.source, args.downsample)
     t, rows = time.perf_counter(), []
     folds = [NAMES.index(n) for n in args.folds] if args.folds else range(args.pairs)

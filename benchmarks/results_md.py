@@ -239,6 +239,12 @@ SECTIONS = {
                        "python -m benchmarks.bench_scene_psf --source DIR --folds … "
                        "--pairs-used 6 --solvers admm fista --name scene_psf_full_…, then "
                        "--combine", None),
+    "scene_psf_cli": ("The same fold through the command line: `diffcam calibrate-psf` and "
+                      "`diffcam reconstruct` as a user runs them, beside the benchmark's rows",
+                      "python -m benchmarks.bench_scene_psf --source DIR --folds im43 "
+                      "--via-cli RUNDIR --name scene_psf_cli",
+                      ["pair", "model", "method", "psnr", "ssim", "pearson", "psnr_picture",
+                       "ssim_picture", "reconstruct_wall_s", "calibration_run", "command"]),
     "scene_psf_seams": ("The fitted PSF's horizontal seams: where they sit as the sensor is "
                         "cut, and the border taper that removes them",
                         "python -m benchmarks.bench_scene_psf_seams", None),
@@ -248,7 +254,7 @@ SECTIONS = {
 
 
 EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["cost", "large"],
-                "scene_psf_full": ["summary"],
+                "scene_psf_full": ["summary"], "scene_psf_cli": ["comparison"],
                 **{f"design_3d{v}": ["gains"] for v in (
                     "", "_256", "_model_truth", "_tuned", "_4_depths", "_near",
                     "_256_model_truth", "_end_to_end", "_1000_photons", "_10000_photons",

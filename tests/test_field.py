@@ -1,6 +1,8 @@
 """The field-dependent (low-rank) PSF model: diffcam.model.field and its operator
 diffcam.reconstruct.operators.field_model, in every solver."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -226,6 +228,37 @@ def test_save_and_load_round_trip_and_refuse_bad_files(tmp_path):
     arrays["positions"] = arrays["positions"][:2]
     np.savez(tmp_path / "cut.npz", **arrays)
     with pytest.raises(DiffcamError, match="do not fit together"):
+        load_field_psf(tmp_path / "cut.npz")
+
+
+def test_colour_file_round_trip_and_version_1(tmp_path):
+    """A colour file holds one model per channel, in the channels' order, exactly; a
+    version 1 file (one model, no channels) still reads; mismatched channels and
+    damaged channel axes are refused."""
+    rng = np.random.default_rng(9)
+    models = [field_psf(_low_rank_field(rng)[0].astype(np.float32), POSITIONS, rank=2)
+              for _ in range(3)]
+    path = tmp_path / "colour.npz"
+    save_field_psf(path, models, channels="RGB", grid=[2, 3], offset=[0.1, 0.2, 0.3])
+    back, meta = load_field_psf(path)
+    assert meta["channels"] == "RGB" and meta["grid"] == [2, 3] and len(back) == 3
+    assert meta["error"] == max(float(m.error()) for m in models)
+    for m, b in zip(models, back):
+        for x, y in zip(jax.tree.leaves(m), jax.tree.leaves(b)):
+            np.testing.assert_array_equal(x, y)
+    arrays = dict(np.load(path))
+    one = {k: v[0] for k, v in arrays.items() if k != "meta"}
+    meta_1 = {k: v for k, v in meta.items() if k != "channels"}
+    np.savez(tmp_path / "v1.npz", **one, meta=np.array(json.dumps({**meta_1, "version": 1})))
+    single, _ = load_field_psf(tmp_path / "v1.npz")
+    np.testing.assert_array_equal(single.kernels, models[0].kernels)
+    with pytest.raises(DiffcamError, match="one channel per FieldPSF"):
+        save_field_psf(tmp_path / "x.npz", models[:2], channels="RGB")
+    with pytest.raises(DiffcamError, match="one FieldPSF"):
+        save_field_psf(tmp_path / "x.npz", models)
+    arrays["kernels"] = arrays["kernels"][:2]
+    np.savez(tmp_path / "cut.npz", **arrays)
+    with pytest.raises(DiffcamError, match="do not match its arrays"):
         load_field_psf(tmp_path / "cut.npz")
 
 

@@ -307,7 +307,8 @@ def test_help_shows_defaults_with_units(capsys):
         main(["reconstruct", "--help"])
     assert stop.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    for words in ("default: 100 for admm, 1000 for rl; with --3d 60 for admm, 300 for rl",
+    for words in ("default: 100 for admm, 1000 for rl, 200 for fista; with --3d 60 for admm, "
+                  "300 for rl",
                   "(default: admm)", "default: 1 up to 480 pixels per side", "counts", "'auto'", "--3d",
                   "natural name order"):
         assert words in text, words

@@ -63,6 +63,8 @@ def _camera_for(phase_file, z2, crop):
 def _cmd_psf(args) -> int:
 
     kind = calibrate.model_kind(args.phase)
+    if kind == "field-psf":
+        raise calibrate.model_file.field_psf_refused(args.phase)
     if kind == "stack-fit":
         if args.processes != 1:
             raise DiffcamError("--processes is for a phase file; a stack-fit model's "
@@ -226,6 +228,8 @@ def _cmd_compare(args) -> int:
     kind = calibrate.model_kind(path)
     if kind is None:
         raise calibrate.model_file.not_a_model(path)
+    if kind == "field-psf":
+        raise calibrate.model_file.field_psf_refused(path)
     if kind == "stack-fit":
         return _compare_stack_fit(args, path)
     if args.z2 is None:

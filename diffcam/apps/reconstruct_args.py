@@ -10,11 +10,12 @@ from diffcam.apps.common import (DefaultsFormatter, count, iterations_count, len
 from diffcam.apps.reconstruct_inputs import DARK_RING, WORKING_SIZE, dark_arg, gains_arg
 from diffcam.core.lazy import module_constant
 
-ITERATIONS = {"admm": 100, "rl": 1000}
+ITERATIONS = {"admm": 100, "rl": 1000, "fista": 200}
 """Default iterations per method in 2-D, measured on the shipped hand (docs/real_data.md):
 ADMM-TV has converged by 100 (correlation 0.998 with a 200-step FISTA reference, the
 same at 300); Richardson–Lucy needs about 1000 (0.996; at 150 the fingers are not
-resolved, 0.959)."""
+resolved, 0.959). FISTA (plain non-negative least squares, regularised by its early
+stop) 200, as the Lensless Learning benchmark runs it (docs/scene_psf.md)."""
 ITERATIONS_3D = {"admm": 60, "rl": 300}
 """The same for ``--3d``: ADMM-TV with `diffcam.reconstruct.admm.VOLUME` 60 (the
 shipped USAF capture, 44 planes of 270 × 320: the measurements behind the choice are in
@@ -38,7 +39,8 @@ def add_reconstruct(sub) -> None:
                     "whose PSF explains the capture best (least data misfit); with --3d, "
                     "reconstruct every plane as a volume "
                     "(OUT.tif, OUT_max.png, OUT_depth.png, OUT_projections.png, "
-                    "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm; "
+                    "OUT_montage.png). ADMM-TV solves for the raw scaled to unit L2 norm "
+                    "(each colour channel on its own); "
                     "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5, "
                     "residual-balanced penalties and over-relaxation 1.85 "
                     "(diffcam.reconstruct.admm.VOLUME), "
@@ -47,16 +49,18 @@ def add_reconstruct(sub) -> None:
                     "docs/cli_reconstruct.md and docs/volume.md.")
     rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
     rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",
-                     help="channel order of colour files, RGB or BGR (OpenCV .npy arrays); "
-                          "needed for colour .npy, PNG/TIFF are RGB by default")
+                     help="channel order of the colour raw (and of a colour .npy PSF), RGB "
+                          "or BGR (OpenCV .npy arrays); needed for colour .npy; PNG/TIFF "
+                          "raws are RGB by default, PNG/TIFF PSFs always")
     rec.add_argument("--white-balance", type=gains_arg, metavar="auto|R,G,B",
                      help="colour: gains per channel, or 'auto' (grey world); default none "
                           "(a PSF per channel from calibrate-psf already balances them)")
     rec.add_argument("--psf", required=True, metavar="SOURCE",
                      help="PSF image or stack (.png/.tif/.npy, multi-page TIFF, .npz or .tif "
                           "from `diffcam psf`, .mat), a folder or a quoted glob "
-                          "('psfs/*.png') of single-plane images (natural name order), or "
-                          "a model .npz from `diffcam fit`")
+                          "('psfs/*.png') of single-plane images (natural name order), "
+                          "a model .npz from `diffcam fit`, or a field-dependent PSF .npz "
+                          "from `diffcam calibrate-psf --field` (2-D)")
     rec.add_argument("--planes", type=planes_arg, metavar="PLANES",
                      help="planes of the stack or model to use, e.g. 0:43 (ends included), "
                           f"0:43:2 or 3,7,12 (default: all; at most {max_planes})")
@@ -66,8 +70,10 @@ def add_reconstruct(sub) -> None:
                      help="2-D: source depth z1 to use, with a unit (25mm)")
     rec.add_argument("--plane", type=count(0, max_planes - 1), metavar="INDEX",
                      help="2-D: index of the PSF plane to use")
-    rec.add_argument("--method", choices=["admm", "rl", "wiener"], default="admm",
-                     help="ADMM-TV, Richardson–Lucy, or Wiener (2-D only)")
+    rec.add_argument("--method", choices=["admm", "rl", "wiener", "fista"], default="admm",
+                     help="ADMM-TV, Richardson–Lucy, Wiener (2-D only) or FISTA (plain "
+                          "non-negative least squares, 2-D only); a field-dependent PSF "
+                          "takes admm or fista")
     rec.add_argument("--iterations", type=iterations_count(), metavar="N",
                      help="solver iterations (default: " + ", ".join(
                          f"{n} for {m}" for m, n in ITERATIONS.items()) + "; with --3d "

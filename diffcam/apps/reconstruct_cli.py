@@ -5,12 +5,16 @@ capture and the PSFs of its depths.
     diffcam reconstruct raw.png --psf psfs/ --3d -o volume.tif
     diffcam reconstruct raw.png --psf 'psfs/*.png' --3d --dark-raw auto --dark-psf auto -o volume.tif
     diffcam reconstruct raw.png --psf model.npz --planes 0:43:2 --3d -o volume.tif
+    diffcam reconstruct raw.npy --channel-order BGR --psf field.npz --method fista -o scene.npy
 
 A PSF SOURCE is a PSF image or stack file (PNG/TIFF/``.npy`` image, multi-page TIFF,
 ``.npz``/``.tif`` from ``diffcam psf``, MATLAB ``.mat``), a folder of single-plane
 images (natural name order: ``psf9`` before ``psf10``), a quoted glob of them, or a
-stack-fit model from ``diffcam fit`` (its planes rendered by ``StackFit.predict``).
-See ``docs/cli_reconstruct.md``.
+stack-fit model from ``diffcam fit`` (its planes rendered by ``StackFit.predict``), or
+a field-dependent PSF from ``diffcam calibrate-psf --field`` (2-D; each channel solved
+with its model's operator, `diffcam.reconstruct.field_model`). The last line says
+which model was used: a shift-invariant PSF, or a field-dependent one with its rank
+and model error. See ``docs/cli_reconstruct.md``.
 """
 
 from __future__ import annotations
@@ -24,14 +28,15 @@ import numpy as np
 
 from diffcam.apps.common import finite_result, save_figure, save_image, save_rgb
 from diffcam.apps.reconstruct_args import ITERATIONS, ITERATIONS_3D
-from diffcam.apps.reconstruct_inputs import (PsfSource, match_envelope, read_inputs,
-                                             white_balance)
+from diffcam.apps.reconstruct_inputs import (PsfSource, match_envelope, read_field_inputs,
+                                             read_inputs, white_balance)
 from diffcam.apps.volume_views import depth_map_figure, montage_figure, projections_figure
 from diffcam.core.errors import DiffcamError
 from diffcam.core.grid import crop_to
 from diffcam.io import atomic_output, check_output_path
-from diffcam.reconstruct import (admm_tv, admm_tv_3d, focus_sweep, richardson_lucy,
-                                 richardson_lucy_3d, wiener)
+from diffcam import calibrate  # lazy: loaded on use
+from diffcam.reconstruct import (admm_tv, admm_tv_3d, field_model, fista, focus_sweep,
+                                 richardson_lucy, richardson_lucy_3d, wiener)
 from diffcam.reconstruct.admm import VOLUME
 from diffcam.reconstruct.sensor_terms import legendre_terms
 
@@ -71,11 +76,12 @@ def _pick_plane(raw, source: PsfSource, args, say) -> np.ndarray:
     return psfs[plane]
 
 
-def _unit_norm(a) -> tuple[np.ndarray, float]:
-    """``a / ||a||₂`` (float32) and ``||a||₂``, both computed in float64: float32
-    squares overflow from 1.8e19, and the norm of a raw ×1e37 exceeds float32."""
+def _unit_norm(a) -> tuple[np.ndarray, np.ndarray]:
+    """``a / ||a||₂`` per image (over the last two axes: each colour channel, each PSF
+    on its own; float32) and the norms ``(..., 1, 1)``, both computed in float64:
+    float32 squares overflow from 1.8e19, and the norm of a raw ×1e37 exceeds float32."""
     a = np.asarray(a, np.float64)
-    norm = float(np.linalg.norm(a))
+    norm = np.linalg.norm(a, axis=(-2, -1), keepdims=True)
     return (a / norm).astype(np.float32), norm
 
 
@@ -87,8 +93,8 @@ def _iterations(args) -> int:
     return args.iterations
 
 
-def _run_2d(args, say) -> int:
-
+def _check_2d(args) -> None:
+    """Refuse the options of a volume in a 2-D reconstruction; check ``-o``."""
     check_output_path(args.out, suffixes=(".png", ".tif", ".tiff", ".npy"))
     if args.psf_envelope is not None:
         raise DiffcamError("--psf-envelope shapes the PSF stack of a volume; use it with "
@@ -96,13 +102,22 @@ def _run_2d(args, say) -> int:
     if args.background is not None:
         raise DiffcamError("--background is a term of the --3d ADMM solve; use it with "
                            "--3d.")
+
+
+def _say_solving(raw, args, iterations: int, say) -> None:
+    say(f"reconstructing {raw.shape[-2]}×{raw.shape[-1]}"
+        + (" in colour (R, G, B)" if raw.ndim == 3 else "") + f": {args.method}"
+        + ("" if args.method == "wiener" else f", {iterations} iterations"))
+
+
+def _run_2d(args, say) -> int:
+
+    _check_2d(args)
     say(f"reading {args.raw} and {args.psf}")
     raw, source = read_inputs(args, say)
     psf = _pick_plane(raw, source, args, say)
     iterations = _iterations(args)
-    say(f"reconstructing {raw.shape[-2]}×{raw.shape[-1]}"
-        + (" in colour (R, G, B)" if raw.ndim == 3 else "") + f": {args.method}"
-        + ("" if args.method == "wiener" else f", {iterations} iterations"))
+    _say_solving(raw, args, iterations, say)
     if args.method == "rl":
         rec = richardson_lucy(raw, psf, iterations, boundary="crop", progress=not args.quiet)
     elif args.method == "admm":
@@ -110,17 +125,72 @@ def _run_2d(args, say) -> int:
         rec = admm_tv(unit_raw, unit_psf, iterations, progress=not args.quiet)
         # back to raw / PSF units, in float64 (the scale may exceed float32's range)
         rec = rec._replace(image=np.asarray(rec.image, np.float64) * (raw_norm / psf_norm))
+    elif args.method == "fista":
+        rec = fista(raw, psf, iterations, progress=not args.quiet)
     else:
         rec = wiener(raw, psf, boundary="crop")
-    image = np.asarray(rec.image if args.full_field else crop_to(rec.image, raw.shape[-2:]))
+    _write_2d(args, raw, rec.image, say)
+    print(f"diffcam reconstruct: shift-invariant PSF, {args.method}, "
+          f"{int(np.max(rec.iterations))} iterations, residual {final_residual(rec):.3g} "
+          f"→ {args.out}")
+    return 0
+
+
+def _write_2d(args, raw, image, say) -> None:
+    """Write a 2-D result (``(oy, ox)`` or ``(3, oy, ox)``), cropped to the sensor's
+    frame unless ``--full-field``; colour white-balanced by ``--white-balance``."""
+    image = np.asarray(image if args.full_field else crop_to(image, raw.shape[-2:]))
     say(f"writing {args.out}")
     if raw.ndim == 3:
         save_rgb(args.out, white_balance(image, args.white_balance))
     else:
         save_image(args.out, image)
-    print(f"diffcam reconstruct: {args.method}, {int(np.max(rec.iterations))} iterations, "
-          f"residual {final_residual(rec):.3g} → {args.out}")
+
+
+FIELD_METHODS = ("admm", "fista")
+
+
+def _run_field(args, say) -> int:
+    """2-D with a field-dependent PSF (``--psf FIELD.npz``)."""
+
+    _check_2d(args)
+    if args.method not in FIELD_METHODS:
+        raise DiffcamError(f"{args.psf} is a field-dependent PSF: solve with --method "
+                           f"admm or fista.")
+    say(f"reading {args.raw} and {args.psf}")
+    raw, fields, meta = read_field_inputs(args, say)
+    iterations = _iterations(args)
+    _say_solving(raw, args, iterations, say)
+    image, recs = _solve_field(raw, fields, args.method, iterations, not args.quiet)
+    _write_2d(args, raw, image, say)
+    worst = max(fields, key=lambda f: float(f.error()))
+    grid = meta.get("grid")
+    print(f"diffcam reconstruct: field-dependent model"
+          + (f" ({grid[0]}×{grid[1]} field positions)" if grid else "")
+          + f", rank {worst.rank}, model error {float(worst.error()):.2g}, {args.method}, "
+          f"{max(int(np.max(r.iterations)) for r in recs)} iterations, residual "
+          f"{max(final_residual(r) for r in recs):.3g} → {args.out}")
     return 0
+
+
+def _solve_field(raw, fields: tuple, method: str, iterations: int, progress: bool):
+    """Each channel of ``raw`` solved with its field model's operator
+    (`diffcam.reconstruct.field_model`): ADMM-TV for the channel scaled to unit L2 norm
+    (the scale of its default weights) and scaled back, or FISTA on the channel as it
+    is. The image ``(oy, ox)`` or ``(3, oy, ox)`` on the object grid, in the raw's
+    units per unit of the model, and each channel's `Reconstruction`."""
+    images, recs = [], []
+    for channel, field in zip(raw if raw.ndim == 3 else raw[None], fields):
+        operator = field_model(field, channel.shape)
+        if method == "admm":
+            unit, norm = _unit_norm(channel)
+            rec = admm_tv(unit, operator, iterations, progress=progress)
+            rec = rec._replace(image=np.asarray(rec.image, np.float64) * norm)
+        else:
+            rec = fista(channel, operator, iterations, progress=progress)
+        images.append(np.asarray(rec.image))
+        recs.append(rec)
+    return (np.stack(images) if raw.ndim == 3 else images[0]), recs
 
 
 class VolumePaths(NamedTuple):
@@ -188,8 +258,12 @@ def _run_3d(args, say) -> int:
         raise DiffcamError("--3d reconstructs every plane of the stack; --plane and --depth "
                            "choose one plane for a 2-D reconstruction (use --planes to "
                            "choose the planes of the volume).")
-    if args.method == "wiener":
-        raise DiffcamError("--3d solves with --method rl or admm; wiener is 2-D only.")
+    if args.method in ("wiener", "fista"):
+        raise DiffcamError(f"--3d solves with --method rl or admm; {args.method} is 2-D "
+                           f"only.")
+    if calibrate.model_kind(args.psf) == "field-psf":
+        raise DiffcamError(f"{args.psf} is a 2-D field-dependent PSF (one depth); "
+                           f"reconstruct with it without --3d.")
     if args.method == "rl" and args.background is not None:
         raise DiffcamError("--background is a term of the ADMM solve; drop it or use "
                            "--method admm.")
@@ -268,7 +342,11 @@ def cmd_reconstruct(args) -> int:
     """``diffcam reconstruct``, its command line read
     (`diffcam.apps.reconstruct_args`)."""
     say = _reporter(args.quiet)
-    return _run_3d(args, say) if args.three_d else _run_2d(args, say)
+    if args.three_d:
+        return _run_3d(args, say)
+    if calibrate.model_kind(args.psf) == "field-psf":
+        return _run_field(args, say)
+    return _run_2d(args, say)
 
 
 def volume_labels(source: PsfSource) -> tuple[list[str], str]:

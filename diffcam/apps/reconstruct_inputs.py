@@ -1,6 +1,6 @@
 """What ``diffcam reconstruct`` reads: the raw capture and its PSF source (image,
-stack, folder, glob or stack-fit model), dark levels, colour, and the checks that the
-two hold light and are not swapped."""
+stack, folder, glob, stack-fit model or field-dependent PSF), dark levels, colour, and
+the checks that the two hold light and are not swapped."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import numpy as np
 from diffcam.apps.common import has_stack_meta, read_psfs
 from diffcam.apps.fit_cli import model_planes
 from diffcam.core.errors import DiffcamError
-from diffcam import calibrate  # lazy: loaded on use
+from diffcam import calibrate, model  # lazy: loaded on use
 from diffcam.io import (BackgroundWarning, IMAGE_SUFFIXES, SensorWindow, apply_envelope,
                         as_rgb, border_dark_level, downsample, envelope_widths,
                         fit_sensor_window, image_files, read_image, read_psf_stack,
@@ -294,13 +294,16 @@ def read_raw(path, channel_order: str | None) -> np.ndarray:
 def colour_psf(source: str, raw: np.ndarray, channel_order: str | None) -> PsfSource | None:
     """One PSF per colour channel if ``source`` is one colour image file (e.g. from
     ``diffcam calibrate-psf``), else ``None`` (a grayscale PSF is shared by the channels).
+    ``channel_order`` (the raw's) applies to a colour ``.npy``; a PNG or TIFF PSF is RGB
+    by its format, whatever the raw's order (``calibrate-psf`` writes RGB TIFFs).
     """
 
     path = Path(source)
     if (path.suffix.lower() not in IMAGE_SUFFIXES or not path.is_file()
             or Path(f"{path}.json").exists() or has_stack_meta(path)):
         return None
-    capture = read_image(path, channel_order=channel_order)
+    npy = path.suffix.lower() == ".npy"
+    capture = read_image(path, channel_order=channel_order if npy else None)
     if capture.channels is None:
         return None
     if raw.ndim == 2:
@@ -322,3 +325,64 @@ def white_balance(image: np.ndarray, gains) -> np.ndarray:
                                "dark; give the gains (R,G,B).")
         gains = means.mean() / means
     return image * np.asarray(gains, image.dtype)[:, None, None]
+
+
+FIELD_ONLY_ONE_PLANE = ("planes", "plane", "depth")
+
+
+def read_field_inputs(args, say) -> tuple[np.ndarray, tuple, dict]:
+    """The raw capture, its dark offset subtracted, and the field-dependent PSF of
+    ``--psf`` (`diffcam.model.field.load_field_psf`): one model per channel of the raw
+    (a one-model file is shared by the channels), and the file's metadata.
+
+    The dark offset is the one the calibration fitted (the file's ``offset``, one per
+    channel, subtracted as the model's term, without clipping) or else ``--dark-raw``.
+    The raw must have the sensor's pixels the model was fitted on: it is not
+    downsampled."""
+    fields, meta = model.load_field_psf(args.psf)
+    fields = (fields,) if isinstance(fields, model.FieldPSF) else fields
+    _refuse_for_field(args, fields, meta)
+    raw = read_raw(args.raw, args.channel_order)
+    if raw.ndim == 2 and len(fields) > 1:
+        raise DiffcamError(f"{args.psf}: a colour field model for a grayscale raw; give a "
+                           f"colour raw or a grayscale model.")
+    sensor = meta.get("sensor")
+    if (sensor is not None and list(raw.shape[-2:]) != list(sensor)) or any(
+            f.kernels.shape[-2] > raw.shape[-2] or f.kernels.shape[-1] > raw.shape[-1]
+            for f in fields):
+        raise DiffcamError(f"{args.raw}: {raw.shape[-2]}×{raw.shape[-1]} pixels, but the "
+                           f"field model {args.psf} was fitted on "
+                           f"{'×'.join(str(n) for n in sensor or fields[0].kernels.shape[-2:])}"
+                           f"; give the raw at the model's size.")
+    offset = meta.get("offset")
+    if offset is None:
+        raw = subtract_dark(raw, args.dark_raw, f"{args.raw} (raw dark level)", say)
+    else:
+        offset = np.asarray(offset, np.float32)
+        say(f"dark offset from the calibration subtracted: "
+            f"{', '.join(f'{v:.3g}' for v in offset)}")
+        raw = raw - (offset[:, None, None] if raw.ndim == 3 else offset[0])
+    if not np.max(raw) > 0:
+        raise DiffcamError(f"{args.raw}: no light: every pixel is 0 or below once the "
+                           f"dark level is off; check the capture and the dark level.")
+    return raw, fields * (3 if raw.ndim == 3 and len(fields) == 1 else 1), meta
+
+
+def _refuse_for_field(args, fields: tuple, meta: dict) -> None:
+    """Refuse the options that do not apply to a field-dependent PSF, one line each."""
+    if fields[0].volume:
+        raise DiffcamError(f"{args.psf}: a 3-D field model (kernels per depth); "
+                           f"`diffcam reconstruct` takes a 2-D one (`calibrate-psf --field`).")
+    if args.bias is not None or args.dark_psf is not None:
+        raise DiffcamError(f"{args.psf} is a field-dependent PSF, with no dark level of its "
+                           f"own; leave out --bias and --dark-psf (--dark-raw sets the raw's).")
+    if args.dark_raw is not None and meta.get("offset") is not None:
+        raise DiffcamError(f"{args.psf} carries the dark offset its calibration fitted, and "
+                           f"it is subtracted; leave out --dark-raw.")
+    if args.downsample not in (None, 1):
+        raise DiffcamError(f"{args.psf} is fitted on its sensor's pixels; reconstruct at "
+                           f"that size (leave out --downsample).")
+    given = [f"--{name}" for name in FIELD_ONLY_ONE_PLANE if getattr(args, name) is not None]
+    if given:
+        raise DiffcamError(f"{args.psf} is a field-dependent PSF at one depth; "
+                           f"{', '.join(given)} choose(s) planes of a PSF stack.")

@@ -19,7 +19,8 @@ Its modules (``diffcam.calibrate.<name>``):
 - `captures` — preprocessing of captures, HDR merge, synthetic captures
 - `simulation` — the paper's Fig. 3 simulation (the cameraman diffuser)
 - `phase_io` — phase files
-- `model_file` — the camera-model files (phase file or stack fit) through one door
+- `model_file` — the camera-model files (phase file, stack fit, field-dependent PSF)
+  through one door
 - `stack_model`, `stack_fit`, `stack_result`, `stack_inputs` — the wave model of a
   measured PSF stack, its fit to a few planes, the fitted result (prediction, file) and
   the given planes' checks and preparation

@@ -1,6 +1,6 @@
 """The camera-model files, read through one door.
 
-diffcam writes two kinds of camera model, both ``.npz`` with their provenance inside:
+diffcam writes three kinds of camera model, all ``.npz`` with their provenance inside:
 
 - a **phase file** (``diffcam calibrate``, `save_phase`): the
   diffuser phase θd in SI units (grid pitch, wavelength, aperture, how it was
@@ -9,10 +9,14 @@ diffcam writes two kinds of camera model, both ``.npz`` with their provenance in
 - a **stack fit** (``diffcam fit``, `save`): the
   field, distance and magnification law fitted to measured planes of a PSF stack, the
   given planes, the fit's history and options. It gives the planes of that stack by
-  index (``diffcam predict FIT``); its planes fix z2·M(z1), not z2 and z1 apart.
+  index (``diffcam predict FIT``); its planes fix z2·M(z1), not z2 and z1 apart;
+- a **field-dependent PSF** (``diffcam calibrate-psf --field``,
+  `diffcam.model.field.save_field_psf`): kernels at field positions across the
+  sensor and their weights, one model per colour channel, at the depth of the scenes
+  it was fitted to. ``diffcam reconstruct --psf FIELD`` solves with it.
 
 `model_kind` tells them apart from the file's contents (not its name);
-`load_model` reads either. ``diffcam psf``, ``predict``, ``compare`` and
+`load_model` reads the first two. ``diffcam psf``, ``predict``, ``compare`` and
 ``reconstruct`` all take a model file this way, and each says in one line what to do
 with the other kind when it needs depths or plane indices that the file cannot give.
 """
@@ -28,13 +32,14 @@ from diffcam.calibrate.stack_result import FORMAT, StackFit, load_stack_fit
 from diffcam.core.errors import DiffcamError
 from diffcam.io import npz_keys, read_npz
 
-__all__ = ["model_kind", "load_model", "load_stack_model", "not_a_model", "MODEL_FILES"]
+__all__ = ["model_kind", "load_model", "load_stack_model", "not_a_model", "field_psf_refused",
+           "MODEL_FILES"]
 
 MODEL_FILES = "a phase file from `diffcam calibrate` or a stack fit from `diffcam fit`"
 
 
 def model_kind(path: str | os.PathLike) -> str | None:
-    """``"phase"``, ``"stack-fit"``, or ``None`` for anything else (another suffix, a
+    """``"phase"``, ``"stack-fit"``, ``"field-psf"``, or ``None`` for anything else (another suffix, a
     missing file, an ``.npz`` of other arrays). Reads the zip directory, and for a
     stack fit its metadata entry; a damaged ``.npz`` raises
     [`DiffcamError`][diffcam.core.errors.DiffcamError]."""
@@ -44,6 +49,8 @@ def model_kind(path: str | os.PathLike) -> str | None:
     keys = set(npz_keys(path, what="a diffcam model file"))
     if {"phase", "meta"} <= keys:
         return "phase"
+    if {"kernels", "coefficients", "meta"} <= keys:
+        return "field-psf"
     if "metadata" not in keys:
         return None
     meta = read_npz(path, ["metadata"], what="a diffcam model file")["metadata"]
@@ -59,14 +66,17 @@ def load_model(path: str | os.PathLike) -> PhaseFile | StackFit:
     or a [`StackFit`][diffcam.calibrate.stack_result.StackFit].
 
     Raises:
-        DiffcamError: a file of neither kind (one line naming both), or a damaged or
-            outdated one (the kind's own loader's message).
+        DiffcamError: a file of neither kind (one line naming both; a field-dependent
+            PSF: the command that takes it), or a damaged or outdated one (the kind's
+            own loader's message).
     """
     kind = model_kind(path)
     if kind == "phase":
         return load_phase(path)
     if kind == "stack-fit":
         return load_stack_fit(path)
+    if kind == "field-psf":
+        raise field_psf_refused(path)
     raise not_a_model(path)
 
 
@@ -79,6 +89,14 @@ def load_stack_model(path: str | os.PathLike) -> StackFit:
         raise DiffcamError(f"{path} is a phase file: it gives PSFs at depths z1, not plane "
                            f"indices; render them with `diffcam psf {path} --z1 … --z2 …`.")
     return model
+
+
+def field_psf_refused(path: str | os.PathLike) -> DiffcamError:
+    """The one-line error for a field-dependent PSF where depths or planes are needed."""
+    return DiffcamError(f"{path} is a field-dependent PSF (diffcam calibrate-psf --field): "
+                        f"the camera across its field at one depth, not at depths or plane "
+                        f"indices; reconstruct with it: `diffcam reconstruct RAW --psf "
+                        f"{path}`.")
 
 
 def not_a_model(path: str | os.PathLike) -> DiffcamError:

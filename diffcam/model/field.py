@@ -53,7 +53,9 @@ __all__ = ["FieldPSF", "field_psf", "chief_rays", "register", "thin_plate_weight
            "save_field_psf", "load_field_psf", "FORMAT"]
 
 FORMAT = "diffcam-field-psf"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""Version 2 adds colour files (one model per channel, ``channels`` in the metadata);
+version 1 files hold one model and are read as before."""
 _DEGENERATE = 1e-6   # a direction of the positions' spread below this (relative) is flat
 
 
@@ -310,33 +312,71 @@ def thin_plate_weights(positions: Float[Array, "*depth npos 2"],
 
 # ---------------------------------------------------------------------------- files
 
-def save_field_psf(path: str | os.PathLike, model: FieldPSF, **metadata) -> None:
-    """Write a `FieldPSF` to ``.npz`` (exact round trip), with ``metadata``
-    (JSON-serialisable keywords: the camera, the tolerance, …) beside it. The file is
-    written atomically (`diffcam.io.atomic_output`)."""
+_ARRAYS = ("kernels", "coefficients", "positions", "singular_values")
+
+
+def save_field_psf(path: str | os.PathLike, model: FieldPSF | Sequence[FieldPSF], /, *,
+                   channels: str | None = None, **metadata) -> None:
+    """Write a `FieldPSF`, or one per colour channel, to ``.npz`` (exact round trip),
+    with ``metadata`` (JSON-serialisable keywords: the camera, the tolerance, …) beside
+    it. The file is written atomically (`diffcam.io.atomic_output`).
+
+    Args:
+        path: the ``.npz`` file.
+        model: a `FieldPSF`, or with ``channels`` one per channel, all of one shape
+            (stored on a leading channel axis).
+        channels: the channels' order, one letter each (e.g. ``"RGB"``), for a colour
+            model; ``None`` for one model.
+        metadata: recorded beside the arrays (``load_field_psf`` returns it); the file's
+            ``rank`` and ``error`` (the largest over the channels) are added.
+    """
     path = os.fspath(path)
     check_output_path(path, suffixes=(".npz",))
-    meta = {"format": FORMAT, "version": FORMAT_VERSION, "rank": model.rank,
-            "volume": model.volume, "error": float(model.error()), **metadata}
+    models = _channel_models(model, channels)
+    first = models[0]
+    meta = {"format": FORMAT, "version": FORMAT_VERSION, "rank": first.rank,
+            "volume": first.volume, "error": max(float(m.error()) for m in models),
+            "channels": channels, **metadata}
     try:
         text = json.dumps(meta)
     except TypeError as e:
         raise DiffcamError(f"metadata must be JSON-serialisable ({e}).") from None
+    arrays = {name: np.stack([np.asarray(getattr(m, name)) for m in models])
+              if channels else np.asarray(getattr(first, name)) for name in _ARRAYS}
     with atomic_output(path) as temp, open(temp, "wb") as fh:
-        np.savez(fh, kernels=np.asarray(model.kernels),
-                 coefficients=np.asarray(model.coefficients),
-                 positions=np.asarray(model.positions),
-                 singular_values=np.asarray(model.singular_values), meta=np.array(text))
+        np.savez(fh, **arrays, meta=np.array(text))
 
 
-def load_field_psf(path: str | os.PathLike) -> tuple[FieldPSF, dict]:
-    """Read a file written by `save_field_psf`: ``(model, metadata)``.
+def _channel_models(model, channels) -> tuple[FieldPSF, ...]:
+    """``model`` as a tuple of `FieldPSF`, one per channel of ``channels`` (one model
+    for ``None``), checked to share their shapes."""
+    if channels is None:
+        if not isinstance(model, FieldPSF):
+            raise DiffcamError("save_field_psf: give one FieldPSF, or one per channel with "
+                               "channels= (e.g. 'RGB').")
+        return (model,)
+    models = (model,) if isinstance(model, FieldPSF) else tuple(model)
+    if (not isinstance(channels, str) or len(channels) != len(models) or not channels
+            or not all(isinstance(m, FieldPSF) for m in models)):
+        raise DiffcamError(f"save_field_psf: channels names one channel per FieldPSF "
+                           f"(e.g. 'RGB' for three); got {channels!r} for "
+                           f"{len(models)} model(s).")
+    shapes = {tuple(np.shape(getattr(m, name)) for name in _ARRAYS) for m in models}
+    if len(shapes) != 1:
+        raise ShapeError("save_field_psf: the channels' models differ in shape; give one "
+                         "rank, grid and kernel size for every channel.")
+    return models
+
+
+def load_field_psf(path: str | os.PathLike) -> tuple[FieldPSF | tuple[FieldPSF, ...], dict]:
+    """Read a file written by `save_field_psf`: ``(model, metadata)``, the model a
+    `FieldPSF`, or for a colour file a tuple of them in the order of
+    ``metadata["channels"]``. Version 1 files (one model) are read too.
 
     Raises:
         DiffcamError: one line naming the file and what is wrong with it."""
     path = os.fspath(path)
-    keys = ["kernels", "coefficients", "positions", "singular_values", "meta"]
-    arrays = read_npz(path, keys, what="a diffcam field-dependent PSF")
+    arrays = read_npz(path, _ARRAYS + ("meta",), what="a diffcam field-dependent PSF")
     try:
         meta = json.loads(str(arrays["meta"]))
         assert isinstance(meta, dict)
@@ -346,6 +386,19 @@ def load_field_psf(path: str | os.PathLike) -> tuple[FieldPSF, dict]:
     if meta.get("format") != FORMAT or meta.get("version", 0) > FORMAT_VERSION:
         raise DiffcamError(f"{path}: not a {FORMAT} file of version <= {FORMAT_VERSION} "
                            f"(format {meta.get('format')!r}, version {meta.get('version')!r}).")
+    channels = meta.get("channels")
+    if channels is None:
+        return _checked_model(path, {k: arrays[k] for k in _ARRAYS}, meta), meta
+    if not isinstance(channels, str) or any(len(arrays[k]) != len(channels) for k in _ARRAYS):
+        raise DiffcamError(f"{path}: its channels {channels!r} do not match its arrays "
+                           f"(kernels {arrays['kernels'].shape}); the file is damaged.")
+    return tuple(_checked_model(path, {k: arrays[k][c] for k in _ARRAYS}, meta)
+                 for c in range(len(channels))), meta
+
+
+def _checked_model(path, arrays: dict, meta: dict) -> FieldPSF:
+    """The `FieldPSF` of one model's arrays from ``path``, checked to fit together and
+    be finite."""
     k, c, p = arrays["kernels"], arrays["coefficients"], arrays["positions"]
     depth = k.shape[1:-2] if k.ndim in (3, 4) else None
     if (depth is None or c.shape[:-1] != (k.shape[0],) + depth
@@ -353,10 +406,9 @@ def load_field_psf(path: str | os.PathLike) -> tuple[FieldPSF, dict]:
         raise DiffcamError(f"{path}: its arrays do not fit together (kernels {k.shape}, "
                            f"coefficients {c.shape}, positions {p.shape}); the file is "
                            f"damaged.")
-    for name in keys[:-1]:
+    for name in _ARRAYS:
         if not np.all(np.isfinite(arrays[name])):
             raise DiffcamError(f"{path}: {name} holds NaN/Inf; the file is damaged.")
     return FieldPSF(kernels=jnp.asarray(k), coefficients=jnp.asarray(c),
                     positions=jnp.asarray(p),
-                    singular_values=jnp.asarray(arrays["singular_values"])), meta
-
+                    singular_values=jnp.asarray(arrays["singular_values"]))
