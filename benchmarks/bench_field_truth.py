@@ -41,7 +41,11 @@ volume ``FieldPSF`` from the 5 × 5 grid at every depth, one rank for all). The 
 are the worst depth's; the PSNR is over every depth's scene points, the unlit ones
 (zero) included; ``psnr_depth_blind`` scores the truth's lateral values spread evenly
 over the depths, what an estimate that does not resolve depth reaches. Results go to
-``benchmarks/results/field_truth_3d.json``.
+``benchmarks/results/field_truth_3d.json``. A volume is resolved only if the PSF
+changes with depth by more than its caustics' grain: its edge moves by
+``aperture·z2·Δ(1/z1)``, so the committed 3-D table runs at ``--grid 256 --aperture
+0.25`` with 1000 iterations (the 128² camera's 30-pixel PSFs leave every method within
+about 2 dB of the depth-blind estimate).
 """
 
 from __future__ import annotations
