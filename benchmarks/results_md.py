@@ -135,8 +135,9 @@ SECTIONS = {
                      "gain_db", "seconds"]),
     "field_truth_3d": ("A PSF that changes across the field, in 3-D: a per-point known "
                        "truth over three depths, reconstructed as a volume",
-                       "python -m benchmarks.bench_field_truth --depths 6,10,20 "
-                       "--spacing 3 --halves 12,24 --stops 0,0.1,0.3 --exponents 0,40",
+                       "python -m benchmarks.bench_field_truth --depths 10,15,30 "
+                       "--spacing 3 --halves 12,24 --stops 0,0.1,0.3 --exponents 0,40 "
+                       "--grid 256 --aperture 0.25 --iterations 1000",
                        ["half", "field_deg", "stop_mm", "p", "rank_1pct", "rank_0p1pct",
                         "K", "psnr_shift_invariant", "psnr_flat_field",
                         "psnr_field_model", "gain_db", "psnr_depth_blind", "seconds"]),
