@@ -35,6 +35,7 @@ def test_baseline_near_exact_in_paper_geometry():
     assert np.all(p > 0.999), p
 
 
+@pytest.mark.slow
 def test_baseline_degrades_with_depth_when_diffraction_dominates():
     """z2 = 5 mm, 30 µm / 1° diffuser: z_eff moves by 0.21 mm over 22→30 mm and the
     magnified reference departs from the model: Pearson falls monotonically, from

@@ -285,7 +285,8 @@ def _assert(ok: bool) -> bool:
 
 
 # tests/test_far_pitch_check.py runs the same case in the default run
-SLOW_PROBES = {"far capture at a 10× wrong pitch"}
+SLOW_PROBES = {"far capture at a 10× wrong pitch",
+               "grad w.r.t. dx with a soft aperture edge is finite"}
 
 
 @pytest.mark.parametrize("probe", [pytest.param(p, marks=pytest.mark.slow)

@@ -304,7 +304,8 @@ def test_jit_wrapping_and_gradient(x64):
     check_grads(loss, (jnp.asarray(psf),), order=1, modes=["rev"], atol=1e-6, rtol=1e-5)
 
 
-@pytest.mark.parametrize("method, measure", [("admm", "misfit"), ("rl", "misfit"),
+@pytest.mark.parametrize("method, measure", [pytest.param("admm", "misfit", marks=pytest.mark.slow),
+                                             ("rl", "misfit"),
                                              ("rl", "sharpness")])
 def test_focus_sweep_picks_the_true_depth(method, measure):
     """A scene blurred by any plane of a stack of dilated PSFs is found at that plane."""

@@ -164,7 +164,7 @@ SOLVERS_2D = [(fista, {}), (richardson_lucy, {}), (admm_tv, {"tau": 1e-6})]
 SOLVERS_3D = [(fista, {}), (richardson_lucy_3d, {}), (admm_tv_3d, {"tau": 1e-6})]
 
 
-@pytest.mark.parametrize("volume", [False, True])
+@pytest.mark.parametrize("volume", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_every_solver_takes_the_model(volume):
     """FISTA, Richardson–Lucy and ADMM-TV, 2-D and 3-D, take the model in place of the
     PSF, with leading image axes as a batch: the estimates are on the model's object

@@ -90,7 +90,7 @@ def test_volume_puts_each_point_in_its_plane(scene, capsys):
     assert info["method"] == "rl" and info["iterations"] == 200 and info["residual"] < 0.1
 
 
-@pytest.mark.parametrize("envelope", ["mask", "auto"])
+@pytest.mark.parametrize("envelope", [pytest.param("mask", marks=pytest.mark.slow), "auto"])
 def test_printed_residual_is_the_written_volumes(scene, capsys, envelope):
     """ADMM-TV: the residual printed is ||A x - b|| / ||b|| of the volume written
     (--full-field: the whole object grid), recomputed with the forward model it used

@@ -62,7 +62,8 @@ def test_model_far_field_matches_the_fourier_lens_up_to_scale(sim):
     assert np.std(ratio[bright]) / np.mean(ratio[bright]) < 1e-3
 
 
-@pytest.mark.parametrize("solver", [pytest.param("lbfgs", marks=pytest.mark.slow), "ncg", "gauss_newton"])
+@pytest.mark.parametrize("solver", [pytest.param("lbfgs", marks=pytest.mark.slow),
+                                    pytest.param("ncg", marks=pytest.mark.slow), "gauss_newton"])
 def test_solvers_polish_a_warm_start(sim, warm, solver):
     r = retrieve_lsq(sim.near, sim.far, sim.geometry, sim.aperture, init=warm, solver=solver,
                      iterations=40)
@@ -108,6 +109,7 @@ def test_masks_ignore_saturated_pixels(sim, warm):
     assert twin_resolved(masked, sim) > twin_resolved(plain, sim)
 
 
+@pytest.mark.slow
 def test_coarse_phase_grid_and_regularisers(sim):
     grid = PhaseGrid.for_aperture(sim.aperture, 2)
     assert grid.box % 2 == 0 and grid.param_shape == (grid.box // 2,) * 2

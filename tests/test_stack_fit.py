@@ -44,6 +44,7 @@ def synthetic_fit(synthetic_stack):
                          max_steps=100, time_budget=math.inf)
 
 
+@pytest.mark.slow   # the synthetic fit (fixture): 30 s of CPU
 def test_fit_beats_scaling_baseline_on_held_out_planes(synthetic_stack, synthetic_fit):
     """On planes it never saw, the fitted model correlates better with the measured
     (noisy) planes than the scaling baseline does, on average over the held-out planes."""
@@ -67,6 +68,7 @@ def test_fit_beats_scaling_baseline_on_held_out_planes(synthetic_stack, syntheti
     assert "zeta_reference_px2" in fit.identifiable and "z_eff_m" not in fit.identifiable
 
 
+@pytest.mark.slow   # the synthetic fit (fixture): 30 s of CPU
 def test_save_load_round_trip(synthetic_fit, tmp_path):
     """A saved fit predicts exactly what the original predicts; the file is one .npz."""
     path = tmp_path / "fit.npz"
@@ -82,6 +84,7 @@ def test_save_load_round_trip(synthetic_fit, tmp_path):
     assert load_model(path).summary() == synthetic_fit.summary()
 
 
+@pytest.mark.slow   # the synthetic fit (fixture): 30 s of CPU
 def test_prediction_reproduces_given_planes_and_carries_residuals(synthetic_stack,
                                                                  synthetic_fit):
     """At a given plane the prediction is that measured plane (up to gain and offset);
@@ -120,6 +123,7 @@ def test_prediction_reproduces_given_planes_and_carries_residuals(synthetic_stac
     ([1.5], "integers"), ([3, True], "integers"), (0, "no planes"), ([], "no planes"),
     (10 ** 7, "at most 4096"), ([5000], "magnification law reaches zero"),
 ])
+@pytest.mark.slow   # the synthetic fit (fixture): 30 s of CPU
 def test_predict_refuses_bad_planes(synthetic_fit, planes, match):
     """Fractions, strings and bools are not planes; a count is bounded before any work; a
     plane where the fitted linear magnification law is ≤ 0 would render nonsense."""
@@ -139,6 +143,7 @@ def test_cli_fit_refuses_a_saturation_that_is_not_a_level(tmp_path, capsys, leve
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow   # the synthetic fit (fixture): 30 s of CPU
 @pytest.mark.parametrize("kappa", [math.nan, math.inf, 1e6, "1", True])
 def test_predict_refuses_bad_kappa(synthetic_fit, kappa):
     with pytest.raises(DiffcamError, match="kappa must be a number"):
@@ -182,6 +187,7 @@ def test_load_refuses_bad_files(tmp_path):
         load_stack_fit(tmp_path / "missing.npz")
 
 
+@pytest.mark.slow   # the synthetic fit (fixture): 30 s of CPU
 def test_load_refuses_older_format_with_what_to_do(synthetic_fit, tmp_path):
     """A file of an earlier model format (per-sample phase) fails with one line that
     says to fit again, not with a missing-array error."""
