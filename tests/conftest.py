@@ -2,9 +2,7 @@
 crafted file headers for the hardening tests."""
 
 import os
-import shutil
 import struct
-import tempfile
 import zlib
 
 import jax
@@ -29,25 +27,6 @@ def pytest_configure(config):
     if "not slow" in (config.option.markexpr or "") \
             and "xla_backend_optimization_level" not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=1".strip()
-    share_compiled_programs(config)
-
-
-def share_compiled_programs(config):
-    """One JAX compilation cache for the whole run, in a new temporary folder, removed
-    at the end: a program that one test (one xdist worker, one command a test starts)
-    compiled is loaded, not compiled again, by every other that builds the same one.
-    Nothing outlives the run, so each run compiles as a fresh clone does. Left alone
-    when the user's own ``JAX_COMPILATION_CACHE_DIR`` is set; made by the first
-    process only (the xdist workers inherit the variable)."""
-    if "JAX_COMPILATION_CACHE_DIR" in os.environ:
-        return
-    folder = tempfile.mkdtemp(prefix="diffcam-tests-xla-")
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
-    jax.config.update("jax_compilation_cache_dir", folder)  # this process read its
-    jax.config.update("jax_persistent_cache_min_compile_time_secs",  # flags at import
-                      float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]))
-    config.add_cleanup(lambda: shutil.rmtree(folder, ignore_errors=True))
 
 
 @pytest.fixture
