@@ -92,6 +92,8 @@ FORWARD = {
     # name: (library, pairing key for value_and_grad ÷ forward)
     "diffcam psf_stack (scaling)": "diffcam",
     "diffcam psf_stack (direct)": "diffcam",
+    "diffcam psf_stack, FFTW (scaling)": "diffcam",
+    "diffcam psf_stack, FFTW (direct)": "diffcam",
     "diffcam jit(vmap(psf)) (scaling)": "diffcam",
     "diffcam jit(vmap(psf)) (direct)": "diffcam",
     "diffcam psf_map (scaling)": "diffcam",
@@ -140,6 +142,9 @@ def _diffcam(name, n, phase, depths, w, kind):
     import jax.numpy as jnp
     import diffcam
     method = "direct" if "(direct)" in name else "scaling"
+    if "FFTW" in name:   # the opt-in backend (the fftw extra); an error if it cannot load
+        from diffcam.core.backend import set_fft
+        set_fft("fftw")
     cam = diffcam.Camera(wavelength=LAM, z2=Z2, dx=DX, aperture_radius=0.3 * n * DX,
                          shape=(n, n), method=method)
     diffcam.psf(phase, cam, float(depths[0]))  # the checks, once, eagerly
