@@ -211,6 +211,18 @@ def test_oversampled_design_checks_the_finer_grid():
         design(_smooth(), _camera(), Z1, INDEX, dataclasses.replace(OPTIONS, oversample=2))
 
 
+def test_oversampling_a_masked_aperture_is_refused_and_a_factor_of_one_keeps_it():
+    """A drawn aperture has no finer grid to be redrawn on: oversampling it is an error,
+    while factor 1 (every design without pixel integration) leaves the camera as it is."""
+    from diffcam.model.camera import oversampled
+
+    masked = dataclasses.replace(_camera(), aperture_radius=None,
+                                 aperture_mask=np.ones(_camera().shape))
+    assert oversampled(masked, 1) is masked
+    with pytest.raises(DiffcamError, match="circular aperture"):
+        oversampled(masked, 2)
+
+
 @pytest.mark.usefixtures("x64")
 @pytest.mark.parametrize("kind", ["smooth", pytest.param("lenslets", marks=pytest.mark.slow)])
 def test_gradient_matches_finite_differences(kind):

@@ -286,12 +286,12 @@ def oversampled(camera: Camera, factor: int) -> Camera:
     grid). Bin its PSFs to ``camera``'s pixels with
     `diffcam.model.sensor.bin_pixels`."""
     k = int(factor)
+    if k == factor == 1:
+        return camera    # as it is, whatever its aperture
     if k != factor or k < 1 or camera.aperture_mask is not None:
         raise DiffcamError(f"oversampling needs a whole factor ≥ 1 and a circular aperture "
                            f"(aperture_radius), got factor {factor!r}"
                            f"{'' if camera.aperture_mask is None else ' and a mask'}.")
-    if k == 1:
-        return camera
     return dataclasses.replace(camera, dx=camera.dx / k,
                                shape=tuple(k * n for n in camera.shape),
                                pad=tuple(k * n for n in camera.pad),
