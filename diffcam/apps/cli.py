@@ -570,6 +570,8 @@ def run() -> None:
     ``--help``, ``--version`` and usage errors (argparse's ``SystemExit``)."""
     try:
         status = main(compilation_cache=True)
+    except KeyboardInterrupt:  # came after main's own handler, as it returned
+        status = 130
     except SystemExit as done:
         if not isinstance(done.code, (int, type(None))):
             raise

@@ -33,6 +33,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -130,10 +131,19 @@ def end_process(status: int) -> None:
     if status == 0 and in_distributed_run():
         sys.exit(status)
     if status != 130:
+        _ignore_late_interrupts()
         atexit._run_exitfuncs()  # what a normal exit would run, teardown aside
         sys.stdout.flush()
         sys.stderr.flush()
     os._exit(status)
+
+
+def _ignore_late_interrupts() -> None:
+    """SIGINT from here on is ignored: the command's work is over, and a
+    ``KeyboardInterrupt`` raised inside an `atexit` function (JAX's own clean-up) would
+    print a traceback on the way out."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def report_error(command: str, message: str) -> None:
