@@ -153,7 +153,7 @@ def test_field_options_and_files_fail_cleanly(scenes, capsys, tmp_path):
         (["reconstruct", str(small), "--psf", field], "at the model's size"),
         (["reconstruct", raw, "--psf", field, "--plane", "0"], "--plane"),
         (["psf", field, "--z1", "20mm", "--z2", "1mm"], "field-dependent PSF"),
-        (["predict", field], "field-dependent PSF"),
+        (["predict", field, "--planes", "0"], "field-dependent PSF"),
         (["compare", raw, "--model", field], "field-dependent PSF"),
     ]
     suffix = {"calibrate-psf": "npz", "reconstruct": "npy", "psf": "npz", "predict": "tif",

@@ -15,8 +15,8 @@ import numpy as np
 from diffcam.apps.compile_cache import DEFAULT_MAX_MB, enable_compilation_cache
 from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
                                  length_arg, lengths_arg, limits, one_line_warnings,
-                                 planes_arg, read_psfs, save_figure, save_image,
-                                 save_open_figures, save_rgb)
+                                 planes_arg, positions_arg, read_psfs, save_figure,
+                                 save_image, save_open_figures, save_rgb)
 from diffcam.apps.scene_psf_cli import add_calibrate_psf
 from diffcam.core.errors import DiffcamError
 from diffcam.apps.design_cli import add_design
@@ -64,7 +64,10 @@ def _cmd_psf(args) -> int:
 
     kind = calibrate.model_kind(args.phase)
     if kind == "field-psf":
-        raise calibrate.model_file.field_psf_refused(args.phase)
+        return apps.field_cli.cmd_psf_field(args)
+    if args.at is not None:
+        raise DiffcamError("--at (field positions) is for a field-dependent PSF from "
+                           "`diffcam calibrate-psf --field`.")
     if kind == "stack-fit":
         if args.processes != 1:
             raise DiffcamError("--processes is for a phase file; a stack-fit model's "
@@ -142,7 +145,7 @@ def _psf_from_stack_fit(args) -> int:
                            f"(--planes 0:43), it does not take {', '.join(given)}.")
     return cmd_predict(argparse.Namespace(model=args.phase, planes=args.planes,
                                            kappa=args.kappa, rendered_only=args.rendered_only,
-                                           out=args.out))
+                                           out=args.out, at=None))
 
 
 def _grid_for(aperture_radius, dx):
@@ -229,7 +232,10 @@ def _cmd_compare(args) -> int:
     if kind is None:
         raise calibrate.model_file.not_a_model(path)
     if kind == "field-psf":
-        raise calibrate.model_file.field_psf_refused(path)
+        return apps.field_cli.cmd_compare_field(args, path)
+    if args.at is not None:
+        raise DiffcamError("--at (field positions) is for a field-dependent PSF from "
+                           "`diffcam calibrate-psf --field`.")
     if kind == "stack-fit":
         return _compare_stack_fit(args, path)
     if args.z2 is None:
@@ -399,14 +405,17 @@ def _add_calibrate(sub) -> None:
 
 
 def _add_psf(sub) -> None:
-    ps = sub.add_parser("psf", help="PSFs at depths from a phase file or a stack fit",
+    ps = sub.add_parser("psf", help="PSFs at depths from a phase file or a stack fit, or "
+                                    "across the field from a field-dependent PSF",
                         description="Compute the camera's PSF (paper Eq. 7) for point "
                                     "sources on axis at each depth; writes .npz or a "
                                     "multi-page ImageJ TIFF with metadata. Given a model "
                                     "from `diffcam fit`, predict its planes (--planes; "
-                                    "`diffcam predict` is an alias).")
-    ps.add_argument("phase", help="phase file from `diffcam calibrate`, or a stack-fit "
-                                  "model from `diffcam fit`")
+                                    "`diffcam predict` is an alias). Given a field-"
+                                    "dependent PSF (`diffcam calibrate-psf --field`), its "
+                                    "registered PSFs at field positions (--at).")
+    ps.add_argument("phase", help="phase file from `diffcam calibrate`, a stack-fit model "
+                                  "from `diffcam fit`, or a field-dependent PSF")
     ps.add_argument("--z1", type=lengths_arg("z1"),
                     help="depth(s): 25mm, 22mm,25mm or 22mm:30mm:1mm (end included); "
                          "needed with a phase file")
@@ -421,6 +430,9 @@ def _add_psf(sub) -> None:
                     help="stack-fit model only: the model's rendering alone, without the "
                          "measured planes' carried residuals")
     ps.add_argument("--crop", type=grid_count(1), help="square crop of each PSF (samples)")
+    ps.add_argument("--at", type=positions_arg,
+                    help="field-dependent PSF only: field positions Y,X;… (sensor pixels "
+                         "from the axis; default: the model's own)")
     ps.add_argument("-o", "--out", required=True,
                     help="output .npz or .tif (a stack fit: .tif or .npy)")
     ps.add_argument("--processes", type=int, default=1,
@@ -450,7 +462,9 @@ def _add_compare(sub) -> None:
                                       "prints a table and writes a figure. With a stack "
                                       "fit (from `diffcam fit`), per plane against the "
                                       "baseline and the frozen-distance rendering "
-                                      "(`diffcam compare-stack` is an alias).")
+                                      "(`diffcam compare-stack` is an alias). With a field-"
+                                      "dependent PSF, per field position (--at) against "
+                                      "the one on-axis PSF.")
     cmp_.add_argument("captured", help="captured PSF stack (multi-page TIFF or diffcam .npz)")
     cmp_.add_argument("--model", help="camera model: a phase file from `diffcam calibrate` "
                                       "(with --z2) or a stack fit from `diffcam fit`")
@@ -463,6 +477,8 @@ def _add_compare(sub) -> None:
     cmp_.add_argument("--pixel", type=length_arg("pixel"), help="captured PSFs' pixel pitch")
     cmp_.add_argument("--anchor", type=length_arg("anchor"),
                       help="depth of the PSF the scaling baseline magnifies (default: first)")
+    cmp_.add_argument("--at", type=positions_arg, help="with a field-dependent PSF: the "
+                      "position Y,X;… of each captured PSF (sensor pixels from the axis)")
     cmp_.add_argument("-o", "--out", required=True, help="figure (.png)")
     cmp_.set_defaults(func=_cmd_compare)
 

@@ -240,6 +240,26 @@ def _plane_items(item: str, text: str) -> range:
                            f"(both ends included, a ≤ b).") from None
 
 
+MAX_POSITIONS = 4096
+"""Most field positions ``--at`` takes."""
+
+
+def positions_arg(text: str) -> np.ndarray:
+    """An argparse type: field positions ``Y,X;Y,X;…`` in sensor pixels from the axis,
+    as an ``(m, 2)`` array."""
+    try:
+        points = np.array([[float(v) for v in p.split(",")] for p in text.split(";")
+                           if p.strip()], dtype=np.float64)
+    except ValueError:
+        points = np.zeros((0, 0))
+    if (points.ndim != 2 or points.shape[1:] != (2,) or not 1 <= len(points) <= MAX_POSITIONS
+            or not np.isfinite(points).all()):
+        raise argparse.ArgumentTypeError(
+            f"give field positions as Y,X pixels from the axis, separated by ';' "
+            f"(e.g. '0,0;40,-25'), 1 to {MAX_POSITIONS} of them; got {text!r}")
+    return points
+
+
 def planes_arg(text):
     try:
         return parse_planes(text)

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from diffcam.core.errors import DiffcamError
-from diffcam import calibrate, evaluate  # lazy: loaded on use (fit_stack: optax, optimistix)
-from diffcam.apps.common import (iterations_count, length_arg, planes_arg, save_figure,
-                                 save_image)
+from diffcam import apps, calibrate, evaluate  # lazy: loaded on use (fit_stack: optax, optimistix)
+from diffcam.apps.common import (iterations_count, length_arg, planes_arg, positions_arg,
+                                 save_figure, save_image)
 from diffcam.io import (atomic_output, check_output_path, image_files, npz_keys,
                         read_image, read_mat_stack, read_npz, read_psf_stack)
 
@@ -152,6 +152,13 @@ def _zeta_start(fit) -> str:
 
 def cmd_predict(args) -> int:
 
+    if calibrate.model_kind(args.model) == "field-psf":
+        return apps.field_cli.cmd_psf_field(argparse.Namespace(
+            phase=args.model, at=args.at, out=args.out, planes=args.planes, kappa=args.kappa,
+            rendered_only=args.rendered_only, z1=None, z2=None, crop=None, processes=1))
+    if args.at is not None:
+        raise DiffcamError("--at (field positions) is for a field-dependent PSF from "
+                           "`diffcam calibrate-psf --field`.")
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
     fit = calibrate.model_file.load_stack_model(args.model)
     t0 = time.perf_counter()
@@ -303,8 +310,8 @@ def add_fit(sub) -> None:
     pred = sub.add_parser("predict", help="alias of `diffcam psf MODEL`",
                           description="An alias of `diffcam psf MODEL`: render planes of a "
                                       "stack model from `diffcam fit` (each normalised to "
-                                      "unit mean).")
-    pred.add_argument("model", help="model file from `diffcam fit`")
+                                      "unit mean), or a field-dependent PSF at --at.")
+    pred.add_argument("model", help="model file from `diffcam fit`, or a field-dependent PSF")
     pred.add_argument("--planes", type=planes_arg,
                       help="planes, e.g. 0:43 (ends included) or 0,5,9 (default: all)")
     pred.add_argument("--kappa", type=float, help="render with this depth-law exponent "
@@ -312,6 +319,8 @@ def add_fit(sub) -> None:
     pred.add_argument("--rendered-only", action="store_true",
                       help="the model's rendering alone, without the measured planes' "
                            "carried residuals")
+    pred.add_argument("--at", type=positions_arg, help="a field-dependent PSF's field "
+                      "positions Y,X;… (sensor pixels from the axis)")
     pred.add_argument("-o", "--out", required=True, help="output .tif (multi-page) or .npy")
     pred.set_defaults(func=cmd_predict)
 

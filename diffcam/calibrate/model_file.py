@@ -95,8 +95,8 @@ def field_psf_refused(path: str | os.PathLike) -> DiffcamError:
     """The one-line error for a field-dependent PSF where depths or planes are needed."""
     return DiffcamError(f"{path} is a field-dependent PSF (diffcam calibrate-psf --field): "
                         f"the camera across its field at one depth, not at depths or plane "
-                        f"indices; reconstruct with it: `diffcam reconstruct RAW --psf "
-                        f"{path}`.")
+                        f"indices; its PSFs across the field: `diffcam psf {path} --at "
+                        f"Y,X;…`; reconstruct with it: `diffcam reconstruct RAW --psf {path}`.")
 
 
 def not_a_model(path: str | os.PathLike) -> DiffcamError:
