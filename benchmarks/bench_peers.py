@@ -15,6 +15,10 @@ Forward candidates (the stack of PSFs):
   (default) and direct path (``Camera(method="direct")``);
 - ``diffcam jit(vmap(psf))``: ``jax.jit(jax.vmap(lambda z: diffcam.psf(phase, camera, z)))``;
 - ``diffcam psf_map``: ``jax.jit(lambda p, z: diffcam.psf_map(lambda h: h, p, camera, z))``;
+- ``, FFTW``: ``psf_stack`` and ``jit(vmap(psf))`` on the opt-in FFTW backend
+  (``set_fft("fftw")``), whose FFTs run on FFTW's own threads wherever XLA's program
+  starts them (XLA's own FFT takes one thread when it starts on a pool thread, as the
+  FFTs of a composed loop do: ``docs/design.md``, "The backend seam");
 - ``chromatix``: ``chromatix.functional`` (``point_source`` with a ``circular_pupil``
   → ``phase_change`` → ``transfer_propagate``, no padding, intensity), in micrometres
   (its point source flattens in metres): all depths in one call (``z`` an array: the
@@ -96,6 +100,8 @@ FORWARD = {
     "diffcam psf_stack, FFTW (direct)": "diffcam",
     "diffcam jit(vmap(psf)) (scaling)": "diffcam",
     "diffcam jit(vmap(psf)) (direct)": "diffcam",
+    "diffcam jit(vmap(psf)), FFTW (scaling)": "diffcam",
+    "diffcam jit(vmap(psf)), FFTW (direct)": "diffcam",
     "diffcam psf_map (scaling)": "diffcam",
     "diffcam psf_map (direct)": "diffcam",
     "chromatix (z batched)": "chromatix",

@@ -4,6 +4,7 @@ stacks ``psf_map`` and ``psf_loss`` (diffcam.model.stack_map). The reference is 
 figure for the compiled program (``memory_analysis``), which does not depend on load."""
 
 import dataclasses
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -76,6 +77,42 @@ def test_psf_loss_differentiates_everything_psf_map_does(x64):
     only_z = jax.jit(jax.grad(lambda z: psf_loss(lambda h, x: 1.5 * jnp.sum(h * x), PHASE,
                                                      cam, z, args[1])))(args[0])
     np.testing.assert_allclose(only_z, g_map[0], rtol=1e-9)
+
+
+def _float64_loss(method):
+    """``(stack, phase, z1) → Σ_z Σ w·PSF(z)`` on a float64 camera, chunks of 2 of 3
+    depths, for ``stack`` psf_loss or the sum of psf_map."""
+    cam = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), _camera(method))
+    w = jnp.asarray(WEIGHTS, jnp.float64)
+    return lambda stack, p, z: stack(lambda h, x: jnp.sum(h * x), p, cam, z, w,
+                                     batch_size=2)
+
+
+def test_psf_loss_in_depths_both_modes_match_finite_differences(x64):
+    """Along a move of the depths (direct path, float64), psf_loss's jvp and its
+    reverse-mode derivative equal a central difference of the loss."""
+    loss = _float64_loss("direct")
+    phase, z = jnp.asarray(PHASE, jnp.float64), jnp.asarray(DEPTHS)
+    move = jnp.array([1.0, -0.5, 2.0]) * 1e-3
+    along = jax.jit(lambda s: loss(psf_loss, phase, z + s * move))
+    step = 1e-4
+    fd = (along(step) - along(-step)) / (2 * step)
+    value, forward = jax.jvp(along, (0.0,), (1.0,))
+    np.testing.assert_allclose(value, along(0.0), rtol=1e-12)
+    np.testing.assert_allclose(forward, fd, rtol=1e-6)
+    np.testing.assert_allclose(jax.jit(jax.grad(along))(0.0), forward, rtol=1e-10)
+
+
+@pytest.mark.slow  # 60 s of compilation on a loaded machine
+def test_psf_loss_equals_psf_map_on_the_scaling_path(x64):
+    """Scaling path, float64, a chunk of 2 of 3 depths: psf_loss's value and phase
+    gradient equal those of the sum of psf_map to 1e-10."""
+    loss, phase, z = _float64_loss("scaling"), jnp.asarray(PHASE, jnp.float64), DEPTHS
+    by_map = lambda *a, **k: psf_map(*a, **k).sum()  # noqa: E731
+    v_map, g_map = jax.jit(jax.value_and_grad(partial(loss, by_map)))(phase, z)
+    v_loss, g_loss = jax.jit(jax.value_and_grad(partial(loss, psf_loss)))(phase, z)
+    np.testing.assert_allclose(v_loss, v_map, rtol=1e-10)
+    np.testing.assert_allclose(g_loss, g_map, rtol=0, atol=1e-10 * np.abs(g_map).max())
 
 
 @pytest.mark.slow  # 50 s of compilation: a chunk rule per batched argument

@@ -4,9 +4,9 @@ depths at a time, differentiable with working memory flat in the number of depth
 - `psf_map` — ``fn(PSF(z), x)`` for every depth, stacked: any transformation
   (``jit``, ``vmap``, forward and reverse mode); in reverse mode each chunk's PSFs are
   recomputed (``jax.checkpoint``), so a gradient costs about three forward passes.
-- `psf_loss` — the sum over depths of a scalar ``fn(PSF(z), x)``: reverse mode only,
-  with each chunk's gradient computed beside its value in one pass (the loss is a sum,
-  so its cotangent is one number known before the pass), about two forward passes.
+- `psf_loss` — the sum over depths of a scalar ``fn(PSF(z), x)``, differentiated by
+  computing each chunk's gradient beside its value in one pass (the loss is a sum, so
+  its cotangent is one number for every depth), about two forward passes.
 
 Both compute the diffuser's field (its FFT on the scaling path) once for all depths;
 `diffcam.model.stack.psf_stack` is the host-side stack (sharded, streamed, saved).
@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array, lax
-from jax.custom_derivatives import CustomVJPPrimal
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Float
 
 from diffcam.core.errors import DiffcamError
@@ -99,13 +99,14 @@ def psf_loss(fn: Callable, phase, camera: Camera, z1, xs=None, *, spectrum=None,
     scalar loss over a PSF stack whose gradient costs about two forward passes, in one
     chunk's working memory whatever the number of depths.
 
-    Under ``jax.grad`` (reverse mode) each chunk's contribution to the gradient is
-    computed right after its value, in the same pass, and summed as the chunks go: the
-    loss is a sum, so every depth's cotangent is the loss's own, one number. Nothing
-    per depth is kept or recomputed (`psf_map`'s gradient recomputes every chunk: three
-    passes). Evaluated without differentiation it is one pass. Forward mode
-    (``jax.jvp``, ``jax.hessian``) is not defined here: use
-    ``jnp.sum(psf_map(fn, ...))``, the same number.
+    Differentiated, each chunk's contribution to the gradient is computed right after
+    its value, in the same pass, and summed as the chunks go: the loss is a sum, so
+    every depth's cotangent is the loss's own, one number. Nothing per depth is kept or
+    recomputed (`psf_map`'s gradient recomputes every chunk: three passes). Evaluated
+    without differentiation it is one pass. The derivative is a ``jax.custom_jvp``
+    whose rule computes that gradient: reverse mode (``jax.grad``) multiplies it by the
+    loss's cotangent, forward mode (``jax.jvp``) returns its product with the tangent,
+    at the cost of the gradient with respect to whatever the tangent moves.
 
     Args:
         fn: ``fn(psf)`` (``xs`` is ``None``) or ``fn(psf, x)`` returning a real scalar;
@@ -118,8 +119,8 @@ def psf_loss(fn: Callable, phase, camera: Camera, z1, xs=None, *, spectrum=None,
         batch_size: depths per chunk, as in `psf_map`.
 
     Returns:
-        The loss, a real scalar; differentiable (reverse mode) in ``phase``, the
-        camera's traced fields, ``z1``, the spectrum, ``xs`` and what ``fn`` closes over.
+        The loss, a real scalar; differentiable (both modes) in ``phase``, the camera's
+        traced fields, ``z1``, the spectrum, ``xs`` and what ``fn`` closes over.
 
     Raises:
         DiffcamError: as `psf_map`, and ``fn`` not returning one real number.
@@ -165,7 +166,7 @@ def _chunks(tree, start, stop, size):
         lambda a: a[start:stop].reshape((-1, size) + a.shape[1:]), tree)
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(0,))
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _summed(how, shared, z1, xs_free, fixed, xs_fixed):
     """`psf_loss`'s value: the chunks' losses, summed. ``how``: ``(per_depth,
     normalise, batch, dtype)``."""
@@ -183,16 +184,12 @@ def _summed(how, shared, z1, xs_free, fixed, xs_fixed):
     return total
 
 
-def _summed_forward(how, shared, z1, xs_free, fixed, xs_fixed):
-    """The value and, chunk by chunk, its gradient with respect to what is being
-    differentiated (``CustomVJPPrimal.perturbed``): summed over the chunks for what
-    every depth shares, per depth for ``z1`` and ``xs``."""
+def _value_and_gradients(how, perturbed, shared, per_item, fixed, xs_fixed):
+    """The loss and, chunk by chunk in the same pass, its gradient with respect to the
+    ``perturbed`` leaves of ``shared`` and of ``per_item = (z1, xs_free)`` (the others:
+    ``None``): summed over the chunks for what every depth shares, per depth for ``z1``
+    and ``xs``."""
     per_depth, normalise, batch, dtype = how
-    is_primal = lambda p: isinstance(p, CustomVJPPrimal)  # noqa: E731
-    perturbed = jax.tree_util.tree_map(lambda p: p.perturbed, (shared, (z1, xs_free)),
-                                       is_leaf=is_primal)
-    shared, per_item, fixed, xs_fixed = jax.tree_util.tree_map(
-        lambda p: p.value, (shared, (z1, xs_free), fixed, xs_fixed), is_leaf=is_primal)
     shared_live, shared_dead = eqx.partition(shared, perturbed[0])
     items_live, items_dead = eqx.partition(per_item, perturbed[1])
 
@@ -220,11 +217,22 @@ def _summed_forward(how, shared, z1, xs_free, fixed, xs_fixed):
     return total, (g_shared, g_items)
 
 
-def _summed_backward(how, gradients, cotangent):
-    """The gradients computed with the value, times the loss's cotangent (``None``:
-    zero, for what is not differentiated)."""
-    g_shared, (gz, gx) = jax.tree_util.tree_map(lambda g: g * cotangent, gradients)
-    return g_shared, gz, gx, None, None
+def _summed_jvp(how, primals, tangents):
+    """The loss and its directional derivative ``Σ Re(Σ g·u̇)`` over the inputs ``u``
+    whose tangent ``u̇`` is not a symbolic zero, ``g`` JAX's gradient in ``u`` (for a
+    complex ``u``, ∂/∂Re u − i ∂/∂Im u). The gradient comes from
+    `_value_and_gradients`, whose scan holds no tangent: reverse mode keeps the
+    gradient alone and multiplies it by the loss's cotangent."""
+    shared, z1, xs_free, fixed, xs_fixed = primals
+    moving = (tangents[0], tangents[1:3])
+    perturbed = jax.tree_util.tree_map(lambda t: not isinstance(t, SymbolicZero), moving)
+    value, gradients = _value_and_gradients(how, perturbed, shared, (z1, xs_free), fixed,
+                                            xs_fixed)
+    pairs = zip(jax.tree_util.tree_leaves(gradients),
+                jax.tree_util.tree_leaves(eqx.filter(moving, perturbed)))
+    tangent = sum((jnp.real(jnp.sum(g * t)).astype(value.dtype) for g, t in pairs),
+                  jnp.zeros((), value.dtype))
+    return value, tangent
 
 
-_summed.defvjp(_summed_forward, _summed_backward, symbolic_zeros=True)
+_summed.defjvp(_summed_jvp, symbolic_zeros=True)
