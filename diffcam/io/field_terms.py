@@ -153,7 +153,7 @@ def fit_field_terms(image: np.ndarray, psfs: np.ndarray, z1, z2: float,
             out.append((0.5 * r @ r + w * s.sum(), float(np.linalg.norm(r)), s.sum()))
         return terms, out
 
-    light0 = sum(o[2] for o in solve(())[1])
+    light0 = sum(o[2] for o in solve(np.zeros(len(free)))[1])
     x = (minimize(lambda x: sum(o[0] for o in solve(x)[1]), np.zeros(len(free)),
                   method="Powell", bounds=[(0.0, 1.0)] * len(free),
                   options={"xtol": 1e-2}).x if free else ())
