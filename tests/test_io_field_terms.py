@@ -68,6 +68,17 @@ def test_fit_recovers_a_known_sensor_response():
     assert sum(fitted.misfit) < 0.4 * sum(without.misfit), (fitted, without)
 
 
+@pytest.mark.slow
+def test_all_three_terms_free_on_a_response_only_capture():
+    """Every term free, on the capture made with the response alone: the response is
+    found (within 30 % of 100), vignetting stays near 0 (the scene absorbs it)."""
+    psfs = _stack()
+    fitted = fit_field_terms(_capture(psfs, 100.0, _sources()), psfs, Z1, Z2, PITCH,
+                             light_weight=1e-3)
+    assert abs(fitted.acceptance_exponent / 100.0 - 1) < 0.3, fitted
+    assert fitted.vignetting_exponent < 1.0, fitted
+
+
 def test_split_is_the_point_by_point_model():
     """The window, the widened planes and the weighted scene give the capture that the
     Gaussian response makes point by point (one plane: the window's β is that plane's)."""
