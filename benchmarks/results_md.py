@@ -97,6 +97,14 @@ SECTIONS = {
                   "lit_rms", "axial_width", "outside", "wall_s", "peak_mb",
                   "printed_residual", "recomputed_residual", "stack_pearson", "slope_diff",
                   "within_1_plane", "within_2_planes"]),
+    "bench_3d_field": ("3-D from one capture: the camera's off-axis terms fitted to its light "
+                       "profiles, and the volumes of each footprint model",
+                       "python -m benchmarks.bench_3d_field",
+                       ["run", "iterations", "sparsity", "aperture_distance_mm",
+                        "acceptance_exponent", "p_q2_per_px2", "vignetting_exponent",
+                        "row_misfit", "column_misfit", "light", "slope", "rms", "lit_rms",
+                        "dim_share", "axial_width", "outside", "residual", "seconds",
+                        "meets"]),
     "bench_3d_convergence": ("3-D from one capture: the solve's convergence by iteration "
                              "count, over-relaxation and the penalties' start",
                              "python -m benchmarks.bench_3d_convergence",

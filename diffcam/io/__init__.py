@@ -12,6 +12,7 @@ order (LenslessPiCam-style, as the DiffuserCam tutorial does it)::
     image = downsample(image, 4)                          # box average
     image = normalise_l2(image)
     window = fit_sensor_window(image, psfs)     # volumes: admm_tv_3d's sensor_response
+    terms = fit_field_terms(image, psfs, z1, z2, pixel_pitch)   # the off-axis terms
 
 Everything here is NumPy (files are read once, outside ``jit``); the results go to the
 JAX solvers in [`diffcam.reconstruct`][diffcam.reconstruct].
@@ -29,6 +30,8 @@ file is either untouched or wholly replaced.
 
 from __future__ import annotations
 
+from diffcam.io.field_terms import (FIELD_TERMS, AcceptanceSplit, FieldTerms,
+                                    acceptance_split, fit_field_terms)
 from diffcam.io.preprocessing import (BackgroundWarning, apply_envelope,
                                       SensorWindow, border_dark_level, dark_level,
                                       downsample, envelope_widths, fit_sensor_window,
@@ -46,6 +49,7 @@ __all__ = [
     "natural_key", "IMAGE_SUFFIXES", "border_dark_level", "plane_light", "read_mat_stack", "dark_level",
     "subtract_background", "saturation_mask", "downsample", "normalise_l2",
     "envelope_widths", "apply_envelope", "SensorWindow", "fit_sensor_window",
+    "FIELD_TERMS", "FieldTerms", "fit_field_terms", "AcceptanceSplit", "acceptance_split",
     "BackgroundWarning", "read_npz", "npz_keys",
     "file_kind", "check_read_size",
     "check_output_path", "make_output_folder", "atomic_output", "Terminated",

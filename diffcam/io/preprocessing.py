@@ -188,15 +188,15 @@ def envelope_widths(image: np.ndarray, psfs: np.ndarray, samples: int = 5) -> np
         ([`apply_envelope`][diffcam.io.preprocessing.apply_envelope]).
     """
     samples = whole_number("samples", samples, 1)
-    profile, planes, centres = _profiles(image, psfs)
+    profile, planes, centres = light_profiles(image, psfs)
     rows = np.arange(planes.shape[1])
     spread = np.sqrt(planes @ rows ** 2 / planes.sum(axis=1) - centres ** 2)
     scale = spread / spread.max()
     fitted = np.unique(np.linspace(0, len(planes) - 1, max(1, min(samples, len(planes))))
                        .round()).astype(int)
-    # the fit on profiles binned to at most _ENVELOPE_ROWS rows (σ is smooth on that scale)
-    factor = -(-planes.shape[1] // _ENVELOPE_ROWS)
-    profile, kernels = _bin(profile, factor), _bin(planes[fitted], factor)
+    # the fit on profiles binned to at most PROFILE_ROWS rows (σ is smooth on that scale)
+    factor = -(-planes.shape[1] // PROFILE_ROWS)
+    profile, kernels = bin_samples(profile, factor), bin_samples(planes[fitted], factor)
     binned_rows = (np.arange(kernels.shape[1]) + 0.5) * factor - 0.5
 
     def misfit(log_sigma):
@@ -231,25 +231,25 @@ def apply_envelope(psfs: np.ndarray, widths) -> np.ndarray:
         raise DiffcamError(f"apply_envelope needs a (nz, my, mx) stack and nz finite widths "
                            f"> 0 (pixels); got a stack of shape {psfs.shape} and widths of "
                            f"shape {widths.shape}.")
-    _, planes, centres = _profiles(psfs[0], psfs)
+    _, planes, centres = light_profiles(psfs[0], psfs)
     rows = np.arange(psfs.shape[1])
     gauss = np.exp(-0.5 * ((rows[None] - centres[:, None]) / widths[:, None]) ** 2)
     return (psfs * gauss[:, :, None]).astype(np.float32)
 
 
-_ENVELOPE_ROWS = 100   # rows of the binned profiles envelope_widths fits
+PROFILE_ROWS = 100   # samples of the binned profiles the footprint fits use
 
 
-def _bin(profiles, factor: int) -> np.ndarray:
+def bin_samples(profiles, factor: int) -> np.ndarray:
     """Sums of ``factor`` consecutive samples along the last axis (a partial last bin
     dropped)."""
     n = profiles.shape[-1] // factor
     return profiles[..., :n * factor].reshape(profiles.shape[:-1] + (n, factor)).sum(-1)
 
 
-def _profiles(image, psfs):
-    """The capture's row profile, each plane's row profile, and each plane's row
-    centroid (pixels)."""
+def light_profiles(image, psfs):
+    """The capture's row profile (its sum over columns), each plane's row profile, and
+    each plane's row centroid (pixels): the inputs of the footprint fits."""
     psfs = np.asarray(real_array("psfs", psfs), np.float64)
     image = np.asarray(real_array("image", image), np.float64)
     if not (np.isfinite(psfs).all() and np.isfinite(image).all()):
@@ -338,17 +338,13 @@ def fit_sensor_window(image: np.ndarray, psfs: np.ndarray, samples: int = 5,
     samples = whole_number("samples", samples, 1)
     light_weight = number_in("light_weight", light_weight, 1e-6, 1 - 1e-6,
                              "a share of the emptying weight in (0, 1)")
-    profile, planes, centres = _profiles(image, psfs)
-    rows = np.arange(planes.shape[1])
-    spread = np.sqrt(planes @ rows ** 2 / planes.sum(axis=1) - centres ** 2)
-    axis = (np.polyfit(spread / spread.max(), centres, 1)[1] if np.ptp(spread) >
-            0.01 * spread.max() else float(np.mean(centres)))
-    centre_row = float(axis + image.shape[0] // 2 - planes.shape[1] // 2)
+    profile, planes, centres = light_profiles(image, psfs)
+    centre_row = optical_axis(planes, centres) + image.shape[0] // 2 - planes.shape[1] // 2
     fitted = np.unique(np.linspace(0, len(planes) - 1, max(1, min(samples, len(planes))))
                        .round()).astype(int)
-    factor = -(-planes.shape[1] // _ENVELOPE_ROWS)
-    profile = _bin(profile, factor)
-    matrix = _valid_matrix(len(profile), _bin(planes[fitted], factor))
+    factor = -(-planes.shape[1] // PROFILE_ROWS)
+    profile = bin_samples(profile, factor)
+    matrix = _valid_matrix(len(profile), bin_samples(planes[fitted], factor))
     matrix = matrix / np.linalg.norm(matrix, axis=0).max()
     profile = profile / np.linalg.norm(profile)
     weight = light_weight * np.max(matrix.T @ profile)
@@ -364,9 +360,19 @@ def fit_sensor_window(image: np.ndarray, psfs: np.ndarray, samples: int = 5,
     return SensorWindow(centre_row, float(np.exp(best.x)))
 
 
-def _l1_fit(matrix, target, weight, iterations: int = 400) -> float:
-    """``min ½ ||A s - t||² + weight Σ s`` over ``s >= 0`` by projected FISTA: the
-    minimum."""
+def optical_axis(planes, centres) -> float:
+    """The index about which a stack's 1-D profiles ``planes`` ``(nz, m)`` magnify: the
+    intercept of their centroids ``centres`` against their rms widths (their mean
+    centroid when the widths do not change)."""
+    index = np.arange(planes.shape[1])
+    spread = np.sqrt(planes @ index ** 2 / planes.sum(axis=1) - centres ** 2)
+    if np.ptp(spread) > 0.01 * spread.max():
+        return float(np.polyfit(spread / spread.max(), centres, 1)[1])
+    return float(np.mean(centres))
+
+
+def l1_solution(matrix, target, weight, iterations: int = 400) -> np.ndarray:
+    """``argmin ½ ||A s - t||² + weight Σ s`` over ``s >= 0`` by projected FISTA."""
     step = 1 / np.linalg.eigvalsh(matrix @ matrix.T)[-1]     # 1 / ||A||²
     s = y = np.zeros(matrix.shape[1])
     t = 1.0
@@ -374,5 +380,12 @@ def _l1_fit(matrix, target, weight, iterations: int = 400) -> float:
         s_new = np.maximum(y - step * (matrix.T @ (matrix @ y - target) + weight), 0)
         t_new = (1 + np.sqrt(1 + 4 * t * t)) / 2
         y, s, t = s_new + (t - 1) / t_new * (s_new - s), s_new, t_new
+    return s
+
+
+def _l1_fit(matrix, target, weight, iterations: int = 400) -> float:
+    """``min ½ ||A s - t||² + weight Σ s`` over ``s >= 0``: the minimum."""
+    s = l1_solution(matrix, target, weight, iterations)
     r = matrix @ s - target
     return float(0.5 * r @ r + weight * s.sum())
+
