@@ -110,6 +110,11 @@ CALIBRATION_SEED = 3000
 """The seed of the calibration PSFs' noise (captures: 7; scenes: 1000 + k, 2000)."""
 SOURCE_RADIUS = 50e-6
 """Radius of the truth PSFs' source (and of the calibration's), metres."""
+FINE_TWO_POINT_SEED = 4000
+"""The seed of the finer two-point test's captures (plus the points' plane count apart:
+every diffuser gets the same noise for the same pair)."""
+SOURCE_SHARE = 0.1
+"""`bounds`: a voxel is on a source where the truth is at least this share of its peak."""
 BLOB_SIGMA = 1.0
 """Standard deviation of a scene's Gaussian blobs, object-grid samples."""
 DESIGN_MODELS = {
@@ -141,7 +146,7 @@ def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float]
             surface, time.perf_counter() - t)
     if end_to_end is not None:
         t = time.perf_counter()
-        designed = design(start, camera(n), z1, INDEX, end_to_end).surface
+        designed = design(start, cam, z1, INDEX, end_to_end).surface
         out["designed end to end"] = (designed, time.perf_counter() - t)
     out["start"] = (start, None)
     out["random"] = (SmoothSurface.random(100, (n, n), PIXEL, FEATURE, H_MAX), None)
@@ -208,14 +213,21 @@ def two_point(nz: int, object_shape, planes: tuple[int, int]) -> np.ndarray:
     return volume
 
 
-def capture(volume: np.ndarray, truth_psfs: np.ndarray, n: int, photons: float,
-            rng: np.random.Generator) -> np.ndarray:
-    """The noisy sensor image of ``volume`` through ``truth_psfs`` (crop model): the
-    expected image scaled to ``photons`` per pixel on average for a scene of this flux
-    (whatever the diffuser), Poisson and read noise, clipped at 0."""
+def expected_capture(volume: np.ndarray, truth_psfs: np.ndarray, n: int,
+                     photons: float) -> np.ndarray:
+    """The noise-free sensor image of ``volume`` through ``truth_psfs`` (crop model),
+    scaled to ``photons`` per pixel on average for a scene of this flux (whatever the
+    diffuser)."""
     model = convolution_model(jnp.asarray(truth_psfs), (n, n), "crop", volume=True)
     expected = np.asarray(model(jnp.asarray(volume, jnp.float32)), np.float64)
-    expected *= photons * n * n / volume.sum()
+    return expected * photons * n * n / volume.sum()
+
+
+def capture(volume: np.ndarray, truth_psfs: np.ndarray, n: int, photons: float,
+            rng: np.random.Generator) -> np.ndarray:
+    """The noisy sensor image of ``volume``: `expected_capture` with Poisson and read
+    noise, clipped at 0."""
+    expected = expected_capture(volume, truth_psfs, n, photons)
     noisy = rng.poisson(np.clip(expected, 0, None)) + rng.normal(0, READ_NOISE, (n, n))
     return np.clip(noisy, 0, None)
 
@@ -244,6 +256,80 @@ def resolved(estimate: np.ndarray, planes: tuple[int, int]) -> bool:
     if j - i < 2:
         return False
     return bool(profile[i + 1:j].min() <= DIP * min(profile[i], profile[j]))
+
+
+def finer_two_point(truth_psfs, solver_psfs, z1: np.ndarray, n: int, object_shape, args,
+                    options: AdmmOptions) -> list[dict]:
+    """The two-point test on the depth grid ``z1`` (finer than the scenes'), by bisection
+    over k, the planes between two points centred on the stack (`two_point_planes`,
+    k = 2 … nz − 1): it assumes that a pair is resolved if a closer one is, tests the
+    widest pair, then halves the interval; each capture with the noise of seed
+    `FINE_TWO_POINT_SEED` + k. Every pair tried, in order: ``planes`` (k), ``dz_mm`` and
+    ``resolved``."""
+    nz = len(z1)
+    pairs = dict(zip(range(2, nz), two_point_planes(nz)))
+    tried = []
+
+    def test(k: int) -> bool:
+        volume = two_point(nz, object_shape, pairs[k])
+        b = capture(volume, truth_psfs, n, args.photons,
+                    np.random.default_rng(FINE_TWO_POINT_SEED + k))
+        ok = resolved(reconstruct(b[None], solver_psfs, args.iterations, options)[0],
+                      pairs[k])
+        i, j = pairs[k]
+        tried.append({"planes": k, "dz_mm": round(float(z1[j] - z1[i]) * 1e3, 2),
+                      "resolved": ok})
+        return ok
+
+    lo, hi = 2, nz - 1
+    if test(hi):
+        while lo < hi:
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if test(mid) else (mid + 1, hi)
+    return tried
+
+
+def bounds(volumes: np.ndarray, b: np.ndarray, estimate: np.ndarray, truth_psfs,
+           n: int, args, options: AdmmOptions) -> dict:
+    """What bounds a diffuser's volume PSNR on the held-out scenes ``volumes`` (their
+    noisy captures ``b`` and the solver's ``estimate``), mean over the scenes, dB:
+    ``psnr_db_exact_psfs``, the same captures reconstructed with the truth PSFs (no
+    calibration noise, no model error); ``psnr_db_noiseless``, noise-free captures with
+    the truth PSFs (the solver's and the diffuser's own limit); ``depth_blind_psnr_db``,
+    the estimate's mean over planes put on every plane (its lateral content without
+    depth); and where the estimate's squared error sits after its least-squares scale
+    (shares of it, within `field`): ``error_on_sources`` (voxels where the truth is
+    ≥ `SOURCE_SHARE` of its peak), ``error_other_planes`` (the sources' lateral
+    positions on the planes they are not on: depth confusion), ``error_elsewhere``."""
+    clean = np.stack([expected_capture(v, truth_psfs, n, args.photons) for v in volumes])
+    oracle = reconstruct(np.concatenate([b, clean]), np.asarray(truth_psfs),
+                         args.iterations, options)
+    scenes = len(volumes)
+    mean = (lambda values: round(float(np.mean(values)), 2))
+    shares = []
+    rows, cols = field(n, volumes.shape[-2:])
+    for e, t in zip(estimate, volumes):
+        e, t = e[:, rows, cols], t[:, rows, cols]
+        err = e * np.sum(e * t) / np.sum(e * e) - t
+        on = t >= SOURCE_SHARE * t.max()
+        depth = np.broadcast_to(on.any(axis=0), on.shape) & ~on
+        total = np.sum(err ** 2)
+        shares.append([np.sum(err[on] ** 2) / total, np.sum(err[depth] ** 2) / total])
+    on, depth = np.mean(shares, axis=0)
+    return {"psnr_db_exact_psfs": mean([volume_psnr(oracle[s], volumes[s], n)
+                                        for s in range(scenes)]),
+            "psnr_db_noiseless": mean([volume_psnr(oracle[scenes + s], volumes[s], n)
+                                       for s in range(scenes)]),
+            "depth_blind_psnr_db": mean([volume_psnr(depth_blind(e), t, n)
+                                         for e, t in zip(estimate, volumes)]),
+            "error_on_sources": round(float(on), 3),
+            "error_other_planes": round(float(depth), 3),
+            "error_elsewhere": round(float(1 - on - depth), 3)}
+
+
+def depth_blind(volume: np.ndarray) -> np.ndarray:
+    """``volume``'s mean over planes, on every plane: its lateral content, no depth."""
+    return np.broadcast_to(volume.mean(axis=0), volume.shape)
 
 
 def reconstruct(b: np.ndarray, psfs: np.ndarray, iterations: int,
@@ -282,10 +368,9 @@ def calibration(truth_psfs: np.ndarray, photons: float) -> np.ndarray:
     return (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
 
 
-def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, dict]:
-    """One diffuser: captures through its truth PSFs, reconstructions with its
-    calibration (measured or model PSFs); (its truth PSFs and two-point volumes, for
-    `figure`) and its scores."""
+def stacks(surface, z1: np.ndarray, n: int, args) -> tuple[np.ndarray, np.ndarray]:
+    """The diffuser's truth PSFs at the depths ``z1`` (``--truth``) and those its solver
+    inverts with (``--calibration``)."""
     cam = camera(n)
     diffuser = height_map(surface, INDEX)
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
@@ -294,6 +379,15 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, 
         source_radius=SOURCE_RADIUS)
     solver_psfs = model_psfs if args.calibration == "model" else calibration(
         np.asarray(truth_psfs), args.calibration_photons)
+    return truth_psfs, solver_psfs
+
+
+def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, dict]:
+    """One diffuser: captures through its truth PSFs, reconstructions with its
+    calibration (measured or model PSFs); (its truth PSFs and two-point volumes, for
+    `figure`) and its scores."""
+    cam = camera(n)
+    truth_psfs, solver_psfs = stacks(surface, z1, n, args)
     options = VOLUME
     if args.tune:
         options = tuned(truth_psfs, solver_psfs, n, volumes.shape[-2:], args)
@@ -310,6 +404,17 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, 
     objective = DepthObjective(cam, z1, INDEX)
     shown = (np.asarray(truth_psfs), estimate[scenes:])
     truth_max = jnp.max(pair_correlations(standardised(jnp.asarray(truth_psfs))))
+    extra = {}
+    if args.two_point_depths:
+        fine = depth_range(args.near * 1e-3, args.far * 1e-3, args.two_point_depths)
+        tried = finer_two_point(*stacks(surface, fine, n, args), fine, n,
+                                volumes.shape[-2:], args, options)
+        extra["finer_resolved_dz_mm"] = min(
+            (t["dz_mm"] for t in tried if t["resolved"]), default=None)
+        extra["finer_two_point"] = tried
+    if args.bounds:
+        extra.update(bounds(volumes[:scenes], b[:scenes], estimate[:scenes], truth_psfs,
+                            n, args, options))
     return shown, {"diffuser": name, "max_correlation": round(
                 evaluate_design(surface, objective)["max_correlation"], 4),
             "truth_max_correlation": round(float(truth_max), 4),
@@ -319,7 +424,7 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, 
             "two_point": [{"dz_mm": round(dz, 2), "resolved": ok} for dz, ok in separations],
             "design_s": None if design_s is None else round(design_s, 1),
             "tau": options.tau, "sparsity": options.sparsity,
-            "reconstruct_s": round(solve_s, 1)}
+            "reconstruct_s": round(solve_s, 1), **extra}
 
 
 def figure(shown: dict, rows: list[dict], z1: np.ndarray, path) -> None:
@@ -374,6 +479,8 @@ def gain_rows(by: dict, weights: list[float]) -> list[dict]:
                     round(by[name]["psnr_db"] - by[other]["psnr_db"], 2)
                     for other in ("random", "start", "regular lenslets")})
         row["resolved_dz_mm"] = by[name]["resolved_dz_mm"]
+        if "finer_resolved_dz_mm" in by[name]:
+            row["finer_resolved_dz_mm"] = by[name]["finer_resolved_dz_mm"]
         rows.append(row)
     return rows
 
@@ -420,6 +527,12 @@ def main(argv=None) -> int:
                         help="also design the start by the end-to-end objective, this "
                              "many steps (2 training volumes, 20 unrolled iterations, "
                              "--photons; 0: not)")
+    parser.add_argument("--two-point-depths", type=int, default=0,
+                        help="also run the two-point test on this many depths over the "
+                             "range, by bisection (0: not)")
+    parser.add_argument("--bounds", action="store_true",
+                        help="also reconstruct the scenes with the truth PSFs, with and "
+                             "without noise, and say where the error sits (bounds)")
     parser.add_argument("--figure", help="also draw each diffuser's PSFs and a "
                         "two-point reconstruction to this image file")
     parser.add_argument("--name", default="design_3d")
@@ -433,9 +546,11 @@ def main(argv=None) -> int:
     rows = []
     floor = round(float(np.mean([volume_psnr(np.zeros_like(v), v, n, None)
                                  for v in volumes[:args.scenes]])), 2)
+    blind = round(float(np.mean([volume_psnr(depth_blind(v), v, n)
+                                 for v in volumes[:args.scenes]])), 2)
     end_to_end = None if args.end_to_end_steps < 1 else DesignOptions(
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
-        photons=args.photons, progress=False)
+        photons=args.photons, progress=False, **DESIGN_MODELS[args.design_model])
     depth = DesignOptions(steps=args.steps, progress=False,
                           **DESIGN_MODELS[args.design_model])
     made = diffusers(n, z1, depth, args.weights, args.lenslets, end_to_end)
@@ -468,8 +583,10 @@ def main(argv=None) -> int:
                      "calibration_photons_at_peak": args.calibration_photons,
                      "tuned_per_diffuser": args.tune,
                      "end_to_end_steps": args.end_to_end_steps,
+                     "two_point_depths": args.two_point_depths,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
         "empty_volume_psnr_db": floor,
+        "depth_blind_truth_psnr_db": blind,
         "claim": claim})
     return 0
 
