@@ -26,8 +26,9 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
   (seed 0) designed alike;
 - ``designed end to end`` (``--end-to-end-steps N``): the same start designed by the
   end-to-end objective (`diffcam.design.end_to_end`: 2 training volumes of its own,
-  20 unrolled ADMM-TV iterations with `VOLUME`, ``--photons``, its TV weight learnt),
-  judged like the others (the solver's learnt weight is not used here).
+  20 unrolled ADMM-TV iterations with `VOLUME`, ``--photons``, its TV weight learnt)
+  through the PSFs of ``--design-model``, judged like the others (the solver's learnt
+  weight is not used here).
 
 Each diffuser's truth PSFs come from
 `diffcam.calibrate.simulation.high_fidelity_psfs` (the height map's phase at 532 nm on a
@@ -65,6 +66,12 @@ Scores, over the central half of the field where the scenes lie:
   point, with a plane between the peaks whose value is ≤ 80 % of the lower peak
   (``DIP``, a Rayleigh-like dip); the smallest separation Δz (mm, between the planes'
   depths) resolved;
+- with ``--two-point-depths M``, the same test on M depths over the range (22: the
+  8 depths and two between each pair), by bisection (`finer_two_point`):
+  ``finer_resolved_dz_mm``;
+- with ``--bounds``, what bounds the volume PSNR (`bounds`): the scenes reconstructed
+  with the truth PSFs, with and without noise, the estimate without its depth, and the
+  shares of its error on the sources, on their other planes and elsewhere;
 - the largest cross-depth correlation of the model PSFs (`evaluate_design`), and of the
   truth PSFs (``truth_max_correlation``).
 
@@ -271,12 +278,9 @@ def finer_two_point(truth_psfs, solver_psfs, z1: np.ndarray, n: int, object_shap
     tried = []
 
     def test(k: int) -> bool:
-        volume = two_point(nz, object_shape, pairs[k])
-        b = capture(volume, truth_psfs, n, args.photons,
-                    np.random.default_rng(FINE_TWO_POINT_SEED + k))
-        ok = resolved(reconstruct(b[None], solver_psfs, args.iterations, options)[0],
-                      pairs[k])
-        i, j = pairs[k]
+        (i, j), rng = pairs[k], np.random.default_rng(FINE_TWO_POINT_SEED + k)
+        b = capture(two_point(nz, object_shape, (i, j)), truth_psfs, n, args.photons, rng)
+        ok = resolved(reconstruct(b[None], solver_psfs, args.iterations, options)[0], (i, j))
         tried.append({"planes": k, "dz_mm": round(float(z1[j] - z1[i]) * 1e3, 2),
                       "resolved": ok})
         return ok
@@ -304,10 +308,8 @@ def bounds(volumes: np.ndarray, b: np.ndarray, estimate: np.ndarray, truth_psfs,
     clean = np.stack([expected_capture(v, truth_psfs, n, args.photons) for v in volumes])
     oracle = reconstruct(np.concatenate([b, clean]), np.asarray(truth_psfs),
                          args.iterations, options)
-    scenes = len(volumes)
+    scenes, shares, (rows, cols) = len(volumes), [], field(n, volumes.shape[-2:])
     mean = (lambda values: round(float(np.mean(values)), 2))
-    shares = []
-    rows, cols = field(n, volumes.shape[-2:])
     for e, t in zip(estimate, volumes):
         e, t = e[:, rows, cols], t[:, rows, cols]
         err = e * np.sum(e * t) / np.sum(e * e) - t
