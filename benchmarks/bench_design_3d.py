@@ -19,7 +19,9 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
   designed, the first is ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
 - ``random``: another random smooth surface of the same feature size and height range
-  (seed 100), the baseline a user would buy;
+  (seed 100), the baseline a user would buy; ``--random-seeds K`` judges K more
+  (``random 101`` …) and records their PSNRs' spread (``random_surfaces_psnr_db``) and
+  each design's gain over their mean;
 - ``regular lenslets``: a regular square microlens array (36 lenses at 256², as many
   per area at other sizes), all lenses alike;
 - ``designed lenslets`` (``--no-lenslets`` leaves it out): a random lenslet array
@@ -532,6 +534,9 @@ def main(argv=None) -> int:
     parser.add_argument("--two-point-depths", type=int, default=0,
                         help="also run the two-point test on this many depths over the "
                              "range, by bisection (0: not)")
+    parser.add_argument("--random-seeds", type=int, default=0,
+                        help="judge this many more random surfaces (seeds 101, …): the "
+                             "baseline's spread")
     parser.add_argument("--bounds", action="store_true",
                         help="also reconstruct the scenes with the truth PSFs, with and "
                              "without noise, and say where the error sits (bounds)")
@@ -556,6 +561,9 @@ def main(argv=None) -> int:
     depth = DesignOptions(steps=args.steps, progress=False,
                           **DESIGN_MODELS[args.design_model])
     made = diffusers(n, z1, depth, args.weights, args.lenslets, end_to_end)
+    for seed in range(101, 101 + args.random_seeds):
+        made[f"random {seed}"] = (SmoothSurface.random(seed, (n, n), PIXEL, FEATURE, H_MAX),
+                                  None)
     shown = {}
     for name, (surface, design_s) in made.items():
         shown[name], row = judge(name, surface, z1, n, volumes, pairs, args, design_s)
@@ -565,6 +573,12 @@ def main(argv=None) -> int:
         figure(shown, rows, z1, args.figure)
     by = {r["diffuser"]: r for r in rows}
     gains = gain_rows(by, args.weights)
+    randoms = [r["psnr_db"] for r in rows if r["diffuser"].startswith("random")]
+    spread = {"count": len(randoms), "mean": round(float(np.mean(randoms)), 2),
+              "sd": round(float(np.std(randoms, ddof=1)), 2) if len(randoms) > 1 else None,
+              "min": min(randoms), "max": max(randoms)}
+    for g in gains:
+        g["gain_db_over_random_mean"] = round(by[g["design"]]["psnr_db"] - spread["mean"], 2)
     claim = (f"{n}² over {args.depths} depths ({args.near:g}–{args.far:g} mm), "
              f"{args.steps} design steps, {args.photons:g} photons per pixel, "
              f"{args.calibration} PSFs: volume PSNR designed {by['designed']['psnr_db']} "
@@ -587,6 +601,7 @@ def main(argv=None) -> int:
                      "end_to_end_steps": args.end_to_end_steps,
                      "two_point_depths": args.two_point_depths,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
+        "random_surfaces_psnr_db": spread,
         "empty_volume_psnr_db": floor,
         "depth_blind_truth_psnr_db": blind,
         "claim": claim})
