@@ -219,6 +219,9 @@ SECTIONS = {
             " --depths 4 --calibration model --name design_3d_4_depths"),
            ("design_3d_near", ", 8 depths over 5–20 mm, model PSFs",
             " --near 5 --far 20 --calibration model --name design_3d_near"),
+           ("design_3d_1000_photons_random_seeds", ", 1000 photons per pixel, seven random "
+            "surfaces", " --photons 1000 --weights 0.1 --no-lenslets --random-seeds 6 "
+            "--name design_3d_1000_photons_random_seeds"),
            ("design_3d_end_to_end", ", the end-to-end objective beside depth "
             "discrimination, model PSFs", " --weights 0.1 --no-lenslets "
             "--end-to-end-steps 60 --calibration model --name design_3d_end_to_end"))},
@@ -272,7 +275,8 @@ EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["c
                     "_256_model_truth", "_end_to_end", "_1000_photons", "_10000_photons",
                     "_hf_design", "_10000_photons_hf_design", "_10000_photons_model_psfs",
                     "_1000_photons_truth_design", "_1000_photons_truth_design_tuned",
-                    "_1000_photons_truth_end_to_end")}}
+                    "_1000_photons_truth_end_to_end")},
+                "design_3d_1000_photons_random_seeds": ["gains", "random_surfaces_psnr_db"]}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 
