@@ -600,6 +600,7 @@ def main(argv=None) -> int:
                      "tuned_per_diffuser": args.tune,
                      "end_to_end_steps": args.end_to_end_steps,
                      "two_point_depths": args.two_point_depths,
+                     "random_seeds": args.random_seeds,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
         "random_surfaces_psnr_db": spread,
         "empty_volume_psnr_db": floor,

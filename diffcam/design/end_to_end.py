@@ -4,8 +4,9 @@ Training volumes ``v`` (a few point-like sources at random depths and positions)
 imaged through the diffuser's PSFs ``h_z`` (`diffcam.design.objective.recorded`: of a
 point source in one line unless the objective gives a spectrum, a source disc or pixel
 integration, as the depth objective does) by the 3-D model the solver assumes, with
-shot noise at a stated mean photon count per sensor pixel, and reconstructed as ``diffcam reconstruct --3d`` does — the capture scaled to
-unit L2 norm, ``iterations`` unrolled iterations of ADMM-TV with the `VOLUME` settings
+shot noise at a stated mean photon count per sensor pixel, and reconstructed as
+``diffcam reconstruct --3d`` does — the capture scaled to unit L2 norm, ``iterations``
+unrolled iterations of ADMM-TV with the `VOLUME` settings
 (`diffcam.reconstruct.admm.admm_tv_3d`, a ``lax.scan``, differentiable in the PSFs and
 in its TV weights). The loss is the reconstruction's relative squared error after its
 least-squares scale (the capture's scale is gone), one minus the squared cosine:

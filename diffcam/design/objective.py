@@ -39,7 +39,7 @@ depths (``python -m benchmarks.bench_design``).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -154,7 +154,7 @@ def depth_objective(surface: Surface, objective: DepthObjective) -> tuple[Array,
     return objective_terms(q, s, objective)
 
 
-def recorded(fn, surface: Surface, objective):
+def recorded(fn: Callable, surface: Surface, objective: DepthObjective):
     """``fn(PSF)`` for every depth of ``objective.z1``, the PSFs as the objective's light,
     source and pixels record them (module docstring; ``objective`` has the fields
     ``camera``, ``z1``, ``refractive_index``, ``spectrum``, ``source_radius`` and
