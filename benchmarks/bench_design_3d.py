@@ -118,7 +118,8 @@ TRAINING_SEED = 2000
 CALIBRATION_SEED = 3000
 """The seed of the calibration PSFs' noise (captures: 7; scenes: 1000 + k, 2000)."""
 SOURCE_RADIUS = 50e-6
-"""Radius of the truth PSFs' source (and of the calibration's), metres."""
+"""Radius of the truth PSFs' source (and of the calibration's), metres (``--source-radius``
+in µm)."""
 FINE_TWO_POINT_SEED = 4000
 """The seed of the finer two-point test's captures (plus the points' plane count apart:
 every diffuser gets the same noise for the same pair)."""
@@ -380,7 +381,7 @@ def stacks(surface, z1: np.ndarray, n: int, args) -> tuple[np.ndarray, np.ndarra
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
     truth_psfs = model_psfs if args.truth == "model" else high_fidelity_psfs(
         diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1,
-        source_radius=SOURCE_RADIUS)
+        source_radius=args.source_radius * 1e-6)
     solver_psfs = model_psfs if args.calibration == "model" else calibration(
         np.asarray(truth_psfs), args.calibration_photons)
     return truth_psfs, solver_psfs
@@ -534,6 +535,9 @@ def main(argv=None) -> int:
     parser.add_argument("--two-point-depths", type=int, default=0,
                         help="also run the two-point test on this many depths over the "
                              "range, by bisection (0: not)")
+    parser.add_argument("--source-radius", type=float, default=SOURCE_RADIUS * 1e6,
+                        help="radius of the truth's (and the calibration's) source, µm; "
+                             "the design models of a source take it too")
     parser.add_argument("--random-seeds", type=int, default=0,
                         help="judge this many more random surfaces (seeds 101, …): the "
                              "baseline's spread")
@@ -555,11 +559,12 @@ def main(argv=None) -> int:
                                  for v in volumes[:args.scenes]])), 2)
     blind = round(float(np.mean([volume_psnr(depth_blind(v), v, n)
                                  for v in volumes[:args.scenes]])), 2)
+    light = {k: args.source_radius * 1e-6 if k == "source_radius" else v
+             for k, v in DESIGN_MODELS[args.design_model].items()}
     end_to_end = None if args.end_to_end_steps < 1 else DesignOptions(
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
-        photons=args.photons, progress=False, **DESIGN_MODELS[args.design_model])
-    depth = DesignOptions(steps=args.steps, progress=False,
-                          **DESIGN_MODELS[args.design_model])
+        photons=args.photons, progress=False, **light)
+    depth = DesignOptions(steps=args.steps, progress=False, **light)
     made = diffusers(n, z1, depth, args.weights, args.lenslets, end_to_end)
     for seed in range(101, 101 + args.random_seeds):
         made[f"random {seed}"] = (SmoothSurface.random(seed, (n, n), PIXEL, FEATURE, H_MAX),
@@ -601,6 +606,7 @@ def main(argv=None) -> int:
                      "end_to_end_steps": args.end_to_end_steps,
                      "two_point_depths": args.two_point_depths,
                      "random_seeds": args.random_seeds,
+                     "source_radius_um": args.source_radius,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
         "random_surfaces_psnr_db": spread,
         "empty_volume_psnr_db": floor,
