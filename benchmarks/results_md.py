@@ -222,6 +222,9 @@ SECTIONS = {
            ("design_3d_1000_photons_random_seeds", ", 1000 photons per pixel, seven random "
             "surfaces", " --photons 1000 --weights 0.1 --no-lenslets --random-seeds 6 "
             "--name design_3d_1000_photons_random_seeds"),
+           ("design_3d_1000_photons_10um_source", ", 1000 photons per pixel, a source of "
+            "10 µm radius", " --photons 1000 --weights 0.1 0 --no-lenslets --source-radius "
+            "10 --name design_3d_1000_photons_10um_source"),
            ("design_3d_end_to_end", ", the end-to-end objective beside depth "
             "discrimination, model PSFs", " --weights 0.1 --no-lenslets "
             "--end-to-end-steps 60 --calibration model --name design_3d_end_to_end"))},
@@ -275,7 +278,7 @@ EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["c
                     "_256_model_truth", "_end_to_end", "_1000_photons", "_10000_photons",
                     "_hf_design", "_10000_photons_hf_design", "_10000_photons_model_psfs",
                     "_1000_photons_truth_design", "_1000_photons_truth_design_tuned",
-                    "_1000_photons_truth_end_to_end")},
+                    "_1000_photons_truth_end_to_end", "_1000_photons_10um_source")},
                 "design_3d_1000_photons_random_seeds": ["gains", "random_surfaces_psnr_db"]}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
