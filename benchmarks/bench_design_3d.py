@@ -34,8 +34,8 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
 
 Each diffuser's truth PSFs come from
 `diffcam.calibrate.simulation.high_fidelity_psfs` (the height map's phase at 532 nm on a
-2× finer grid, three wavelengths 526–538 nm, a source of 50 µm radius (``--source-radius``), pixel
-integration) at the reconstruction depths; its model PSFs from
+2× finer grid, three wavelengths 526–538 nm, a source of 50 µm radius
+(``--source-radius``), pixel integration) at the reconstruction depths; its model PSFs from
 `diffcam.model.stack.psf_stack` (one wavelength, a point source, the sensor grid;
 ``--truth model`` makes the captures with these, an ablation without model error). The
 solver inverts with the diffuser's calibration (``--calibration``): by default the PSF
