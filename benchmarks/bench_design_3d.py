@@ -19,20 +19,23 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
   designed, the first is ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
 - ``random``: another random smooth surface of the same feature size and height range
-  (seed 100), the baseline a user would buy;
+  (seed 100), the baseline a user would buy; ``--random-seeds K`` judges K more
+  (``random 101`` …) and records their PSNRs' spread (``random_surfaces_psnr_db``) and
+  each design's gain over their mean;
 - ``regular lenslets``: a regular square microlens array (36 lenses at 256², as many
   per area at other sizes), all lenses alike;
 - ``designed lenslets`` (``--no-lenslets`` leaves it out): a random lenslet array
   (seed 0) designed alike;
 - ``designed end to end`` (``--end-to-end-steps N``): the same start designed by the
   end-to-end objective (`diffcam.design.end_to_end`: 2 training volumes of its own,
-  20 unrolled ADMM-TV iterations with `VOLUME`, ``--photons``, its TV weight learnt),
-  judged like the others (the solver's learnt weight is not used here).
+  20 unrolled ADMM-TV iterations with `VOLUME`, ``--photons``, its TV weight learnt)
+  through the PSFs of ``--design-model``, judged like the others (the solver's learnt
+  weight is not used here).
 
 Each diffuser's truth PSFs come from
 `diffcam.calibrate.simulation.high_fidelity_psfs` (the height map's phase at 532 nm on a
-2× finer grid, three wavelengths 526–538 nm, a source of 50 µm radius, pixel
-integration) at the reconstruction depths; its model PSFs from
+2× finer grid, three wavelengths 526–538 nm, a source of 50 µm radius
+(``--source-radius``), pixel integration) at the reconstruction depths; its model PSFs from
 `diffcam.model.stack.psf_stack` (one wavelength, a point source, the sensor grid;
 ``--truth model`` makes the captures with these, an ablation without model error). The
 solver inverts with the diffuser's calibration (``--calibration``): by default the PSF
@@ -65,6 +68,12 @@ Scores, over the central half of the field where the scenes lie:
   point, with a plane between the peaks whose value is ≤ 80 % of the lower peak
   (``DIP``, a Rayleigh-like dip); the smallest separation Δz (mm, between the planes'
   depths) resolved;
+- with ``--two-point-depths M``, the same test on M depths over the range (22: the
+  8 depths and two between each pair), by bisection (`finer_two_point`):
+  ``finer_resolved_dz_mm``;
+- with ``--bounds``, what bounds the volume PSNR (`bounds`): the scenes reconstructed
+  with the truth PSFs, with and without noise, the estimate without its depth, and the
+  shares of its error on the sources, on their other planes and elsewhere;
 - the largest cross-depth correlation of the model PSFs (`evaluate_design`), and of the
   truth PSFs (``truth_max_correlation``).
 
@@ -109,7 +118,13 @@ TRAINING_SEED = 2000
 CALIBRATION_SEED = 3000
 """The seed of the calibration PSFs' noise (captures: 7; scenes: 1000 + k, 2000)."""
 SOURCE_RADIUS = 50e-6
-"""Radius of the truth PSFs' source (and of the calibration's), metres."""
+"""Radius of the truth PSFs' source (and of the calibration's), metres (``--source-radius``
+in µm)."""
+FINE_TWO_POINT_SEED = 4000
+"""The seed of the finer two-point test's captures (plus the points' plane count apart:
+every diffuser gets the same noise for the same pair)."""
+SOURCE_SHARE = 0.1
+"""`bounds`: a voxel is on a source where the truth is at least this share of its peak."""
 BLOB_SIGMA = 1.0
 """Standard deviation of a scene's Gaussian blobs, object-grid samples."""
 DESIGN_MODELS = {
@@ -141,7 +156,7 @@ def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float]
             surface, time.perf_counter() - t)
     if end_to_end is not None:
         t = time.perf_counter()
-        designed = design(start, camera(n), z1, INDEX, end_to_end).surface
+        designed = design(start, cam, z1, INDEX, end_to_end).surface
         out["designed end to end"] = (designed, time.perf_counter() - t)
     out["start"] = (start, None)
     out["random"] = (SmoothSurface.random(100, (n, n), PIXEL, FEATURE, H_MAX), None)
@@ -208,14 +223,21 @@ def two_point(nz: int, object_shape, planes: tuple[int, int]) -> np.ndarray:
     return volume
 
 
-def capture(volume: np.ndarray, truth_psfs: np.ndarray, n: int, photons: float,
-            rng: np.random.Generator) -> np.ndarray:
-    """The noisy sensor image of ``volume`` through ``truth_psfs`` (crop model): the
-    expected image scaled to ``photons`` per pixel on average for a scene of this flux
-    (whatever the diffuser), Poisson and read noise, clipped at 0."""
+def expected_capture(volume: np.ndarray, truth_psfs: np.ndarray, n: int,
+                     photons: float) -> np.ndarray:
+    """The noise-free sensor image of ``volume`` through ``truth_psfs`` (crop model),
+    scaled to ``photons`` per pixel on average for a scene of this flux (whatever the
+    diffuser)."""
     model = convolution_model(jnp.asarray(truth_psfs), (n, n), "crop", volume=True)
     expected = np.asarray(model(jnp.asarray(volume, jnp.float32)), np.float64)
-    expected *= photons * n * n / volume.sum()
+    return expected * photons * n * n / volume.sum()
+
+
+def capture(volume: np.ndarray, truth_psfs: np.ndarray, n: int, photons: float,
+            rng: np.random.Generator) -> np.ndarray:
+    """The noisy sensor image of ``volume``: `expected_capture` with Poisson and read
+    noise, clipped at 0."""
+    expected = expected_capture(volume, truth_psfs, n, photons)
     noisy = rng.poisson(np.clip(expected, 0, None)) + rng.normal(0, READ_NOISE, (n, n))
     return np.clip(noisy, 0, None)
 
@@ -244,6 +266,75 @@ def resolved(estimate: np.ndarray, planes: tuple[int, int]) -> bool:
     if j - i < 2:
         return False
     return bool(profile[i + 1:j].min() <= DIP * min(profile[i], profile[j]))
+
+
+def finer_two_point(truth_psfs, solver_psfs, z1: np.ndarray, n: int, object_shape, args,
+                    options: AdmmOptions) -> list[dict]:
+    """The two-point test on the depth grid ``z1`` (finer than the scenes'), by bisection
+    over k, the planes between two points centred on the stack (`two_point_planes`,
+    k = 2 … nz − 1): it assumes that a pair is resolved if a closer one is, tests the
+    widest pair, then halves the interval; each capture with the noise of seed
+    `FINE_TWO_POINT_SEED` + k. Every pair tried, in order: ``planes`` (k), ``dz_mm`` and
+    ``resolved``."""
+    nz = len(z1)
+    pairs = dict(zip(range(2, nz), two_point_planes(nz)))
+    tried = []
+
+    def test(k: int) -> bool:
+        (i, j), rng = pairs[k], np.random.default_rng(FINE_TWO_POINT_SEED + k)
+        b = capture(two_point(nz, object_shape, (i, j)), truth_psfs, n, args.photons, rng)
+        ok = resolved(reconstruct(b[None], solver_psfs, args.iterations, options)[0], (i, j))
+        tried.append({"planes": k, "dz_mm": round(float(z1[j] - z1[i]) * 1e3, 2),
+                      "resolved": ok})
+        return ok
+
+    lo, hi = 2, nz - 1
+    if test(hi):
+        while lo < hi:
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if test(mid) else (mid + 1, hi)
+    return tried
+
+
+def bounds(volumes: np.ndarray, b: np.ndarray, estimate: np.ndarray, truth_psfs,
+           n: int, args, options: AdmmOptions) -> dict:
+    """What bounds a diffuser's volume PSNR on the held-out scenes ``volumes`` (their
+    noisy captures ``b`` and the solver's ``estimate``), mean over the scenes, dB:
+    ``psnr_db_exact_psfs``, the same captures reconstructed with the truth PSFs (no
+    calibration noise, no model error); ``psnr_db_noiseless``, noise-free captures with
+    the truth PSFs (the solver's and the diffuser's own limit); ``depth_blind_psnr_db``,
+    the estimate's mean over planes put on every plane (its lateral content without
+    depth); and where the estimate's squared error sits after its least-squares scale
+    (shares of it, within `field`): ``error_on_sources`` (voxels where the truth is
+    ≥ `SOURCE_SHARE` of its peak), ``error_other_planes`` (the sources' lateral
+    positions on the planes they are not on: depth confusion), ``error_elsewhere``."""
+    clean = np.stack([expected_capture(v, truth_psfs, n, args.photons) for v in volumes])
+    oracle = reconstruct(np.concatenate([b, clean]), np.asarray(truth_psfs),
+                         args.iterations, options)
+    scenes, shares, (rows, cols) = len(volumes), [], field(n, volumes.shape[-2:])
+    mean = (lambda values: round(float(np.mean(values)), 2))
+    for e, t in zip(estimate, volumes):
+        e, t = e[:, rows, cols], t[:, rows, cols]
+        err = e * np.sum(e * t) / np.sum(e * e) - t
+        on = t >= SOURCE_SHARE * t.max()
+        depth = np.broadcast_to(on.any(axis=0), on.shape) & ~on
+        total = np.sum(err ** 2)
+        shares.append([np.sum(err[on] ** 2) / total, np.sum(err[depth] ** 2) / total])
+    on, depth = np.mean(shares, axis=0)
+    return {"psnr_db_exact_psfs": mean([volume_psnr(oracle[s], volumes[s], n)
+                                        for s in range(scenes)]),
+            "psnr_db_noiseless": mean([volume_psnr(oracle[scenes + s], volumes[s], n)
+                                       for s in range(scenes)]),
+            "depth_blind_psnr_db": mean([volume_psnr(depth_blind(e), t, n)
+                                         for e, t in zip(estimate, volumes)]),
+            "error_on_sources": round(float(on), 3),
+            "error_other_planes": round(float(depth), 3),
+            "error_elsewhere": round(float(1 - on - depth), 3)}
+
+
+def depth_blind(volume: np.ndarray) -> np.ndarray:
+    """``volume``'s mean over planes, on every plane: its lateral content, no depth."""
+    return np.broadcast_to(volume.mean(axis=0), volume.shape)
 
 
 def reconstruct(b: np.ndarray, psfs: np.ndarray, iterations: int,
@@ -282,18 +373,26 @@ def calibration(truth_psfs: np.ndarray, photons: float) -> np.ndarray:
     return (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
 
 
-def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, dict]:
-    """One diffuser: captures through its truth PSFs, reconstructions with its
-    calibration (measured or model PSFs); (its truth PSFs and two-point volumes, for
-    `figure`) and its scores."""
+def stacks(surface, z1: np.ndarray, n: int, args) -> tuple[np.ndarray, np.ndarray]:
+    """The diffuser's truth PSFs at the depths ``z1`` (``--truth``) and those its solver
+    inverts with (``--calibration``)."""
     cam = camera(n)
     diffuser = height_map(surface, INDEX)
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
     truth_psfs = model_psfs if args.truth == "model" else high_fidelity_psfs(
         diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1,
-        source_radius=SOURCE_RADIUS)
+        source_radius=args.source_radius * 1e-6)
     solver_psfs = model_psfs if args.calibration == "model" else calibration(
         np.asarray(truth_psfs), args.calibration_photons)
+    return truth_psfs, solver_psfs
+
+
+def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, dict]:
+    """One diffuser: captures through its truth PSFs, reconstructions with its
+    calibration (measured or model PSFs); (its truth PSFs and two-point volumes, for
+    `figure`) and its scores."""
+    cam = camera(n)
+    truth_psfs, solver_psfs = stacks(surface, z1, n, args)
     options = VOLUME
     if args.tune:
         options = tuned(truth_psfs, solver_psfs, n, volumes.shape[-2:], args)
@@ -310,6 +409,17 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, 
     objective = DepthObjective(cam, z1, INDEX)
     shown = (np.asarray(truth_psfs), estimate[scenes:])
     truth_max = jnp.max(pair_correlations(standardised(jnp.asarray(truth_psfs))))
+    extra = {}
+    if args.two_point_depths:
+        fine = depth_range(args.near * 1e-3, args.far * 1e-3, args.two_point_depths)
+        tried = finer_two_point(*stacks(surface, fine, n, args), fine, n,
+                                volumes.shape[-2:], args, options)
+        extra["finer_resolved_dz_mm"] = min(
+            (t["dz_mm"] for t in tried if t["resolved"]), default=None)
+        extra["finer_two_point"] = tried
+    if args.bounds:
+        extra.update(bounds(volumes[:scenes], b[:scenes], estimate[:scenes], truth_psfs,
+                            n, args, options))
     return shown, {"diffuser": name, "max_correlation": round(
                 evaluate_design(surface, objective)["max_correlation"], 4),
             "truth_max_correlation": round(float(truth_max), 4),
@@ -319,7 +429,7 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, 
             "two_point": [{"dz_mm": round(dz, 2), "resolved": ok} for dz, ok in separations],
             "design_s": None if design_s is None else round(design_s, 1),
             "tau": options.tau, "sparsity": options.sparsity,
-            "reconstruct_s": round(solve_s, 1)}
+            "reconstruct_s": round(solve_s, 1), **extra}
 
 
 def figure(shown: dict, rows: list[dict], z1: np.ndarray, path) -> None:
@@ -374,6 +484,8 @@ def gain_rows(by: dict, weights: list[float]) -> list[dict]:
                     round(by[name]["psnr_db"] - by[other]["psnr_db"], 2)
                     for other in ("random", "start", "regular lenslets")})
         row["resolved_dz_mm"] = by[name]["resolved_dz_mm"]
+        if "finer_resolved_dz_mm" in by[name]:
+            row["finer_resolved_dz_mm"] = by[name]["finer_resolved_dz_mm"]
         rows.append(row)
     return rows
 
@@ -420,6 +532,18 @@ def main(argv=None) -> int:
                         help="also design the start by the end-to-end objective, this "
                              "many steps (2 training volumes, 20 unrolled iterations, "
                              "--photons; 0: not)")
+    parser.add_argument("--two-point-depths", type=int, default=0,
+                        help="also run the two-point test on this many depths over the "
+                             "range, by bisection (0: not)")
+    parser.add_argument("--source-radius", type=float, default=SOURCE_RADIUS * 1e6,
+                        help="radius of the truth's (and the calibration's) source, µm; "
+                             "the design models of a source take it too")
+    parser.add_argument("--random-seeds", type=int, default=0,
+                        help="judge this many more random surfaces (seeds 101, …): the "
+                             "baseline's spread")
+    parser.add_argument("--bounds", action="store_true",
+                        help="also reconstruct the scenes with the truth PSFs, with and "
+                             "without noise, and say where the error sits (bounds)")
     parser.add_argument("--figure", help="also draw each diffuser's PSFs and a "
                         "two-point reconstruction to this image file")
     parser.add_argument("--name", default="design_3d")
@@ -433,12 +557,18 @@ def main(argv=None) -> int:
     rows = []
     floor = round(float(np.mean([volume_psnr(np.zeros_like(v), v, n, None)
                                  for v in volumes[:args.scenes]])), 2)
+    blind = round(float(np.mean([volume_psnr(depth_blind(v), v, n)
+                                 for v in volumes[:args.scenes]])), 2)
+    light = {k: args.source_radius * 1e-6 if k == "source_radius" else v
+             for k, v in DESIGN_MODELS[args.design_model].items()}
     end_to_end = None if args.end_to_end_steps < 1 else DesignOptions(
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
-        photons=args.photons, progress=False)
-    depth = DesignOptions(steps=args.steps, progress=False,
-                          **DESIGN_MODELS[args.design_model])
+        photons=args.photons, progress=False, **light)
+    depth = DesignOptions(steps=args.steps, progress=False, **light)
     made = diffusers(n, z1, depth, args.weights, args.lenslets, end_to_end)
+    for seed in range(101, 101 + args.random_seeds):
+        made[f"random {seed}"] = (SmoothSurface.random(seed, (n, n), PIXEL, FEATURE, H_MAX),
+                                  None)
     shown = {}
     for name, (surface, design_s) in made.items():
         shown[name], row = judge(name, surface, z1, n, volumes, pairs, args, design_s)
@@ -448,6 +578,12 @@ def main(argv=None) -> int:
         figure(shown, rows, z1, args.figure)
     by = {r["diffuser"]: r for r in rows}
     gains = gain_rows(by, args.weights)
+    randoms = [r["psnr_db"] for r in rows if r["diffuser"].startswith("random")]
+    spread = {"count": len(randoms), "mean": round(float(np.mean(randoms)), 2),
+              "sd": round(float(np.std(randoms, ddof=1)), 2) if len(randoms) > 1 else None,
+              "min": min(randoms), "max": max(randoms)}
+    for g in gains:
+        g["gain_db_over_random_mean"] = round(by[g["design"]]["psnr_db"] - spread["mean"], 2)
     claim = (f"{n}² over {args.depths} depths ({args.near:g}–{args.far:g} mm), "
              f"{args.steps} design steps, {args.photons:g} photons per pixel, "
              f"{args.calibration} PSFs: volume PSNR designed {by['designed']['psnr_db']} "
@@ -468,8 +604,13 @@ def main(argv=None) -> int:
                      "calibration_photons_at_peak": args.calibration_photons,
                      "tuned_per_diffuser": args.tune,
                      "end_to_end_steps": args.end_to_end_steps,
+                     "two_point_depths": args.two_point_depths,
+                     "random_seeds": args.random_seeds,
+                     "source_radius_um": args.source_radius,
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
+        "random_surfaces_psnr_db": spread,
         "empty_volume_psnr_db": floor,
+        "depth_blind_truth_psnr_db": blind,
         "claim": claim})
     return 0
 

@@ -227,6 +227,12 @@ SECTIONS = {
             " --depths 4 --calibration model --name design_3d_4_depths"),
            ("design_3d_near", ", 8 depths over 5–20 mm, model PSFs",
             " --near 5 --far 20 --calibration model --name design_3d_near"),
+           ("design_3d_1000_photons_random_seeds", ", 1000 photons per pixel, seven random "
+            "surfaces", " --photons 1000 --weights 0.1 --no-lenslets --random-seeds 6 "
+            "--name design_3d_1000_photons_random_seeds"),
+           ("design_3d_1000_photons_10um_source", ", 1000 photons per pixel, a source of "
+            "10 µm radius", " --photons 1000 --weights 0.1 0 --no-lenslets --source-radius "
+            "10 --name design_3d_1000_photons_10um_source"),
            ("design_3d_end_to_end", ", the end-to-end objective beside depth "
             "discrimination, model PSFs", " --weights 0.1 --no-lenslets "
             "--end-to-end-steps 60 --calibration model --name design_3d_end_to_end"))},
@@ -243,6 +249,17 @@ SECTIONS = {
         "--weights 0.1 --no-lenslets --tune --name design_3d_1000_photons_truth_design_tuned",
         ["diffuser", "max_correlation", "truth_max_correlation", "psnr_db", "psnr_per_scene",
          "resolved_dz_mm", "tau", "sparsity", "design_s", "reconstruct_s"]),
+    "design_3d_1000_photons_truth_end_to_end": (
+        "Diffuser design judged by 3-D reconstruction of held-out volumes, 1000 photons per "
+        "pixel, both objectives through the truth's PSFs, a two-point test on 22 depths and "
+        "what bounds the volume PSNR",
+        "python -m benchmarks.bench_design_3d --photons 1000 --design-model truth "
+        "--weights 0.1 --no-lenslets --end-to-end-steps 60 --two-point-depths 22 --bounds "
+        "--name design_3d_1000_photons_truth_end_to_end",
+        ["diffuser", "truth_max_correlation", "psnr_db", "psnr_db_exact_psfs",
+         "psnr_db_noiseless", "depth_blind_psnr_db", "error_on_sources",
+         "error_other_planes", "error_elsewhere", "resolved_dz_mm", "finer_resolved_dz_mm",
+         "design_s"]),
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --folds … "
@@ -268,7 +285,9 @@ EXTRA_TABLES = {"real_data": ["scores"], "scene_psf": ["summary"], "design": ["c
                     "", "_256", "_model_truth", "_tuned", "_4_depths", "_near",
                     "_256_model_truth", "_end_to_end", "_1000_photons", "_10000_photons",
                     "_hf_design", "_10000_photons_hf_design", "_10000_photons_model_psfs",
-                    "_1000_photons_truth_design", "_1000_photons_truth_design_tuned")}}
+                    "_1000_photons_truth_design", "_1000_photons_truth_design_tuned",
+                    "_1000_photons_truth_end_to_end", "_1000_photons_10um_source")},
+                "design_3d_1000_photons_random_seeds": ["gains", "random_surfaces_psnr_db"]}
 """Keys of a results JSON besides its rows that the page shows as tables too: a dict
 as measure and value, a list of dicts as rows."""
 

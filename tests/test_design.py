@@ -194,10 +194,6 @@ def test_pixel_integrated_objective_matches_a_finer_field_binned_by_hand():
 def test_light_source_and_pixel_options_are_checked():
     with pytest.raises(DiffcamError, match="bandwidth must be ≥ 0"):
         DesignOptions(bandwidth=-1e-9)
-    with pytest.raises(DiffcamError, match="depth objective alone"):
-        DesignOptions(objective="end_to_end", source_radius=50e-6)
-    with pytest.raises(DiffcamError, match="depth objective alone"):
-        DesignOptions(objective="end_to_end", oversample=2)
     with pytest.raises(DiffcamError, match="oversample"):
         DesignOptions(oversample=0)
     o = DesignOptions(bandwidth=6e-9, source_radius=50e-6, oversample=2)

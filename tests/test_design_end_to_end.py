@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from diffcam.core.errors import DiffcamError
-from diffcam.design import (Design, DesignOptions, SmoothSurface, depth_range, design,
+from diffcam.design import (DepthObjective, Design, DesignOptions, SmoothSurface, depth_range, design,
                             end_to_end_objective, evaluate_design, load_design,
                             training_volumes)
 from diffcam.model import Camera
@@ -82,6 +82,37 @@ def test_short_design_lowers_the_loss_and_continues_from_its_file(tmp_path):
                   options=dataclasses.replace(options, steps=8))
     assert more.steps == 8
     np.testing.assert_array_equal(more.history[:6], result.history)
+
+
+def _broadband_disc_start():
+    options = dataclasses.replace(OPTIONS, bandwidth=6e-9, source_radius=20e-6)
+    return Design(_surface(), _camera(), Z1, 1.5, options, np.zeros((0, 4)), {}, None,
+                  "", 0.0, jnp.log(1e-5))
+
+
+def test_end_to_end_objective_takes_the_light_and_source_of_its_options():
+    objective = _broadband_disc_start().objective()
+    assert objective.source_radius == 20e-6 and objective.oversample == 1
+    np.testing.assert_allclose(objective.spectrum[0],
+                               532e-9 + 6e-9 * np.array([-1.0, 0.0, 1.0]))
+    np.testing.assert_array_equal(objective.spectrum[1], [0.5, 1.0, 0.5])
+
+
+@pytest.mark.slow  # the unrolled solver's compilation: 13 s
+def test_end_to_end_psfs_are_the_depth_objectives_through_a_broadband_disc_source():
+    """With a spectrum and a source disc the end-to-end objective images through the
+    PSFs the depth objective scores (their correlations and spread agree), not the
+    point source's."""
+    start = _broadband_disc_start()
+    objective = start.objective()
+    e2e = evaluate_design(start.parameters, objective)
+    depth = DepthObjective(_camera(), Z1, 1.5, spectrum=objective.spectrum,
+                           source_radius=20e-6)
+    want = evaluate_design(start.surface, depth)
+    for term in ("max_correlation", "spread"):
+        assert e2e[term] == pytest.approx(want[term], abs=1e-6)
+    point = evaluate_design(start.surface, DepthObjective(_camera(), Z1, 1.5))
+    assert abs(point["max_correlation"] - want["max_correlation"]) > 1e-4
 
 
 def test_options_refuse_an_unknown_objective():

@@ -1,10 +1,12 @@
 """The end-to-end objective: a diffuser is as good as the volumes reconstructed through it.
 
 Training volumes ``v`` (a few point-like sources at random depths and positions) are
-imaged through the diffuser's PSFs ``h_z`` (`diffcam.model.stack_map.psf_map`) by the
-3-D model the solver assumes, with shot noise at a stated mean photon count per sensor
-pixel, and reconstructed as ``diffcam reconstruct --3d`` does — the capture scaled to
-unit L2 norm, ``iterations`` unrolled iterations of ADMM-TV with the `VOLUME` settings
+imaged through the diffuser's PSFs ``h_z`` (`diffcam.design.objective.recorded`: of a
+point source in one line unless the objective gives a spectrum, a source disc or pixel
+integration, as the depth objective does) by the 3-D model the solver assumes, with
+shot noise at a stated mean photon count per sensor pixel, and reconstructed as
+``diffcam reconstruct --3d`` does — the capture scaled to unit L2 norm, ``iterations``
+unrolled iterations of ADMM-TV with the `VOLUME` settings
 (`diffcam.reconstruct.admm.admm_tv_3d`, a ``lax.scan``, differentiable in the PSFs and
 in its TV weights). The loss is the reconstruction's relative squared error after its
 least-squares scale (the capture's scale is gone), one minus the squared cosine:
@@ -33,11 +35,9 @@ from jax import Array
 from jaxtyping import Float
 
 from diffcam.core.errors import DiffcamError
-from diffcam.design.objective import CHUNKS, Terms, depth_terms, spread, standardised
-from diffcam.design.surfaces import Surface, height_map
+from diffcam.design.objective import Terms, depth_terms, recorded, spread, standardised
+from diffcam.design.surfaces import Surface
 from diffcam.model.camera import Camera
-from diffcam.model.point_spread import items_per_chunk
-from diffcam.model.stack_map import psf_map
 from diffcam.reconstruct.admm import VOLUME, admm_tv_3d
 from diffcam.reconstruct.operators import convolution_model, grid_shapes
 
@@ -60,6 +60,9 @@ class EndToEndObjective(NamedTuple):
         photons: the captures' mean per sensor pixel, photo-electrons (shot noise).
         iterations: unrolled ADMM-TV iterations.
         temperature: τ of the reported smooth maximum of the correlations.
+        spectrum, source_radius, oversample: the light, source and pixels the PSFs are
+            recorded with, as in `diffcam.design.objective.DepthObjective` (the
+            captures and the solver both use these PSFs).
     """
 
     camera: Camera
@@ -70,6 +73,9 @@ class EndToEndObjective(NamedTuple):
     photons: float
     iterations: int
     temperature: float = 0.01
+    spectrum: tuple | None = None
+    source_radius: float = 0.0
+    oversample: int = 1
 
 
 def training_volumes(key: Array, count: int, z1, camera: Camera,
@@ -106,10 +112,7 @@ def end_to_end_objective(parameters: tuple[Surface, Array],
     (``Terms.smooth``, ``max_correlation``, ``spread``). Differentiable in the surface's
     array leaves and in ``log_tau``."""
     surface, log_tau = parameters
-    diffuser = height_map(surface, objective.refractive_index)
-    nz = np.shape(objective.z1)[0]
-    chunk = min(items_per_chunk(objective.camera, 1), -(-nz // CHUNKS))
-    h = psf_map(lambda p: p, diffuser, objective.camera, objective.z1, batch_size=chunk)
+    h = recorded(lambda p: p, surface, objective)
     model = convolution_model(h, objective.camera.out_shape, "crop", volume=True)
     clean = jax.vmap(model)(objective.volumes)
     pixels = np.prod(objective.camera.out_shape)

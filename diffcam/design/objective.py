@@ -39,7 +39,7 @@ depths (``python -m benchmarks.bench_design``).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -57,7 +57,7 @@ from diffcam.model.stack_map import psf_map
 
 __all__ = ["standardised", "spread", "correlation_matrix", "pair_correlations",
            "smooth_max", "source_blurred", "DepthObjective", "Terms", "depth_terms",
-           "depth_objective", "objective_terms"]
+           "depth_objective", "recorded", "objective_terms"]
 
 
 CHUNKS = 4
@@ -150,6 +150,15 @@ class Terms(NamedTuple):
 def depth_objective(surface: Surface, objective: DepthObjective) -> tuple[Array, Terms]:
     """``(loss, Terms)`` of ``surface``: loss = ρ_τ + w·mean spread (module docstring).
     Differentiable in the surface's array leaves."""
+    q, s = recorded(lambda h: (standardised(h), spread(h)), surface, objective)
+    return objective_terms(q, s, objective)
+
+
+def recorded(fn: Callable, surface: Surface, objective: DepthObjective):
+    """``fn(PSF)`` for every depth of ``objective.z1``, the PSFs as the objective's light,
+    source and pixels record them (module docstring; ``objective`` has the fields
+    ``camera``, ``z1``, ``refractive_index``, ``spectrum``, ``source_radius`` and
+    ``oversample`` of `DepthObjective`), a chunk of depths at a time (`CHUNKS`)."""
     diffuser = height_map(surface, objective.refractive_index)
     nz = np.shape(objective.z1)[0]
     camera, k = objective.camera, objective.oversample
@@ -157,13 +166,11 @@ def depth_objective(surface: Surface, objective: DepthObjective) -> tuple[Array,
     chunk = min(items_per_chunk(fine, 1), -(-nz // CHUNKS))
     radius = objective.source_radius * camera.z2 / (jnp.asarray(objective.z1) * camera.dx)
 
-    def terms(h, r):
+    def record(h, r):
         h = resample(h, fine.dx, camera.dx, camera.out_shape, max_width=k) if k > 1 else h
-        h = source_blurred(h, r) if objective.source_radius > 0 else h
-        return standardised(h), spread(h)
-    q, s = psf_map(terms, finer_diffuser(diffuser, k), fine,
-                   objective.z1, radius, spectrum=objective.spectrum, batch_size=chunk)
-    return objective_terms(q, s, objective)
+        return fn(source_blurred(h, r) if objective.source_radius > 0 else h)
+    return psf_map(record, finer_diffuser(diffuser, k), fine, objective.z1, radius,
+                   spectrum=objective.spectrum, batch_size=chunk)
 
 
 def depth_terms(q: Float[Array, "nz ny nx"], spreads: Float[Array, " nz"],

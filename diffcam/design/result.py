@@ -46,21 +46,21 @@ class DesignOptions:
         resume: if the checkpoint file exists when the design starts, continue from it
             (``False``: start afresh; the file is replaced at the first checkpoint).
         progress: show a progress bar over the steps.
-        objective: one of `OBJECTIVES`; the rest applies to ``"end_to_end"`` alone.
+        objective: one of `OBJECTIVES`; ``scenes`` … ``seed`` apply to ``"end_to_end"``
+            alone, the light, source and pixels (``bandwidth`` …) to both.
         scenes: training volumes (`diffcam.design.end_to_end.training_volumes`).
         solver_iterations: unrolled ADMM-TV iterations.
         photons: the captures' mean per sensor pixel, photo-electrons (shot noise).
         tau: the lateral TV weight the solver starts from, for a capture of unit L2
             norm (`diffcam.reconstruct.admm.VOLUME`'s; learnt with the surface).
         seed: the training volumes' and the noise's random seed.
-        bandwidth: depth objective: the light's half-width about
-            ``camera.wavelength``, metres: three lines at λ − bandwidth, λ,
-            λ + bandwidth (weights ½, 1, ½); 0 for one line.
-        source_radius: depth objective: radius of the disc source the PSFs are of,
-            metres (0: a point; `diffcam.design.objective.source_blurred`).
-        oversample: depth objective: field samples per sensor pixel, per side: 1, the
-            irradiance at each pixel's centre; k > 1, the field on a k× finer grid and
-            its irradiance integrated over each pixel (pixel integration).
+        bandwidth: the light's half-width about ``camera.wavelength``, metres: three
+            lines at λ − bandwidth, λ, λ + bandwidth (weights ½, 1, ½); 0 for one line.
+        source_radius: radius of the disc source the PSFs are of, metres (0: a point;
+            `diffcam.design.objective.source_blurred`).
+        oversample: field samples per sensor pixel, per side: 1, the irradiance at each
+            pixel's centre; k > 1, the field on a k× finer grid and its irradiance
+            integrated over each pixel (pixel integration).
     """
 
     steps: int = 300
@@ -95,11 +95,6 @@ class DesignOptions:
         for name in ("sparsity_weight", "bandwidth", "source_radius"):
             if not real_number(name, getattr(self, name), "a number ≥ 0") >= 0:
                 raise DiffcamError(f"{name} must be ≥ 0, got {getattr(self, name)!r}.")
-        if self.objective != "depth" and (self.bandwidth or self.source_radius
-                                          or self.oversample != 1):
-            raise DiffcamError("bandwidth, source_radius and oversample apply to the depth "
-                               "objective alone: leave them 0, 0 and 1 with "
-                               "objective='end_to_end'.")
         if self.time_budget is not None:
             _positive("time_budget", self.time_budget)
 
@@ -107,12 +102,12 @@ class DesignOptions:
         """The settings that define the objective and its optimiser (a continued design
         must keep them)."""
         problem = {"objective": self.objective, "learning_rate": float(self.learning_rate),
-                   "temperature": float(self.temperature)}
+                   "temperature": float(self.temperature),
+                   "bandwidth": float(self.bandwidth),
+                   "source_radius": float(self.source_radius),
+                   "oversample": int(self.oversample)}
         if self.objective == "depth":
-            return {**problem, "sparsity_weight": float(self.sparsity_weight),
-                    "bandwidth": float(self.bandwidth),
-                    "source_radius": float(self.source_radius),
-                    "oversample": int(self.oversample)}
+            return {**problem, "sparsity_weight": float(self.sparsity_weight)}
         return {**problem, "scenes": int(self.scenes), "photons": float(self.photons),
                 "solver_iterations": int(self.solver_iterations), "tau": float(self.tau),
                 "seed": int(self.seed)}
@@ -185,9 +180,9 @@ class Design:
         """The objective the design minimises (its training volumes drawn from
         ``options.seed``)."""
         o = self.options
+        lines = self.camera.wavelength + o.bandwidth * np.array([-1.0, 0.0, 1.0])
+        spectrum = (lines, np.array([0.5, 1.0, 0.5])) if o.bandwidth > 0 else None
         if o.objective == "depth":
-            lines = self.camera.wavelength + o.bandwidth * np.array([-1.0, 0.0, 1.0])
-            spectrum = (lines, np.array([0.5, 1.0, 0.5])) if o.bandwidth > 0 else None
             return DepthObjective(self.camera, self.z1, self.refractive_index,
                                   o.temperature, o.sparsity_weight, spectrum,
                                   float(o.source_radius), int(o.oversample))
@@ -197,4 +192,5 @@ class Design:
                                   (o.scenes, *self.camera.out_shape))
         return EndToEndObjective(self.camera, self.z1, self.refractive_index, volumes,
                                  noise, float(o.photons), int(o.solver_iterations),
-                                 o.temperature)
+                                 o.temperature, spectrum, float(o.source_radius),
+                                 int(o.oversample))
