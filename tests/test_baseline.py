@@ -58,6 +58,7 @@ def test_relative_magnification_and_identity():
     np.testing.assert_allclose(out.sum(axis=(-2, -1)), ref.sum(), rtol=1e-5)
 
 
+@pytest.mark.slow  # 6 s of float64 compilation; magnify_psf's values by default
 @pytest.mark.usefixtures("debug_nans")
 def test_scale_psf_jit_grad_vmap(x64):
     """magnify_psf is differentiable in z1 (vs central difference of relative step 1e-6,

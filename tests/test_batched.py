@@ -54,6 +54,7 @@ def test_vmap_and_psf_map_equal_one_psf_per_depth(method):
     np.testing.assert_allclose(grad, reference, atol=1e-4 * np.abs(reference).max())
 
 
+@pytest.mark.slow  # 7 s; psf_loss's phase gradient by default: the test above
 def test_psf_loss_differentiates_everything_psf_map_does(x64):
     """psf_loss's gradient in the depths, a per-depth input, an array its fn closes over
     and the camera's z2 equals that of the sum of psf_map (direct path, float64; a
@@ -88,6 +89,7 @@ def _float64_loss(method):
                                      batch_size=2)
 
 
+@pytest.mark.slow  # 5 s of float64 compilation
 def test_psf_loss_in_depths_both_modes_match_finite_differences(x64):
     """Along a move of the depths (direct path, float64), psf_loss's jvp and its
     reverse-mode derivative equal a central difference of the loss."""

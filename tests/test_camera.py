@@ -298,6 +298,7 @@ def test_bad_static_fields():
 
 # -------------------------------------------------------------------- jit, grad, vmap
 
+@pytest.mark.slow  # 9 s; jit(vmap(psf)) against psf by default: test_batched
 def test_jit_vmap_and_no_recompile_for_new_numbers():
     """Traced camera numbers: vmap over z2 and new values reuse the compiled core."""
     n = 64
@@ -344,8 +345,8 @@ def test_gradients_match_finite_differences(method, x64):
     assert np.isfinite(np.asarray(g_ph)).all()
 
 
-@pytest.mark.parametrize("method", [pytest.param("scaling", marks=pytest.mark.slow),
-                                    "direct"])  # the scaling path's: 18 s of compilation
+@pytest.mark.slow  # 11–18 s of compilation a path; float32 against float64 by default:
+@pytest.mark.parametrize("method", ["scaling", "direct"])  # test_retrieval_lsq's model
 def test_float32_gradient_agrees_with_float64(method):
     """The phase gradient of Σ w·PSF in float32 equals the float64 one (1e-3 of its
     largest entry) for a close source (z1 = 25 mm, 5 µm pitch). The unnormalised
@@ -368,6 +369,7 @@ def test_float32_gradient_agrees_with_float64(method):
         assert_float32_gradient_matches_float64(gradient)
 
 
+@pytest.mark.slow  # 6 s; the soft edge's radius gradient by default: test_optics
 @pytest.mark.usefixtures("debug_nans")
 def test_gradient_in_aperture_radius_with_soft_edge():
     """edge='soft' makes the PSF differentiable in the aperture radius (finite, nonzero)."""

@@ -301,7 +301,8 @@ def test_jit_wrapping_and_gradient(x64):
     jitted = jax.jit(lambda b, h: richardson_lucy(b, h, 5).image)
     assert _rel(jitted(image, psf), richardson_lucy(image, psf, 5).image) < 1e-12
     loss = lambda h: jnp.sum(richardson_lucy(image, h, 5).image ** 2)  # noqa: E731
-    check_grads(loss, (jnp.asarray(psf),), order=1, modes=["rev"], atol=1e-6, rtol=1e-5)
+    check_grads(jax.jit(loss), (jnp.asarray(psf),), order=1, modes=["rev"], atol=1e-6,
+                rtol=1e-5)
 
 
 @pytest.mark.parametrize("method, measure", [pytest.param("admm", "misfit", marks=pytest.mark.slow),

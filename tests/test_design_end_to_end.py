@@ -50,6 +50,7 @@ def _loss():
                                                         objective)[0])
 
 
+@pytest.mark.slow  # 8 s of compilation (the unrolled solver's gradient)
 def test_loss_is_below_an_empty_estimates_and_rises_with_too_much_tv():
     loss = _loss()
     values = [float(loss(jnp.float32(t))) for t in (np.log(1e-5), np.log(1e-2))]

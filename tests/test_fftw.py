@@ -126,7 +126,7 @@ def test_derivatives_both_modes(which, x64):
                        _complex(rng, shape[:-1] + (shape[-1] // 2 + 1,), np.complex128)),
     }[which]
     x = jnp.asarray(x)
-    check_grads(f, (x,), order=2, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+    check_grads(jax.jit(f), (x,), order=2, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
     t = jnp.asarray(rng.normal(size=x.shape) + (1j * rng.normal(size=x.shape)
                                                  if jnp.iscomplexobj(x) else 0), x.dtype)
     np.testing.assert_allclose(jax.jvp(f, (x,), (t,))[1], jax.jvp(ref, (x,), (t,))[1],

@@ -76,7 +76,7 @@ def test_expj_derivative_is_j_times_the_value():
 
 def test_expj_gradients_to_second_order(x64):
     theta = jnp.asarray(np.random.default_rng(6).uniform(-3, 3, 5))
-    check_grads(lambda t: expj(t) * (1 + 2j), (theta,), order=2, modes=("fwd", "rev"))
+    check_grads(jax.jit(lambda t: expj(t) * (1 + 2j)), (theta,), order=2, modes=("fwd", "rev"))
 
 
 def test_expj_under_jit_vmap_and_a_loop():

@@ -74,6 +74,7 @@ def test_z2_and_depths_are_recovered(sim, camera):
     np.testing.assert_allclose(r.stats["z1"], z1, rtol=5e-3)
 
 
+@pytest.mark.slow  # 6 s; predicted stacks by default: test_stack_fit, test_stack
 def test_predicted_psfs_match_the_model_at_other_depths(sim, camera):
     pred = predict_psfs(sim.phase, camera, [22e-3, 30e-3])
     assert pred.shape == (2, 128, 128)
