@@ -27,6 +27,7 @@ def test_resample_capture_at_its_own_pitch_is_the_identity():
     np.testing.assert_allclose(out, img, atol=1e-5 * img.max())
 
 
+@pytest.mark.slow  # 6 s; the same property of psf_plane by default (below)
 def test_resample_capture_does_not_wrap_an_edge_across():
     """Bar at the left edge over a level of 100 (so no leak is hidden by the clip at 0):
     the right half reads the level alone, at the same pitch and at a coarser one that

@@ -71,6 +71,7 @@ def test_mse_psnr_and_alignment(x64):
     assert np.allclose(align_to(distorted, A), A)
 
 
+@pytest.mark.slow  # 6 s of float64 compilation; the metrics' values by default
 @pytest.mark.usefixtures("debug_nans")
 def test_metric_gradients(x64):
     """Pearson and SSIM are differentiable (check_grads, reverse and forward mode)."""

@@ -163,6 +163,7 @@ def test_model_is_jittable_and_vmappable(sim):
     assert np.all(np.isfinite(np.asarray(g)))
 
 
+@pytest.mark.slow  # 6 s; retrieval's default path by default: the test below
 def test_calibrate_default_path(sim):
     r = retrieve_phase(sim.near, sim.far, sim.geometry, sim.aperture, key=jax.random.key(0),
                        iterations=200, restarts=2, refine=FitOptions(loss="intensity",

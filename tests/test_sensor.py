@@ -48,6 +48,7 @@ def test_resample_identity_and_magnified_gaussian(kind):
     np.testing.assert_allclose(big.sum(), g.sum(), rtol=1e-4)
 
 
+@pytest.mark.slow  # 6 s of float64 compilation; resample's values by default
 @pytest.mark.usefixtures("debug_nans")
 def test_resample_jit_grad_vmap(x64):
     """resample is differentiable in the magnification (vs a central difference of step

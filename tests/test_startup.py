@@ -180,6 +180,7 @@ def test_the_users_cache_settings_come_first(phase_file, tmp_path):
     assert (tmp_path / "c.tif").read_bytes() == (tmp_path / "a.tif").read_bytes()
 
 
+@pytest.mark.slow  # 5 s of subprocesses; the cache's reuse by default: the test above
 def test_a_cache_over_its_cap_loses_its_least_recently_used_programs(phase_file, tmp_path):
     """A 1 MB cap (DIFFCAM_CACHE_MAX_MB=1) on a folder holding 1.2 MB: the run's new
     programs evict the least recently used one first, a program written without a cap
