@@ -93,6 +93,8 @@ def cmd_compare_field(args, path) -> int:
         raise DiffcamError(f"{path} is a field-dependent PSF: give the position of each "
                            f"captured PSF with --at Y,X;… (pixels from the axis).")
     check_output_path(args.out, suffixes=(".png",))
+    if args.json is not None:
+        check_output_path(args.json, suffixes=(".json",))
     fields, channels = field_models(path)
     captured = np.asarray(read_psfs(args.captured)[0], np.float64)
     captured = captured[None] if captured.ndim == 2 else captured
@@ -131,7 +133,6 @@ def _report(scores: dict, args) -> None:
     ax.legend()
     save_figure(fig, args.out)
     if args.json is not None:
-        check_output_path(args.json, suffixes=(".json",))
         with atomic_output(args.json) as tmp, open(tmp, "w") as fh:
             json.dump(scores if len(scores) > 1 else scores[""], fh, indent=1)
     print(f"diffcam compare: → {args.out}" + (f", {args.json}" if args.json else ""))

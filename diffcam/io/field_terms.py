@@ -14,7 +14,7 @@ import numpy as np
 
 from diffcam.core.errors import DiffcamError, number_in, real_array, whole_number
 from diffcam.io.preprocessing import (PROFILE_ROWS, bin_samples, l1_solution, light_profiles,
-                                      optical_axis)
+                                      optical_axis, sampled_planes)
 
 __all__ = ["FIELD_TERMS", "FieldTerms", "fit_field_terms", "AcceptanceSplit",
            "acceptance_split"]
@@ -129,7 +129,7 @@ def fit_field_terms(image: np.ndarray, psfs: np.ndarray, z1, z2: float,
     samples = whole_number("samples", samples, 1)
     light_weight = number_in("light_weight", light_weight, 1e-6, 1 - 1e-6,
                              "a share of the emptying weight in (0, 1)")
-    fitted = np.unique(np.linspace(0, len(z1) - 1, min(samples, len(z1))).round()).astype(int)
+    fitted = sampled_planes(len(z1), samples)
     mag = 1 + z2 / z1[fitted]
     axes = [_Profile.of(image, psfs, fitted), _Profile.of(
         np.asarray(image).T, np.swapaxes(np.asarray(psfs), 1, 2), fitted)]

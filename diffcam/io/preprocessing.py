@@ -192,8 +192,7 @@ def envelope_widths(image: np.ndarray, psfs: np.ndarray, samples: int = 5) -> np
     rows = np.arange(planes.shape[1])
     spread = np.sqrt(planes @ rows ** 2 / planes.sum(axis=1) - centres ** 2)
     scale = spread / spread.max()
-    fitted = np.unique(np.linspace(0, len(planes) - 1, max(1, min(samples, len(planes))))
-                       .round()).astype(int)
+    fitted = sampled_planes(len(planes), samples)
     # the fit on profiles binned to at most PROFILE_ROWS rows (σ is smooth on that scale)
     factor = -(-planes.shape[1] // PROFILE_ROWS)
     profile, kernels = bin_samples(profile, factor), bin_samples(planes[fitted], factor)
@@ -238,6 +237,12 @@ def apply_envelope(psfs: np.ndarray, widths) -> np.ndarray:
 
 
 PROFILE_ROWS = 100   # samples of the binned profiles the footprint fits use
+
+
+def sampled_planes(n: int, samples: int) -> np.ndarray:
+    """Indices of ``samples`` planes spread evenly over ``n`` (the ends included, at
+    most ``n``): the planes the footprint fits use."""
+    return np.unique(np.linspace(0, n - 1, max(1, min(samples, n))).round()).astype(int)
 
 
 def bin_samples(profiles, factor: int) -> np.ndarray:
@@ -340,8 +345,7 @@ def fit_sensor_window(image: np.ndarray, psfs: np.ndarray, samples: int = 5,
                              "a share of the emptying weight in (0, 1)")
     profile, planes, centres = light_profiles(image, psfs)
     centre_row = optical_axis(planes, centres) + image.shape[0] // 2 - planes.shape[1] // 2
-    fitted = np.unique(np.linspace(0, len(planes) - 1, max(1, min(samples, len(planes))))
-                       .round()).astype(int)
+    fitted = sampled_planes(len(planes), samples)
     factor = -(-planes.shape[1] // PROFILE_ROWS)
     profile = bin_samples(profile, factor)
     matrix = _valid_matrix(len(profile), bin_samples(planes[fitted], factor))
@@ -388,4 +392,3 @@ def _l1_fit(matrix, target, weight, iterations: int = 400) -> float:
     s = l1_solution(matrix, target, weight, iterations)
     r = matrix @ s - target
     return float(0.5 * r @ r + weight * s.sum())
-
