@@ -135,8 +135,8 @@ def affine_fit(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 def fold(raws, truths, k: int, args) -> tuple[list[dict], dict]:
     """Leave pair ``k`` out: rows of scores, and the arrays for the figure."""
-    from diffcam.calibrate.scene_psf import (fit_field_psf_from_scenes, fit_psf_from_scenes,
-                                             flip_scene)
+    from diffcam.calibrate.scene.fit import fit_field_psf_from_scenes, fit_psf_from_scenes
+    from diffcam.calibrate.scene.pairs import flip_scene
 
     others = [(k + j) % len(raws) for j in range(1, len(raws))]
     rows, shown = [], {}
@@ -166,7 +166,8 @@ def held_out(raw, truth, cal, solvers, row: dict, shown: dict) -> list[dict]:
     """Rows of one calibration on the held-out pair: its raw predicted from its truth
     and reconstructed by each solver (the estimates of the one-PSF model into
     ``shown``)."""
-    from diffcam.calibrate.scene_psf import flip_scene, predict_raw
+    from diffcam.calibrate.scene.fit import predict_raw
+    from diffcam.calibrate.scene.pairs import flip_scene
     from diffcam.evaluate.metrics import pearson
 
     predicted = np.asarray(pearson(predict_raw(cal, truth), raw))
@@ -246,7 +247,7 @@ def via_cli(source: Path, name: str, run_dir: Path, grid) -> list[dict]:
     """Rows of fold ``name`` through the ``diffcam`` commands (module docstring)."""
     import json
 
-    from diffcam.calibrate.scene_psf import flip_scene
+    from diffcam.calibrate.scene.pairs import flip_scene
     from diffcam.io import read_rgb
 
     k = NAMES.index(name)

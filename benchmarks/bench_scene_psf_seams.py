@@ -48,7 +48,7 @@ def seams(psf: np.ndarray, count: int = 3) -> list[tuple[int, float]]:
 
 
 def main(argv=None):
-    from diffcam.calibrate.scene_psf import fit_psf_from_scenes, predict_raw
+    from diffcam.calibrate.scene.fit import fit_psf_from_scenes, predict_raw
     from diffcam.data import load_scene_pairs
     from diffcam.evaluate.metrics import pearson
 

@@ -38,7 +38,7 @@ from scipy.optimize import minimize_scalar
 
 from benchmarks.harness import markdown_table, write_json
 from diffcam.calibrate import fit_stack, prepare_planes
-from diffcam.calibrate.stack_model import render_planes
+from diffcam.calibrate.stack.model import render_planes
 from diffcam.data import load_psf_stack_3d
 from diffcam.evaluate import pearson, scaling_baseline
 

@@ -25,7 +25,7 @@ import numpy as np
 from diffcam.core.grid import crop_to, pad_to
 from diffcam.evaluate.metrics import phase_scores
 from diffcam.optics.elements import circular_aperture
-from diffcam.calibrate.pipeline import POLISH
+from diffcam.calibrate.phase.pipeline import POLISH
 from diffcam.calibrate import (CalibrationGeometry, FitOptions, retrieve_phase, calibration_intensities,
                                cameraman_phase, prepare_captures, retrieve_projections,
                                synthetic_captures)

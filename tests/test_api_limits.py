@@ -29,9 +29,9 @@ import diffcam.reconstruct.checks as checks
 from diffcam.core import fftw
 from diffcam.apps.processes import distributed_settings
 from diffcam.calibrate import fit_psf_from_scenes, fit_stack, predict_raw
-from diffcam.calibrate.lsq import retrieve_lsq
-from diffcam.calibrate.projections import retrieve_projections
-from diffcam.calibrate.scene_psf import ScenePsf, ScenePsfOptions
+from diffcam.calibrate.phase.lsq import retrieve_lsq
+from diffcam.calibrate.phase.projections import retrieve_projections
+from diffcam.calibrate.scene.fit import ScenePsf, ScenePsfOptions
 from diffcam.core.errors import DiffcamError, SamplingError, UndersamplingWarning
 from diffcam.evaluate.baseline import magnify_psf
 from diffcam.evaluate.metrics import align_to, mse, psf_fidelity, psnr

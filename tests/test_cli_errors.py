@@ -34,7 +34,7 @@ from hypothesis import strategies as st
 import diffcam as dc
 from conftest import listing, png_declaring, tiff_declaring
 from diffcam.apps.cli import main as cli
-from diffcam.calibrate.phase_io import PhaseFile, load_phase, save_phase
+from diffcam.calibrate.phase.file import PhaseFile, load_phase, save_phase
 from diffcam.core.errors import DiffcamError, GeometryWarning, SamplingError
 from diffcam.core.units import parse_length, parse_length_range
 from diffcam.evaluate.baseline import magnify_psf

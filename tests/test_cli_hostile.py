@@ -60,7 +60,7 @@ def _subparser(command: str) -> argparse.ArgumentParser:
 @pytest.fixture(scope="module")
 def files(tmp_path_factory) -> dict[str, Path]:
     """Small valid inputs: a raw capture and its PSF, a PSF stack, a phase file."""
-    from diffcam.calibrate.phase_io import PhaseFile, save_phase
+    from diffcam.calibrate.phase.file import PhaseFile, save_phase
 
     d = tmp_path_factory.mktemp("inputs")
     rng = np.random.default_rng(0)
@@ -336,7 +336,7 @@ def _replaced(argv, option, value):
        step=st.integers(-3, 10**6))
 def test_plane_ranges(files, tmp_path, first, length, step):
     """``--planes A:B:S`` of any size: refused as one line before anything is built
-    (past diffcam.calibrate.stack_result.MAX_PLANES, negative, reversed or a bad step),
+    (past diffcam.calibrate.stack.result.MAX_PLANES, negative, reversed or a bad step),
     or within the stack (exit 0)."""
     text = f"{first}:{first + length}:{step}"
     argv = _replaced(_valid("reconstruct", files, tmp_path), "--planes", text)

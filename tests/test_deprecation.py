@@ -29,3 +29,23 @@ def test_renamed_functions_warn_once_and_agree(old, new, args, monkeypatch):
     for a, b in ((first, new(*args)), (second, first)):
         for x, y in zip(*(v if isinstance(v, tuple) else (v,) for v in (a, b))):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_moved_modules_import_from_their_old_paths_and_warn_once(monkeypatch):
+    monkeypatch.setattr(deprecation, "_warned", set())
+    for old in ("diffcam.calibrate.stack_fit", "diffcam.calibrate.phase_io"):
+        monkeypatch.delitem(__import__("sys").modules, old, raising=False)
+    from diffcam.calibrate.phase import file
+    from diffcam.calibrate.stack import fit
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        from diffcam.calibrate.stack_fit import StackFitOptions, fit_stack
+        import diffcam.calibrate.stack_fit as again
+        from diffcam.calibrate.phase_io import load_phase
+    messages = [str(w.message) for w in caught if issubclass(w.category, DeprecationWarning)]
+    assert len(messages) == 2 and "diffcam.calibrate.stack.fit" in messages[0]
+    assert (fit_stack, StackFitOptions, load_phase) == (fit.fit_stack, fit.StackFitOptions,
+                                                        file.load_phase)
+    assert again.fit_stack is fit.fit_stack and "fit_stack" in dir(again)
+    with pytest.raises(ImportError):
+        from diffcam.calibrate.stack_fit import no_such_name  # noqa: F401

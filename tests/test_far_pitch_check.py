@@ -11,7 +11,7 @@ import pytest
 
 from diffcam.calibrate import (CalibrationGeometry, paper_simulation, prepare_captures,
                                synthetic_captures)
-from diffcam.calibrate.near_far import (SPECKLE_RATIO_RANGE, check_far_speckle,
+from diffcam.calibrate.phase.near_far import (SPECKLE_RATIO_RANGE, check_far_speckle,
                                         far_speckle_ratio)
 from diffcam.core.errors import GeometryWarning
 

@@ -39,7 +39,7 @@ from conftest import tiff_declaring as _tiff_declaring
 
 import diffcam.io as dio
 import diffcam.model.stack as stack_module
-from diffcam.calibrate.phase_io import PhaseFile, load_phase, save_phase
+from diffcam.calibrate.phase.file import PhaseFile, load_phase, save_phase
 from diffcam.core.errors import DiffcamError, ShapeError
 from diffcam.evaluate.baseline import magnify_psf, scale_psf
 from diffcam.io import (atomic_output, check_output_path, downsample, read_image,

@@ -57,8 +57,8 @@ def fit_path(tmp_path_factory):
     """A small stack-fit file, built without fitting (a 12×12 frame, planes 0 and 3)."""
     import jax.numpy as jnp
 
-    from diffcam.calibrate.stack_model import StackModel, coefficient_shape
-    from diffcam.calibrate.stack_result import StackFit
+    from diffcam.calibrate.stack.model import StackModel, coefficient_shape
+    from diffcam.calibrate.stack.result import StackFit
     from diffcam.evaluate.registration import Registration
 
     rng = np.random.default_rng(0)

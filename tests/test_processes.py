@@ -72,7 +72,7 @@ def test_bad_processes_fail_before_starting_any(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def phase_file(tmp_path_factory):
-    from diffcam.calibrate.phase_io import PhaseFile, save_phase
+    from diffcam.calibrate.phase.file import PhaseFile, save_phase
     from diffcam.model import random_diffuser
 
     path = tmp_path_factory.mktemp("processes") / "phase.npz"

@@ -11,7 +11,7 @@ from diffcam.core.grid import crop_to
 from diffcam.evaluate.metrics import phase_scores
 from diffcam.calibrate import (FitOptions, PhaseGrid, retrieve_phase, near_far_model, paper_simulation, raar,
                                retrieve_lsq)
-from diffcam.calibrate.lsq import ConvergenceWarning, _linear_fit, _residual
+from diffcam.calibrate.phase.lsq import ConvergenceWarning, _linear_fit, _residual
 
 from conftest import assert_float32_gradient_matches_float64
 

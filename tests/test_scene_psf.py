@@ -1,4 +1,4 @@
-"""The PSF from scenes (diffcam.calibrate.scene_psf): a known PSF is recovered from
+"""The PSF from scenes (diffcam.calibrate.scene.fit): a known PSF is recovered from
 synthetic pairs made by the crop model, the flip between frames is found, and on the
 shipped Lensless Learning pairs the PSF fitted to some pairs predicts a held-out raw."""
 
@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from diffcam.calibrate.scene_psf import (ScenePsfOptions, check_scene_pairs,
-                                         field_positions, fit_field_psf_from_scenes,
-                                         fit_psf_from_scenes, flip_scene, predict_raw)
+from diffcam.calibrate.scene.fit import (ScenePsfOptions, field_positions,
+                                         fit_field_psf_from_scenes, fit_psf_from_scenes,
+                                         predict_raw)
+from diffcam.calibrate.scene.pairs import check_scene_pairs, flip_scene
 from diffcam.core.errors import DiffcamError
 from diffcam.core.grid import pad_to
 from diffcam.data import load_scene_pairs

@@ -1,4 +1,4 @@
-"""Stack fitting (diffcam.calibrate.stack_fit), registration and the scaling baseline
+"""Stack fitting (diffcam.calibrate.stack.fit), registration and the scaling baseline
 (diffcam.evaluate.registration), and the `diffcam fit/predict/compare-stack` commands."""
 
 from __future__ import annotations
@@ -249,7 +249,7 @@ def test_stack_model_renders_the_engines_psf():
     import jax.numpy as jnp
 
     import diffcam as dc
-    from diffcam.calibrate.stack_model import StackModel, coefficients_of, render_planes
+    from diffcam.calibrate.stack.model import StackModel, coefficients_of, render_planes
     from diffcam.core.grid import pad_to
 
     n, pad, dx, lam, z2 = 64, 32, 4e-6, 532e-9, 0.5e-3
@@ -436,7 +436,7 @@ def test_optimistix_minimisers_descend_the_same_loss(synthetic_stack, optimiser)
 
 
 @pytest.mark.slow
-@pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack_fit.StackFitWarning")
+@pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack.fit.StackFitWarning")
 def test_cli_fit_predict_compare_round_trip(tmp_path, capsys):
     """`diffcam fit` on a crop of the built-in stack, then `predict` and `compare-stack`."""
     from diffcam.data import load_psf_stack_3d
@@ -509,7 +509,7 @@ def _same_fit_files(a, b) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack_fit.StackFitWarning")
+@pytest.mark.filterwarnings("ignore::diffcam.calibrate.stack.fit.StackFitWarning")
 def test_cli_fit_stops_on_steps_and_repeats_exactly(tmp_path, capsys):
     """By default `diffcam fit` has no wall-clock limit: it stops on its step budget,
     which the file records with the seed, and a second run writes the same arrays and
@@ -578,7 +578,7 @@ def test_distance_starts_from_the_physical_inputs(synthetic_stack):
 def test_default_distance_start_is_in_pixels(oversample):
     """Without physical inputs ζ_ref starts at ZETA_START pixel² whatever the
     oversampling (o² fine samples per pixel²), not at a fixed number of fine samples."""
-    from diffcam.calibrate.stack_fit import ZETA_START, _zetas
+    from diffcam.calibrate.stack.fit import ZETA_START, _zetas
     opts = StackFitOptions(oversample=oversample, field_stride=oversample)
     none = dict(pixel_pitch=None, wavelength=None, z2=None)
     assert _zetas(opts, none) == (ZETA_START * oversample ** 2,)

@@ -1,4 +1,4 @@
-"""A fitted stack's prediction (diffcam.calibrate.stack_result.StackFit.predict) against
+"""A fitted stack's prediction (diffcam.calibrate.stack.result.StackFit.predict) against
 its formula evaluated with SciPy's splines, and the NumPy spline magnification it
 carries residuals with (diffcam.evaluate.registration) against scipy.ndimage."""
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
-from diffcam.calibrate.stack_model import StackModel, coefficient_shape, render_planes
-from diffcam.calibrate.stack_result import StackFit
+from diffcam.calibrate.stack.model import StackModel, coefficient_shape, render_planes
+from diffcam.calibrate.stack.result import StackFit
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
                                            relative_magnification_at, spline_coefficients)
 

@@ -96,10 +96,10 @@ def test_every_public_name_resolves_to_its_modules_object(package):
 
 
 def test_a_lazy_package_imports_an_unlisted_submodule_on_access():
-    assert diffcam.calibrate.pipeline is importlib.import_module("diffcam.calibrate.pipeline")
+    assert diffcam.calibrate.phase.pipeline is importlib.import_module("diffcam.calibrate.phase.pipeline")
     # the limits the error messages name are reachable from a bare ``import diffcam``
     code = ("import diffcam; print(diffcam.core.grid.MAX_GRID_SAMPLES, "
-            "diffcam.calibrate.stack_result.MAX_PLANES, diffcam.io.MAX_READ_BYTES)")
+            "diffcam.calibrate.stack.result.MAX_PLANES, diffcam.io.MAX_READ_BYTES)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stderr

@@ -215,7 +215,7 @@ def parse_planes(text: str) -> list[int]:
     (a step) and mixes of both."""
 
     items = [_plane_items(item, text) for item in str(text).split(",") if item.strip()]
-    n, limit = sum(len(r) for r in items), "diffcam.calibrate.stack_result.MAX_PLANES"
+    n, limit = sum(len(r) for r in items), "diffcam.calibrate.stack.result.MAX_PLANES"
     if n > module_constant(limit):
         raise DiffcamError(f"planes {text!r}: {n} planes, more than the "
                            f"{module_constant(limit)} one run takes ({limit}).")
@@ -286,7 +286,7 @@ def limits(command: str) -> str:
     caps = [] if command in ("data", "demo", "plan") else [
         f"each array read at most {MAX_READ_BYTES / 2**30:g} GiB (diffcam.io.MAX_READ_BYTES)"]
     if command in ("reconstruct", "predict", "psf", "fit", "compare", "compare-stack"):
-        caps.append(_cap("at most {} planes", "diffcam.calibrate.stack_result.MAX_PLANES"))
+        caps.append(_cap("at most {} planes", "diffcam.calibrate.stack.result.MAX_PLANES"))
     if command == "reconstruct":
         caps.append(_cap("at most {} iterations",
                          "diffcam.reconstruct.checks.MAX_ITERATIONS"))

@@ -180,10 +180,10 @@ def model_planes(fit, planes: list[int] | None, path) -> list[int]:
     if n is None:
         raise DiffcamError(f"{path}: the model does not record its stack's plane count; "
                            f"choose planes with --planes (e.g. 0:43).")
-    most = calibrate.stack_result.MAX_PLANES
+    most = calibrate.stack.result.MAX_PLANES
     if not 1 <= n <= most:
         raise DiffcamError(f"{path}: the model declares {n} planes, outside 1 … {most} "
-                           f"(diffcam.calibrate.stack_result.MAX_PLANES): the file "
+                           f"(diffcam.calibrate.stack.result.MAX_PLANES): the file "
                            f"is damaged; choose planes with --planes.")
     return list(range(n))
 

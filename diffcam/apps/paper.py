@@ -124,7 +124,7 @@ def paper_phase(near, far, *, iterations: int, refine_iterations: int = 50, rest
     n = np.shape(near)[-1]
     aperture = circular_aperture((n, n), DX, APERTURE_RADIUS)
     refine = None if not refine_iterations else calibrate.FitOptions.of(
-        calibrate.pipeline.POLISH, iterations=refine_iterations)
+        calibrate.phase.pipeline.POLISH, iterations=refine_iterations)
     return calibrate.retrieve_phase(near, far, geometry(), aperture, iterations=iterations,
                                     refine=refine, planes=planes,
                                     restarts=None if planes else restarts)

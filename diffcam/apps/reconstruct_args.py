@@ -30,7 +30,7 @@ def _cmd_reconstruct(args) -> int:
 def add_reconstruct(sub) -> None:
     """Add ``reconstruct`` to the ``diffcam`` subcommands."""
 
-    max_planes = module_constant("diffcam.calibrate.stack_result.MAX_PLANES")
+    max_planes = module_constant("diffcam.calibrate.stack.result.MAX_PLANES")
     rec = sub.add_parser(
         "reconstruct", help="deconvolve a sensor image with a PSF (or a volume with --3d)",
         formatter_class=DefaultsFormatter,

@@ -1,6 +1,6 @@
 """``diffcam calibrate-psf``: the camera's PSF from raw captures of scenes whose ground
-truth is known (`diffcam.calibrate.scene_psf.fit_psf_from_scenes`), or with ``--field``
-the camera's field-dependent PSF (`diffcam.calibrate.scene_psf.fit_field_psf_from_scenes`).
+truth is known (`diffcam.calibrate.scene.fit.fit_psf_from_scenes`), or with ``--field``
+the camera's field-dependent PSF (`diffcam.calibrate.scene.fit.fit_field_psf_from_scenes`).
 
     diffcam data scenes -o scenes
     diffcam calibrate-psf scenes/raw_*.tif --truth scenes/truth_*.tif -o psf.tif
@@ -40,7 +40,7 @@ CHANNEL_ORDERS = ("RGB", "BGR")
 
 def read_pairs(raws, truths, channel_order: str) -> tuple[np.ndarray, np.ndarray]:
     """The raw and truth files as ``(k, c, ny, nx)`` arrays (RGB for colour), checked
-    (`diffcam.calibrate.scene_psf.check_scene_pairs`)."""
+    (`diffcam.calibrate.scene.pairs.check_scene_pairs`)."""
 
     if len(raws) != len(truths):
         raise DiffcamError(f"{len(raws)} raw file(s) but {len(truths)} --truth file(s); "
@@ -56,7 +56,7 @@ def read_pairs(raws, truths, channel_order: str) -> tuple[np.ndarray, np.ndarray
         return as_rgb(capture)
 
     try:
-        return calibrate.scene_psf.check_scene_pairs([read(p) for p in raws],
+        return calibrate.scene.pairs.check_scene_pairs([read(p) for p in raws],
                                                      [read(p) for p in truths])
     except DiffcamError as err:
         raise DiffcamError(f"{err} (raws {raws[0]} …, truths {truths[0]} …)") from None

@@ -27,8 +27,8 @@ import json
 import os
 from pathlib import Path
 
-from diffcam.calibrate.phase_io import PhaseFile, load_phase
-from diffcam.calibrate.stack_result import FORMAT, StackFit, load_stack_fit
+from diffcam.calibrate.phase.file import PhaseFile, load_phase
+from diffcam.calibrate.stack.result import FORMAT, StackFit, load_stack_fit
 from diffcam.core.errors import DiffcamError
 from diffcam.io import npz_keys, read_npz
 
@@ -62,8 +62,8 @@ def model_kind(path: str | os.PathLike) -> str | None:
 
 
 def load_model(path: str | os.PathLike) -> PhaseFile | StackFit:
-    """The camera model in ``path``: a [`PhaseFile`][diffcam.calibrate.phase_io.PhaseFile]
-    or a [`StackFit`][diffcam.calibrate.stack_result.StackFit].
+    """The camera model in ``path``: a [`PhaseFile`][diffcam.calibrate.phase.file.PhaseFile]
+    or a [`StackFit`][diffcam.calibrate.stack.result.StackFit].
 
     Raises:
         DiffcamError: a file of neither kind (one line naming both; a field-dependent

@@ -15,7 +15,7 @@ A lazy package keeps its public names, and where each comes from, as ordinary
 
     __getattr__, __dir__, __all__ = attach_stub(__name__, __file__)
 
-A submodule that no stub line names (``diffcam.calibrate.pipeline``) is imported on
+A submodule that no stub line names (``diffcam.calibrate.phase.pipeline``) is imported on
 first attribute access as well; a package without a stub (``diffcam.core``) gets only
 that, so ``diffcam.core.grid.MAX_GRID_SAMPLES`` works after a bare ``import diffcam``.
 

@@ -34,7 +34,7 @@ from diffcam.core.errors import DiffcamError, check_field, check_positive, real_
 from diffcam.core.options import Options
 from diffcam.io import subtract_background
 from diffcam.model.sensor import bin_pixels, quantise, resample, saturate, shot_noise
-from diffcam.calibrate.near_far import (CalibrationGeometry, calibration_intensities,
+from diffcam.calibrate.phase.near_far import (CalibrationGeometry, calibration_intensities,
                                         check_far_speckle)
 
 __all__ = ["normalise_min_max", "merge_exposures", "centroid", "centre_on_axis", "resample_capture",
@@ -181,7 +181,7 @@ def _clean(raw, name, background, exposure, saturation):
 
 
 class CaptureOptions(Options):
-    """How [`prepare_captures`][diffcam.calibrate.captures.prepare_captures] cleans the raw
+    """How [`prepare_captures`][diffcam.calibrate.phase.captures.prepare_captures] cleans the raw
     captures.
 
     Attributes:
@@ -200,7 +200,7 @@ class CaptureOptions(Options):
 
 
 class SyntheticSensor(Options):
-    """The sensor [`synthetic_captures`][diffcam.calibrate.captures.synthetic_captures]
+    """The sensor [`synthetic_captures`][diffcam.calibrate.phase.captures.synthetic_captures]
     records with.
 
     Attributes:
@@ -221,17 +221,17 @@ def prepare_captures(near_raw, far_raw, geometry: CalibrationGeometry, shape, *,
                      sensor_pitch: float, options: CaptureOptions | None = None,
                      **overrides) -> PreparedCaptures:
     """Raw near and far captures →
-    [`PreparedCaptures`][diffcam.calibrate.captures.PreparedCaptures] on the ``shape`` grid.
+    [`PreparedCaptures`][diffcam.calibrate.phase.captures.PreparedCaptures] on the ``shape`` grid.
 
     Args:
         near_raw, far_raw: raw sensor images (counts), one channel each; either may be
             a (k, ny, nx) exposure series, merged by
-            [`merge_exposures`][diffcam.calibrate.captures.merge_exposures].
+            [`merge_exposures`][diffcam.calibrate.phase.captures.merge_exposures].
         geometry: the set-up (diffuser pitch dx, λ, f, near distance), SI units.
         shape: ``(ny, nx)`` of the calibration grid (the near capture at pitch dx, the
             far one at λf/(N·dx)); wide enough for the captures' content.
         sensor_pitch: camera pixel pitch, metres.
-        options: [`CaptureOptions`][diffcam.calibrate.captures.CaptureOptions] (background,
+        options: [`CaptureOptions`][diffcam.calibrate.phase.captures.CaptureOptions] (background,
             exposure, saturation, centre); keywords named after its fields replace them.
 
     Warns ([`GeometryWarning`][diffcam.core.errors.GeometryWarning]) when the far capture's
@@ -263,7 +263,7 @@ def synthetic_captures(phase: Float[Array, "ny nx"], aperture: Float[Array, "ny 
     """Raw near and far captures of a diffuser, as a camera would record them.
 
     The forward model
-    ([`calibration_intensities`][diffcam.calibrate.near_far.calibration_intensities]) runs
+    ([`calibration_intensities`][diffcam.calibrate.phase.near_far.calibration_intensities]) runs
     on the phase's grid; each intensity is integrated over sensor pixels of ``sensor_pitch``
     (m) on ``sensor_shape``, scaled to ``photons`` electrons at its brightest pixel, given
     Poisson shot noise, a uniform ``background`` (fraction of full scale), and quantised to
@@ -272,7 +272,7 @@ def synthetic_captures(phase: Float[Array, "ny nx"], aperture: Float[Array, "ny 
     exposure series instead: exposure t collects t·``photons`` at the peak and saturates.
 
     The sensor (``photons``, ``bit_depth``, ``background``, ``far_exposures``) is a
-    [`SyntheticSensor`][diffcam.calibrate.captures.SyntheticSensor] given as ``options``;
+    [`SyntheticSensor`][diffcam.calibrate.phase.captures.SyntheticSensor] given as ``options``;
     keywords named after its fields replace them.
 
     Returns:

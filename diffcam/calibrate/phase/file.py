@@ -103,7 +103,7 @@ def save_phase(path: str | os.PathLike, phase_file: PhaseFile) -> None:
 
 
 def load_phase(path: str | os.PathLike) -> PhaseFile:
-    """Read a phase file written by [`save_phase`][diffcam.calibrate.phase_io.save_phase].
+    """Read a phase file written by [`save_phase`][diffcam.calibrate.phase.file.save_phase].
 
     Raises:
         DiffcamError: a missing, truncated or corrupt file, one without the phase or

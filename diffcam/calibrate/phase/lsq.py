@@ -57,10 +57,10 @@ import optimistix as optx
 from jax import Array
 from jaxtyping import Float
 
-from diffcam.calibrate.near_far import (CalibrationGeometry, NearFarModel, check_captures,
+from diffcam.calibrate.phase.near_far import (CalibrationGeometry, NearFarModel, check_captures,
                                         check_far_pitch)
-from diffcam.calibrate.projections import initial_phase, retrieve_projections
-from diffcam.calibrate.result import RetrievalResult
+from diffcam.calibrate.phase.projections import initial_phase, retrieve_projections
+from diffcam.calibrate.phase.result import RetrievalResult
 from diffcam.core.options import Options
 from diffcam.core.errors import (ConvergenceWarning, DiffcamError, ShapeError, check_field,
                                  real_array)
@@ -168,7 +168,7 @@ class PhaseGrid(eqx.Module):
 def near_far_model(aperture: Float[Array, "ny nx"], geometry: CalibrationGeometry
                    ) -> NearFarModel:
     """θd (full grid) → (near, far) intensities in energy units: the
-    [`NearFarModel`][diffcam.calibrate.near_far.NearFarModel] of ``geometry``."""
+    [`NearFarModel`][diffcam.calibrate.phase.near_far.NearFarModel] of ``geometry``."""
     return NearFarModel.build(aperture, geometry)
 
 
@@ -376,7 +376,7 @@ class FitOptions(Options):
         coarse: phase unknowns every ``coarse`` samples, upsampled (cubic).
         key: ``jax.random`` key of a ``"random"`` start.
         warm_start_iterations: RAAR iterations of the ``"raar"`` start of
-            [`retrieve_lsq`][diffcam.calibrate.lsq.retrieve_lsq].
+            [`retrieve_lsq`][diffcam.calibrate.phase.lsq.retrieve_lsq].
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
         progress: a progress bar for fits over 2 s
             ([`diffcam.core.progress`][diffcam.core.progress]; ``DIFFCAM_PROGRESS=0`` turns
@@ -412,25 +412,25 @@ def fit_phase(model, measured: Sequence[Array], theta0: Float[Array, "my mx"],
               options: FitOptions = FitOptions(), extra0=None) -> RetrievalResult:
     """Fit the phase (and per-image scale and background) to measured intensities.
 
-    The engine under [`retrieve_lsq`][diffcam.calibrate.lsq.retrieve_lsq] and
-    [`diffcam.calibrate.fit_to_psfs`][diffcam.calibrate.psf_fit.fit_to_psfs].
+    The engine under [`retrieve_lsq`][diffcam.calibrate.phase.lsq.retrieve_lsq] and
+    [`diffcam.calibrate.fit_to_psfs`][diffcam.calibrate.phase.psf_fit.fit_to_psfs].
 
     Args:
         model: an ``equinox.Module``, ``model(phase, extra) -> tuple`` of K predicted
             intensities from the full-grid phase (radians) and the extra fitted
             parameters (a pytree, e.g. geometry; ``None`` without ``extra0``); pure and
-            differentiable (e.g. [`NearFarModel`][diffcam.calibrate.near_far.NearFarModel]).
+            differentiable (e.g. [`NearFarModel`][diffcam.calibrate.phase.near_far.NearFarModel]).
         measured: K measured intensities, shapes matching ``model``'s outputs.
         theta0: starting unknowns, shape ``phase_grid.param_shape`` (radians).
         phase_grid: the phase parameterisation.
         support: (ny, nx) mask where the regularisers act (default: everywhere).
         masks: K weight images (0 = ignore, e.g. saturated pixels), or ``None``.
-        options: [`FitOptions`][diffcam.calibrate.lsq.FitOptions] (loss, solver, iterations,
+        options: [`FitOptions`][diffcam.calibrate.phase.lsq.FitOptions] (loss, solver, iterations,
             regularisation, progress).
         extra0: starting extra parameters passed to ``model`` (fitted too).
 
     Returns:
-        [`RetrievalResult`][diffcam.calibrate.result.RetrievalResult]; ``stats["status"]``
+        [`RetrievalResult`][diffcam.calibrate.phase.result.RetrievalResult]; ``stats["status"]``
         is `fit_status` of the run.
     """
     loss, solver, iterations = options.loss, options.solver, options.iterations
@@ -482,7 +482,7 @@ def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
 
     Args:
         near, far: intensities as for
-            [`diffcam.calibrate.retrieve_projections`][diffcam.calibrate.projections.retrieve_projections].
+            [`diffcam.calibrate.retrieve_projections`][diffcam.calibrate.phase.projections.retrieve_projections].
         geometry: the set-up, SI units.
         aperture: the diffuser-plane amplitude C (ny, nx) (e.g.
             [`diffcam.optics.elements.circular_aperture`][diffcam.optics.elements.circular_aperture]).
@@ -491,7 +491,7 @@ def retrieve_lsq(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"],
             fit can stall at a phase Pearson of 0.82, from 30 RAAR iterations it reaches
             1.000), ``"flat"``, ``"random"`` (with ``key``) or a full-grid phase (radians).
         masks: ``(near_mask, far_mask)`` weights, 0 at saturated or bad pixels.
-        options: [`FitOptions`][diffcam.calibrate.lsq.FitOptions]; keyword ``**overrides``
+        options: [`FitOptions`][diffcam.calibrate.phase.lsq.FitOptions]; keyword ``**overrides``
             replace its fields (``loss=``, ``iterations=``, ``coarse=``, ``key=``,
             ``far_pitch=``, ...).
     """

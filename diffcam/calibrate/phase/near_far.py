@@ -10,7 +10,7 @@ Two captures of the same diffuser under a plane wave through the aperture C:
 - the **far field**, at the back focal plane of a Fourier lens of focal length ``f``
   (paper Eq. 13), on the Fourier-lens grid of pitch λf/(N·dx) per axis.
 
-Both captures must already be on these grids (``diffcam.calibrate.captures`` resamples
+Both captures must already be on these grids (``diffcam.calibrate.phase.captures`` resamples
 a sensor image onto them). `NearFarModel` predicts them from θd: plane-wave
 illumination through the aperture C, the thin diffuser e^{jθd} (Eq. 5), then (near) free
 space by ``near_distance`` with the angular spectrum and (far) the Fourier lens (Eq. 13).
@@ -80,7 +80,7 @@ class NearFarModel(eqx.Module):
     field is the unitary centred DFT of the diffuser field, which differs from
     [`diffcam.optics.lens.fourier_lens`][diffcam.optics.lens.fourier_lens] by the constant
     (N·dy·dx/(λf))² in intensity
-    ([`calibration_intensities`][diffcam.calibrate.near_far.calibration_intensities] applies
+    ([`calibration_intensities`][diffcam.calibrate.phase.near_far.calibration_intensities] applies
     it).
 
     Attributes:
@@ -114,7 +114,7 @@ def calibration_intensities(phase: Float[Array, "... ny nx"], aperture: Float[Ar
                             ) -> tuple[Float[Array, "... ny nx"], Float[Array, "... ny nx"]]:
     """Near-field intensity (pitch dx) and far-field intensity (pitch λf/(N·dx)) in W/m²
     for a unit-intensity plane wave:
-    [`NearFarModel`][diffcam.calibrate.near_far.NearFarModel] in physical units.
+    [`NearFarModel`][diffcam.calibrate.phase.near_far.NearFarModel] in physical units.
 
     Propagation is circular on the given grid, so pad the diffuser into a grid wide
     enough for the near-field spread and at least twice the aperture (the far field is

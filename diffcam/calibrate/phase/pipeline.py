@@ -13,10 +13,10 @@ import time
 
 import jax
 
-from diffcam.calibrate.near_far import CalibrationGeometry
-from diffcam.calibrate.lsq import FitOptions, retrieve_lsq
-from diffcam.calibrate.projections import ProjectionOptions, retrieve_projections
-from diffcam.calibrate.result import RetrievalResult
+from diffcam.calibrate.phase.near_far import CalibrationGeometry
+from diffcam.calibrate.phase.lsq import FitOptions, retrieve_lsq
+from diffcam.calibrate.phase.projections import ProjectionOptions, retrieve_projections
+from diffcam.calibrate.phase.result import RetrievalResult
 
 __all__ = ["retrieve_phase", "POLISH"]
 
@@ -37,22 +37,22 @@ def retrieve_phase(near, far, geometry: CalibrationGeometry, aperture, *,
 
     Args:
         near, far: intensities on the calibration grid (see
-            [`diffcam.calibrate.prepare_captures`][diffcam.calibrate.captures.prepare_captures]).
+            [`diffcam.calibrate.prepare_captures`][diffcam.calibrate.phase.captures.prepare_captures]).
         geometry: the set-up, SI units.
         aperture: diffuser-plane amplitude C (ny, nx).
-        projections: [`ProjectionOptions`][diffcam.calibrate.projections.ProjectionOptions]
+        projections: [`ProjectionOptions`][diffcam.calibrate.phase.projections.ProjectionOptions]
             of the first stage (default: RAAR, 300 iterations, 4 random starts; with
             ``planes`` one flat start); ``**overrides`` replace its fields (``iterations=``,
             ``restarts=``, ``key=`` (default ``jax.random.key(0)``), ``far_pitch=``,
             ``planes=``: extra intensities,
-            [`DefocusedPlane`][diffcam.calibrate.planes.DefocusedPlane], e.g. a captured PSF
-            through [`psf_plane`][diffcam.calibrate.planes.psf_plane], that break the twin
+            [`DefocusedPlane`][diffcam.calibrate.phase.planes.DefocusedPlane], e.g. a captured PSF
+            through [`psf_plane`][diffcam.calibrate.phase.planes.psf_plane], that break the twin
             and let strongly scattering diffusers converge).
-        refine: [`FitOptions`][diffcam.calibrate.lsq.FitOptions] of the polish, or ``None``.
+        refine: [`FitOptions`][diffcam.calibrate.phase.lsq.FitOptions] of the polish, or ``None``.
         masks: ``(near_mask, far_mask)``, 0 at saturated pixels (least-squares stage).
 
     Returns:
-        [`RetrievalResult`][diffcam.calibrate.result.RetrievalResult] of the last stage
+        [`RetrievalResult`][diffcam.calibrate.phase.result.RetrievalResult] of the last stage
         (``history`` its error history); ``stats["stages"]`` holds each stage's stats and
         history.
     """

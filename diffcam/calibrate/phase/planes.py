@@ -5,7 +5,7 @@ scattering diffuser (a random phase spanning many 2π) the near/far projections 
 far from it. One more intensity at a known distance behind the diffuser under a plane
 wave, a *defocused plane*, removes both problems: RAAR with the far-field and plane
 projections averaged converges on the paper's Fig. 6 random diffuser where near/far
-alone stall (see `diffcam.calibrate.projections`).
+alone stall (see `diffcam.calibrate.phase.projections`).
 
 A captured PSF is such a plane. By the Fresnel scaling theorem (docs/design.md), the PSF of a
 point at z1 on a sensor z2 behind the diffuser is, up to a constant, the plane-wave
@@ -52,7 +52,7 @@ class DefocusedPlane(NamedTuple):
 
 def psf_plane(psf: Float[Array, "cy cx"], camera: Camera, z1: float) -> DefocusedPlane:
     """A captured on-axis PSF at depth ``z1`` as a
-    [`DefocusedPlane`][diffcam.calibrate.planes.DefocusedPlane].
+    [`DefocusedPlane`][diffcam.calibrate.phase.planes.DefocusedPlane].
 
     Args:
         psf: the PSF on ``camera.out_shape`` at pitch ``camera.dx``, registered to the

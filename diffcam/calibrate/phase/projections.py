@@ -16,7 +16,7 @@ Projections (Marchesini 2007 notation, P_S the near-amplitude projection):
 - ``"raar"``  relaxed averaged alternating reflections (Luke 2005)
               u ← β u + β P_S(2 P_M u − u) + (1 − 2β) P_M u
 
-Extra intensity planes (``planes=``, `diffcam.calibrate.planes`, e.g. a captured
+Extra intensity planes (``planes=``, `diffcam.calibrate.phase.planes`, e.g. a captured
 PSF) each add a projection P_k: propagate to the plane, impose its amplitude where it was
 measured, propagate back. P_M then averages P_far and the P_k (averaged projections),
 and the schemes above run unchanged: on the Fig. 6 random diffuser, whose phase spans
@@ -47,9 +47,9 @@ from diffcam.core.errors import DiffcamError, ShapeError, check_finite
 from diffcam.core.progress import progress_bar, tick
 from diffcam.core.phasor import expj
 from diffcam.optics.propagation import apply_transfer, transfer_function
-from diffcam.calibrate.near_far import CalibrationGeometry, check_captures, check_far_pitch
-from diffcam.calibrate.planes import check_planes
-from diffcam.calibrate.result import RetrievalResult
+from diffcam.calibrate.phase.near_far import CalibrationGeometry, check_captures, check_far_pitch
+from diffcam.calibrate.phase.planes import check_planes
+from diffcam.calibrate.phase.result import RetrievalResult
 
 __all__ = ["retrieve_projections", "ProjectionOptions", "gerchberg_saxton", "hio", "raar", "initial_phase",
            "fit_amplitude", "METHODS"]
@@ -161,7 +161,7 @@ class ProjectionOptions(Options):
         beta: HIO / RAAR relaxation, in (0, 1].
         restarts: independent random starts, run batched with ``vmap`` (memory grows
             with it); the run with the smallest final error is returned. ``None``: 1 here;
-            in [`retrieve_phase`][diffcam.calibrate.pipeline.retrieve_phase] 4, or 1 with
+            in [`retrieve_phase`][diffcam.calibrate.phase.pipeline.retrieve_phase] 4, or 1 with
             extra planes.
         init: ``"random"``, ``"flat"`` or a diffuser-plane phase (ny, nx), radians (the
             starting field is the near amplitude times e^{j·init}, carried to the near
@@ -170,8 +170,8 @@ class ProjectionOptions(Options):
             plane), else ``"random"``.
         key: ``jax.random`` key for random starts.
         planes: extra intensities,
-            [`DefocusedPlane`][diffcam.calibrate.planes.DefocusedPlane] (a captured PSF
-            through [`psf_plane`][diffcam.calibrate.planes.psf_plane]): each adds a
+            [`DefocusedPlane`][diffcam.calibrate.phase.planes.DefocusedPlane] (a captured PSF
+            through [`psf_plane`][diffcam.calibrate.phase.planes.psf_plane]): each adds a
             projection (one FFT pair) averaged with the far-field one; they break the twin
             and un-stall strongly scattering diffusers.
         far_pitch: the far capture's pitch (m), checked against λf/(N·dx) if given.
@@ -214,13 +214,13 @@ def retrieve_projections(near: Float[Array, "ny nx"], far: Float[Array, "ny nx"]
         far: far-field intensity at the Fourier-lens pitch λf/(N·dx) (any scale; it is
             matched to the near field's energy).
         geometry: the set-up, SI units.
-        options: [`ProjectionOptions`][diffcam.calibrate.projections.ProjectionOptions]
+        options: [`ProjectionOptions`][diffcam.calibrate.phase.projections.ProjectionOptions]
             (method, iterations, beta, restarts, init, key, extra planes, far_pitch,
             progress); ``**overrides`` replace its fields (``method=``, ``iterations=``,
             ``key=``, ``planes=``, ...).
 
     Returns:
-        [`RetrievalResult`][diffcam.calibrate.result.RetrievalResult];
+        [`RetrievalResult`][diffcam.calibrate.phase.result.RetrievalResult];
         ``stats["restart_errors"]`` holds each run's final error.
     """
     check_captures(near, far)
@@ -284,21 +284,21 @@ def _plane_operands(planes, near_amp, geometry, near_distance):
 
 def gerchberg_saxton(near, far, geometry, **options) -> RetrievalResult:
     """Gerchberg–Saxton between near and far amplitudes (paper Fig. 4); see
-    [`retrieve_projections`][diffcam.calibrate.projections.retrieve_projections] for the
+    [`retrieve_projections`][diffcam.calibrate.phase.projections.retrieve_projections] for the
     arguments. Stagnates from random starts: use
-    [`raar`][diffcam.calibrate.projections.raar] or
-    [`hio`][diffcam.calibrate.projections.hio] (or restarts) when the error history flattens
+    [`raar`][diffcam.calibrate.phase.projections.raar] or
+    [`hio`][diffcam.calibrate.phase.projections.hio] (or restarts) when the error history flattens
     early."""
     return retrieve_projections(near, far, geometry, method="gs", **options)
 
 
 def hio(near, far, geometry, **options) -> RetrievalResult:
     """Fienup's hybrid input–output; arguments as
-    [`retrieve_projections`][diffcam.calibrate.projections.retrieve_projections]."""
+    [`retrieve_projections`][diffcam.calibrate.phase.projections.retrieve_projections]."""
     return retrieve_projections(near, far, geometry, method="hio", **options)
 
 
 def raar(near, far, geometry, **options) -> RetrievalResult:
     """Relaxed averaged alternating reflections; arguments as
-    [`retrieve_projections`][diffcam.calibrate.projections.retrieve_projections]."""
+    [`retrieve_projections`][diffcam.calibrate.phase.projections.retrieve_projections]."""
     return retrieve_projections(near, far, geometry, method="raar", **options)

@@ -2,8 +2,8 @@
 PSFs at other depths.
 
 The model of PSF k is s_k·PSF(θd; z1_k, z2) + b_k (`diffcam.model.point_spread.psf`), fitted
-together with optional near/far captures (`diffcam.calibrate.lsq.near_far_model`)
-by `diffcam.calibrate.lsq.fit_phase`. A PSF is a defocused, magnified intensity
+together with optional near/far captures (`diffcam.calibrate.phase.lsq.near_far_model`)
+by `diffcam.calibrate.phase.lsq.fit_phase`. A PSF is a defocused, magnified intensity
 of the diffuser field, so it also breaks the conjugate-twin ambiguity of near/far
 data.
 
@@ -42,10 +42,10 @@ from diffcam.core.errors import (DiffcamError, ShapeError, check_field, check_po
 from diffcam.model.sensor import bin_pixels
 from diffcam.model.stack import psf_stack
 from diffcam.evaluate.metrics import psf_fidelity, twin_phase
-from diffcam.calibrate.near_far import NearFarModel, check_captures
-from diffcam.calibrate.lsq import FitOptions, PhaseGrid, fit_phase, near_far_model, warn_if_stalled
-from diffcam.calibrate.projections import initial_phase
-from diffcam.calibrate.result import RetrievalResult
+from diffcam.calibrate.phase.near_far import NearFarModel, check_captures
+from diffcam.calibrate.phase.lsq import FitOptions, PhaseGrid, fit_phase, near_far_model, warn_if_stalled
+from diffcam.calibrate.phase.projections import initial_phase
+from diffcam.calibrate.phase.result import RetrievalResult
 
 __all__ = ["fit_to_psfs", "DepthLaw", "predict_psfs", "resolve_twin", "depths", "PSFModel", "DEPTH_MODELS"]
 
@@ -149,11 +149,11 @@ def _depth_law(depth) -> DepthLaw:
 
 
 class PsfFitOptions(FitOptions):
-    """How [`fit_to_psfs`][diffcam.calibrate.psf_fit.fit_to_psfs] runs: the fields of
-    [`FitOptions`][diffcam.calibrate.lsq.FitOptions], and
+    """How [`fit_to_psfs`][diffcam.calibrate.phase.psf_fit.fit_to_psfs] runs: the fields of
+    [`FitOptions`][diffcam.calibrate.phase.lsq.FitOptions], and
 
     Attributes:
-        depth: a [`DepthLaw`][diffcam.calibrate.psf_fit.DepthLaw] (or its kind): which
+        depth: a [`DepthLaw`][diffcam.calibrate.phase.psf_fit.DepthLaw] (or its kind): which
             distances are fitted.
         init: ``"flat"``, ``"random"`` (with ``key``) or a phase on the camera grid.
         sensor_pitch: pixel pitch of the measured PSFs (m) when it is coarser than the
@@ -182,20 +182,20 @@ def fit_to_psfs(psfs: Float[Array, "k cy cx"], camera: Camera, z1: Sequence[floa
         near_far: optional ``(near, far, geometry)``: calibration intensities on the
             camera grid (``camera.shape``, pitch ``camera.dx``; far at the Fourier-lens
             pitch) and their
-            [`CalibrationGeometry`][diffcam.calibrate.near_far.CalibrationGeometry] (``dx``
+            [`CalibrationGeometry`][diffcam.calibrate.phase.near_far.CalibrationGeometry] (``dx``
             the camera's).
         masks: K (or K + 2 with near/far) weight images, 0 at saturated pixels.
         spectrum: broadband light as in
             [`diffcam.model.point_spread.psf`][diffcam.model.point_spread.psf].
-        options: [`PsfFitOptions`][diffcam.calibrate.psf_fit.PsfFitOptions] (or a
-            [`FitOptions`][diffcam.calibrate.lsq.FitOptions]; default loss
+        options: [`PsfFitOptions`][diffcam.calibrate.phase.psf_fit.PsfFitOptions] (or a
+            [`FitOptions`][diffcam.calibrate.phase.lsq.FitOptions]; default loss
             ``"weighted_intensity"``: each residual over √(y + ȳ), y the measured intensity
             and ȳ its mean, which keeps the dim tails of a far field in the fit);
             ``**overrides`` replace its fields (``depth=``, ``init=``, ``sensor_pitch=``,
             ``coarse=``, ``key=``, ``iterations=``, ...).
 
     Returns:
-        [`RetrievalResult`][diffcam.calibrate.result.RetrievalResult]; ``stats`` adds ``z1``
+        [`RetrievalResult`][diffcam.calibrate.phase.result.RetrievalResult]; ``stats`` adds ``z1``
         and ``z2`` (m), ``zeta1`` and ``zeta2`` (λz/dx²) and ``depth_model``.
     """
     opts = PsfFitOptions.of(options, **overrides)
@@ -292,7 +292,7 @@ def resolve_twin(phase: Float[Array, "ny nx"], reference_psf: Float[Array, "cy c
     better (registered Pearson,
     [`diffcam.evaluate.metrics.psf_fidelity`][diffcam.evaluate.metrics.psf_fidelity]) is
     returned, with ``True`` if that was the twin. For a fit that also refines the phase
-    against the PSF, use [`fit_to_psfs`][diffcam.calibrate.psf_fit.fit_to_psfs] with
+    against the PSF, use [`fit_to_psfs`][diffcam.calibrate.phase.psf_fit.fit_to_psfs] with
     ``init=phase``.
     """
 

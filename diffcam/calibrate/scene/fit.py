@@ -41,26 +41,22 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from diffcam.core.errors import DiffcamError, ShapeError, real_array
-from diffcam.core.grid import crop_to, pad_to
+from diffcam.core.grid import crop_to, int_pair, pad_to
 from diffcam.core.options import Options
 from diffcam.core.progress import progress_bar
 from diffcam.reconstruct.checks import check_iterations
 from diffcam.reconstruct.fista import nonnegative_least_squares
-from diffcam.core.grid import int_pair
 from diffcam.model.field import FieldPSF
 from diffcam.reconstruct.operators import convolution_model, field_model, grid_shapes
+from diffcam.calibrate.scene.pairs import (FLIPS, as_pairs, border_window, channel_peaks,
+                                           check_scene_pairs, flip_scene, scaled_pairs)
 
-__all__ = ["FLIPS", "ScenePsfOptions", "ScenePsf", "SceneFieldPsf", "check_scene_pairs",
-           "flip_scene", "fit_psf_from_scenes", "fit_field_psf_from_scenes", "field_positions",
-           "predict_raw"]
-
-FLIPS = ("none", "y", "x", "yx")
-"""Flips of the scene frame relative to the sensor frame: none, up-down, left-right,
-both (a 180° rotation)."""
+__all__ = ["ScenePsfOptions", "ScenePsf", "SceneFieldPsf", "fit_psf_from_scenes",
+           "fit_field_psf_from_scenes", "field_positions", "predict_raw"]
 
 
 class ScenePsfOptions(Options):
-    """How [`fit_psf_from_scenes`][diffcam.calibrate.scene_psf.fit_psf_from_scenes] runs.
+    """How [`fit_psf_from_scenes`][diffcam.calibrate.scene.fit.fit_psf_from_scenes] runs.
 
     Attributes:
         iterations: FISTA iterations of the final fit (the regularisation: early stop).
@@ -130,83 +126,6 @@ class SceneFieldPsf(NamedTuple):
     flip_residuals: dict
 
 
-def _as_pairs(images, what: str) -> np.ndarray:
-    """``(k, c, ny, nx)`` float32 from a sequence of ``(c, ny, nx)`` or ``(ny, nx)`` real
-    images, finite and within float32's range."""
-    if isinstance(images, np.ndarray) and images.ndim in (2, 3):
-        raise ShapeError(f"{what}: give a sequence of images (one per pair), got one "
-                         f"array of shape {images.shape}; wrap it in a list.")
-    try:
-        arrays = [np.asarray(real_array(f"{what}[{k}]", a)) for k, a in enumerate(images)]
-    except TypeError:
-        raise DiffcamError(f"{what}: give a sequence of images (one per pair), got "
-                           f"{images!r:.60}.") from None
-    if not arrays:
-        raise DiffcamError(f"{what}: no images given; give at least one pair.")
-    shapes = {a.shape for a in arrays}
-    if len(shapes) != 1 or arrays[0].ndim not in (2, 3):
-        raise ShapeError(f"{what}: the images must share one shape (ny, nx) or "
-                         f"(channels, ny, nx), got {sorted(shapes)}.")
-    stack = np.stack(arrays)
-    if not np.isfinite(stack).all():
-        raise DiffcamError(f"{what}: NaN/Inf values; clean the data first.")
-    top = float(np.max(np.abs(stack)))
-    if top > float(np.finfo(np.float32).max):
-        raise DiffcamError(f"{what}: values up to {top:.3g}, beyond float32's range "
-                           f"(3.4e+38), in which the fit runs; divide them by a constant "
-                           f"first (the PSF scales with the raws).")
-    stack = stack.astype(np.float32)
-    return stack[:, None] if stack.ndim == 3 else stack
-
-
-def check_scene_pairs(raws, truths) -> tuple[np.ndarray, np.ndarray]:
-    """Raws and scenes as ``(k, c, ny, nx)`` float32 arrays, checked before any fit.
-
-    Raises:
-        DiffcamError: different numbers of raws and scenes, of channels or of pixels; a
-            scene that is dark everywhere (it does not overlap the sensor frame) or has
-            negative values; a raw that is constant; complex, NaN/Inf or beyond
-            float32's range.
-    """
-    raws, truths = _as_pairs(raws, "raws"), _as_pairs(truths, "truths")
-    if len(raws) != len(truths):
-        raise DiffcamError(f"{len(raws)} raw(s) but {len(truths)} truth(s); give one "
-                           f"ground-truth scene per raw capture, in the same order.")
-    if raws.shape[1] != truths.shape[1]:
-        raise ShapeError(f"the raws have {raws.shape[1]} channel(s), the truths "
-                         f"{truths.shape[1]}; read both in colour (or both in grayscale).")
-    if raws.shape[2:] != truths.shape[2:]:
-        raise ShapeError(f"raws are {raws.shape[2]}×{raws.shape[3]} pixels, truths "
-                         f"{truths.shape[2]}×{truths.shape[3]}; resample the truths to the "
-                         f"sensor's pixels (the scene on the sensor grid) first.")
-    if (truths < 0).any():
-        k, ch = np.argwhere((truths < 0).any(axis=(-2, -1)))[0]
-        raise DiffcamError(f"truth {k} (channel {ch}) has negative values (min "
-                           f"{float(truths[k, ch].min()):.3g}); a scene is an intensity: "
-                           f"subtract its dark level with clipping "
-                           f"(diffcam.io.subtract_background) or np.clip(truth, 0, None).")
-    lit = np.max(truths, axis=(-2, -1)) > 0
-    if not lit.all():
-        k, ch = np.argwhere(~lit)[0]
-        raise DiffcamError(f"truth {k} (channel {ch}) is dark everywhere: it does not "
-                           f"overlap the sensor frame; check its registration.")
-    flat = np.ptp(raws, axis=(-2, -1)) == 0
-    if flat.any():
-        k, ch = np.argwhere(flat)[0]
-        raise DiffcamError(f"raw {k} (channel {ch}) is constant: it holds no image.")
-    return raws, truths
-
-
-def flip_scene(scene: Float[ArrayLike, "... ny nx"], flip: str) -> np.ndarray:
-    """``scene`` flipped into the sensor frame (``flip`` one of `FLIPS`)."""
-    scene = np.asarray(scene)
-    if "y" in flip:
-        scene = scene[..., ::-1, :]
-    if "x" in flip:
-        scene = scene[..., :, ::-1]
-    return scene
-
-
 @partial(jax.jit, static_argnames=("iterations",))
 def _fit(raws: Array, scenes: Array, window: Array, iterations: int):
     """FISTA over all pairs: ``raws`` ``(k, c, ny, nx)``, ``scenes`` ``(k, K, c, ny, nx)``
@@ -240,31 +159,6 @@ def _fit(raws: Array, scenes: Array, window: Array, iterations: int):
     return h, offset, residual
 
 
-def _border_window(shape: tuple[int, int], taper: float) -> np.ndarray:
-    """``(ny, nx)`` separable Tukey window: 1 inside, a raised cosine over ``taper`` of
-    each side at each border."""
-    def side(n):
-        w, m = np.ones(n, np.float32), int(round(taper * n))
-        w[:m] = 0.5 - 0.5 * np.cos(np.pi * (np.arange(m) + 0.5) / m)
-        w[n - m:] = w[:m][::-1]
-        return w
-    return np.outer(side(shape[0]), side(shape[1]))
-
-
-def _scaled_pairs(raws, truths):
-    """Each channel of the raws and the truths scaled to unit peak (the fit's float32
-    sums of products of raw values overflow from ~1e19: a raw of 1e30 would give an
-    all-NaN PSF), and the two scales ``(raw_peak, gain)`` per channel."""
-    raw_peak, truth_peak = _channel_peaks(raws), _channel_peaks(truths)
-    gain = raw_peak / truth_peak
-    if not np.finfo(np.float32).tiny < gain.min() <= gain.max() < np.finfo(np.float32).max:
-        raise DiffcamError(f"the PSF's scale max(raw)/max(truth) reaches {gain.min():.3g}…"
-                           f"{gain.max():.3g}, outside float32's range; divide the raws or "
-                           f"the truths by a constant first (the PSF scales with raw/truth).")
-    return (raws / raw_peak[:, None, None].astype(np.float32),
-            truths / truth_peak[:, None, None].astype(np.float32), raw_peak, gain)
-
-
 def _choose_flip(raws: Array, truths: np.ndarray, window: Array, options: ScenePsfOptions,
                  progress: bool) -> tuple[str, dict]:
     """The flip of the scenes (one PSF fitted per trial) and each trial's misfit."""
@@ -296,12 +190,12 @@ def fit_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayLike],
             ``(ny, nx)``, sensor units, background subtracted or not (the offset is fitted).
         truths: the scene of each raw on the sensor grid, same shape, non-negative
             (a lensed photograph registered to the sensor up to a shift and a flip).
-        options: [`ScenePsfOptions`][diffcam.calibrate.scene_psf.ScenePsfOptions];
+        options: [`ScenePsfOptions`][diffcam.calibrate.scene.fit.ScenePsfOptions];
             ``overrides`` replace its fields.
         progress: progress bars for runs over 2 s.
 
     Returns:
-        [`ScenePsf`][diffcam.calibrate.scene_psf.ScenePsf].
+        [`ScenePsf`][diffcam.calibrate.scene.fit.ScenePsf].
 
     Raises:
         DiffcamError: see `check_scene_pairs`; bad options.
@@ -317,10 +211,10 @@ def _fit_kernels(raws, truths, grid, options, progress):
     ``None``: kernels ``(1, c, my, mx)``, positions ``None``), or one at each of a
     ``grid`` of field positions, the scenes weighted by `_sensor_weights`; with the
     positions, the offset, the residual, the flip and the flips' residuals."""
-    raws, truths, raw_peak, gain = _scaled_pairs(*check_scene_pairs(raws, truths))
+    raws, truths, raw_peak, gain = scaled_pairs(*check_scene_pairs(raws, truths))
     positions = None if grid is None else field_positions(grid, raws.shape[-2:])
     raws_j = jnp.asarray(raws)
-    window = jnp.asarray(_border_window(raws.shape[-2:], options.border_taper))
+    window = jnp.asarray(border_window(raws.shape[-2:], options.border_taper))
     flip, trials = _choose_flip(raws_j, truths, window, options, progress)
     scenes = flip_scene(truths, flip)[:, None]
     what = "PSF from scenes"
@@ -380,12 +274,12 @@ def fit_field_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayL
     Args:
         raws, truths: as `fit_psf_from_scenes`'s.
         grid: ``(rows, columns)`` of field positions spanning the sensor, 1 to 5 each.
-        options: [`ScenePsfOptions`][diffcam.calibrate.scene_psf.ScenePsfOptions];
+        options: [`ScenePsfOptions`][diffcam.calibrate.scene.fit.ScenePsfOptions];
             ``overrides`` replace its fields.
         progress: progress bars for runs over 2 s.
 
     Returns:
-        [`SceneFieldPsf`][diffcam.calibrate.scene_psf.SceneFieldPsf].
+        [`SceneFieldPsf`][diffcam.calibrate.scene.fit.SceneFieldPsf].
 
     Raises:
         DiffcamError: see `check_scene_pairs`; a bad grid; bad options.
@@ -395,12 +289,6 @@ def fit_field_psf_from_scenes(raws: Sequence[ArrayLike], truths: Sequence[ArrayL
     fields = tuple(_field(kernels[:, ch], positions) for ch in range(kernels.shape[1]))
     return SceneFieldPsf(fields=fields, offset=offset, flip=flip, residual=residual,
                          flip_residuals=trials)
-
-
-def _channel_peaks(images: np.ndarray) -> np.ndarray:
-    """max |images| per channel of a ``(k, c, ny, nx)`` stack, float64 (1 where 0)."""
-    peak = np.max(np.abs(images), axis=(0, 2, 3)).astype(np.float64)
-    return np.where(peak > 0, peak, 1.0)
 
 
 def predict_raw(calibration: ScenePsf | SceneFieldPsf,
@@ -416,11 +304,11 @@ def predict_raw(calibration: ScenePsf | SceneFieldPsf,
             calibration's shape, a calibration with NaN/Inf or negative values, or a
             prediction beyond float32's range.
     """
-    truth = _as_pairs([flip_scene(real_array("truth", truth), calibration.flip)],
+    truth = as_pairs([flip_scene(real_array("truth", truth), calibration.flip)],
                       "truth")[0]
     field = isinstance(calibration, SceneFieldPsf)
-    kernels = (_as_pairs([f.kernels for f in calibration.fields], "calibration.fields")
-               .swapaxes(0, 1) if field else _as_pairs([calibration.psf], "calibration.psf"))
+    kernels = (as_pairs([f.kernels for f in calibration.fields], "calibration.fields")
+               .swapaxes(0, 1) if field else as_pairs([calibration.psf], "calibration.psf"))
     offset = np.asarray(real_array("calibration.offset", calibration.offset), np.float64)
     if truth.shape != kernels.shape[1:] or offset.shape != kernels.shape[1:2]:
         raise ShapeError(f"truth {truth.shape} does not match the calibration's "
@@ -429,8 +317,8 @@ def predict_raw(calibration: ScenePsf | SceneFieldPsf,
         raise DiffcamError("predict_raw needs a non-negative truth and a calibration with "
                            "non-negative kernels and a finite offset (fit_psf_from_scenes "
                            "or fit_field_psf_from_scenes gives one).")
-    psf_peak = _channel_peaks(kernels)[:, None, None]
-    truth_peak = _channel_peaks(truth[None])[:, None, None]
+    psf_peak = channel_peaks(kernels)[:, None, None]
+    truth_peak = channel_peaks(truth[None])[:, None, None]
     scene, unit_kernels = jnp.asarray(truth / truth_peak), jnp.asarray(kernels / psf_peak)
     if field:
         unit = jnp.stack([_channel_model(f, k, truth.shape)(s) for f, k, s in

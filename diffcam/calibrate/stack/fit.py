@@ -2,8 +2,8 @@
 
 A DiffuserCam PSF stack is a set of caustics of one diffuser for point sources at
 depths equally spaced in 1/z1. Given a few of its planes (two or more), the fitted
-model (`diffcam.calibrate.stack_model.StackModel`) predicts the others
-(`diffcam.calibrate.stack_result.StackFit.predict`) better than the scaling
+model (`diffcam.calibrate.stack.model.StackModel`) predicts the others
+(`diffcam.calibrate.stack.result.StackFit.predict`) better than the scaling
 baseline (`diffcam.evaluate.registration.scaling_baseline`), which magnifies the
 nearest measured plane.
 
@@ -47,14 +47,14 @@ from diffcam.core.errors import DiffcamError, real_number
 from diffcam.core.options import Options
 from diffcam.core.progress import new_bar
 from diffcam.core.phasor import expj
-from diffcam.calibrate.projections import fit_amplitude
-from diffcam.calibrate.stack_inputs import (check_physical, check_saturation, given_planes,
+from diffcam.calibrate.phase.projections import fit_amplitude
+from diffcam.calibrate.stack.inputs import (check_physical, check_saturation, given_planes,
                                             prepare_planes, saturation_level)
-from diffcam.calibrate.stack_model import (StackModel, coefficient_shape, coefficients_of,
+from diffcam.calibrate.stack.model import (StackModel, coefficient_shape, coefficients_of,
                                            edge_taper, fresnel_kernel, identifiable,
                                            render_planes)
-from diffcam.calibrate import stack_result
-from diffcam.calibrate.stack_result import StackFit
+from diffcam.calibrate.stack import result as stack_result
+from diffcam.calibrate.stack.result import StackFit
 from diffcam.core.deprecation import renamed
 from diffcam.evaluate.metrics import pearson
 from diffcam.evaluate.registration import (Registration, magnification_from_light,
@@ -79,7 +79,7 @@ scale. Two planes can leave the fit near its start (docs/stack_fit.md)."""
 
 
 class StackFitOptions(Options):
-    """How [`fit_stack`][diffcam.calibrate.stack_fit.fit_stack] runs. Lengths in fine
+    """How [`fit_stack`][diffcam.calibrate.stack.fit.fit_stack] runs. Lengths in fine
     samples (1/``oversample`` pixel).
 
     Attributes:
@@ -95,7 +95,7 @@ class StackFitOptions(Options):
         zetas: candidate ζ_ref for the GS start, fine samples² (λ·z_eff/dx_fine²).
             ``None``: the far-source value o²·λ·z2/pitch² when ``pixel_pitch``,
             ``wavelength`` and ``z2`` are given to
-            [`fit_stack`][diffcam.calibrate.stack_fit.fit_stack], else o²·`ZETA_START` (4
+            [`fit_stack`][diffcam.calibrate.stack.fit.fit_stack], else o²·`ZETA_START` (4
             pixel², the shipped stack's scale). With several, each start descends
             ``scan_steps`` steps and the best validation Pearson is kept.
         scan_steps: steps each candidate of a ζ scan descends before one is chosen
@@ -114,7 +114,7 @@ class StackFitOptions(Options):
         amplitude_blur: std of the blur of the reference plane that gives the starting
             amplitude envelope, fine samples.
         dark_ring: width of the frame-border ring whose median is the dark level
-            ([`prepare_planes`][diffcam.calibrate.stack_inputs.prepare_planes]), pixels.
+            ([`prepare_planes`][diffcam.calibrate.stack.inputs.prepare_planes]), pixels.
         saturation: pixel value at or above which a given pixel is saturated (input
             units): ``"auto"`` is 0.999 × the full scale of an integer input and no
             check for float input; ``None`` skips the check. Saturated pixels raise.
@@ -374,15 +374,15 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
     """Fit the wave model to the given planes of a PSF stack.
 
     Only ``stack[planes]`` is read: the other planes never enter (predict them with
-    [`StackFit.predict`][diffcam.calibrate.stack_result.StackFit.predict] and score them
+    [`StackFit.predict`][diffcam.calibrate.stack.result.StackFit.predict] and score them
     against the baseline).
 
     Args:
         stack: (n_planes, ny, nx) array (any gain and dark level: each given plane is
-            prepared by [`prepare_planes`][diffcam.calibrate.stack_inputs.prepare_planes]),
+            prepared by [`prepare_planes`][diffcam.calibrate.stack.inputs.prepare_planes]),
             or ``{plane index: (ny, nx) image}``.
         planes: two or more distinct plane indices; the first is the reference.
-        options: [`StackFitOptions`][diffcam.calibrate.stack_fit.StackFitOptions]; keywords
+        options: [`StackFitOptions`][diffcam.calibrate.stack.fit.StackFitOptions]; keywords
             named after its fields replace them (``saturation=``, ``progress=``,
             ``max_steps=``, ...).
         pixel_pitch, wavelength, z2: optional physical inputs, metres; together they
@@ -392,8 +392,8 @@ def fit_stack(stack, planes: Sequence[int], *, options: StackFitOptions | None =
             (the anchor is the given plane farthest from the reference).
 
     Returns:
-        [`StackFit`][diffcam.calibrate.stack_result.StackFit]. A
-        [`StackFitWarning`][diffcam.calibrate.stack_fit.StackFitWarning] is issued when the
+        [`StackFit`][diffcam.calibrate.stack.result.StackFit]. A
+        [`StackFitWarning`][diffcam.calibrate.stack.fit.StackFitWarning] is issued when the
         kept model is worse than the scaling baseline on the validation pixels.
 
     Raises:

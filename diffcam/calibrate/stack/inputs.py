@@ -159,7 +159,7 @@ def check_physical(pixel_pitch, wavelength, z2) -> dict:
 def saturation_level(saturation, dtype) -> float | None:
     """The pixel level at or above which a given plane counts as saturated (input
     units), from ``saturation`` (a level, ``"auto"`` or ``None``, see
-    `diffcam.calibrate.stack_fit.fit_stack`) and the input dtype."""
+    `diffcam.calibrate.stack.fit.fit_stack`) and the input dtype."""
     if isinstance(saturation, str):
         if saturation != "auto":
             raise DiffcamError(f"saturation must be a level, 'auto' or None, got "

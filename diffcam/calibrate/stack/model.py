@@ -166,7 +166,7 @@ class StackModel(eqx.Module):
 
     def render_plane(self, spec, t) -> Float[Array, "h w"]:
         """Pixel image of plane ``t`` (arbitrary gain) from ``spec`` =
-        [`spectrum`][diffcam.calibrate.stack_model.StackModel.spectrum]."""
+        [`spectrum`][diffcam.calibrate.stack.model.StackModel.spectrum]."""
         o, (h, w) = self.oversample, self.frame
         u = ifft2(spec * spline_kernel(self.grid, self.distance(t)))
         v = self._sample(u, self.magnification(t))

@@ -33,7 +33,7 @@ from diffcam.core import grid as core_grid
 from diffcam.evaluate.registration import (Registration, bracket_weights, magnify_about,
                                            relative_magnification_at, spline_coefficients)
 from diffcam.io import atomic_output, check_output_path, read_npz
-from diffcam.calibrate.stack_model import StackModel, coefficient_shape, render_planes
+from diffcam.calibrate.stack.model import StackModel, coefficient_shape, render_planes
 
 __all__ = ["StackFit", "load_stack_fit", "FORMAT", "FORMAT_VERSION", "MAX_PLANES"]
 
@@ -56,7 +56,7 @@ def _check_count(n: int) -> None:
         raise DiffcamError(f"no planes to predict (asked for {n}).")
     if n > MAX_PLANES:
         raise DiffcamError(f"{n} planes asked for; one call predicts at most {MAX_PLANES} "
-                           f"(diffcam.calibrate.stack_result.MAX_PLANES): ask for fewer, or "
+                           f"(diffcam.calibrate.stack.result.MAX_PLANES): ask for fewer, or "
                            f"raise the limit.")
 
 
@@ -79,14 +79,14 @@ def _plane_index(t) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class StackFit:
-    """The result of [`fit_stack`][diffcam.calibrate.stack_fit.fit_stack].
+    """The result of [`fit_stack`][diffcam.calibrate.stack.fit.fit_stack].
 
     Attributes:
-        model: the fitted [`StackModel`][diffcam.calibrate.stack_model.StackModel] (at the
+        model: the fitted [`StackModel`][diffcam.calibrate.stack.model.StackModel] (at the
             best validation step).
         planes: the given planes (the reference first).
         n_planes: planes in the stack (``None`` if unknown), the default of
-            [`predict`][diffcam.calibrate.stack_result.StackFit.predict].
+            [`predict`][diffcam.calibrate.stack.result.StackFit.predict].
         registration: M(anchor)/M(reference) and the fixed point (pixels).
         history: mean training Pearson of the given planes, per step.
         validation: mean validation Pearson, per step (of the model before the step).
@@ -101,13 +101,13 @@ class StackFit:
             wavelength z2·M at the reference plane and over the stack (m), with z2 too
             the magnifications and z1 over the stack (`_identifiable`).
         physical: the physical inputs given (pixel pitch, wavelength, z2; m or None).
-        options: the [`StackFitOptions`][diffcam.calibrate.stack_fit.StackFitOptions] as a
+        options: the [`StackFitOptions`][diffcam.calibrate.stack.fit.StackFitOptions] as a
             dict.
         seconds: wall time of the fit, s.
         measured: the given planes as fitted
-            ([`prepare_planes`][diffcam.calibrate.stack_inputs.prepare_planes]), in
+            ([`prepare_planes`][diffcam.calibrate.stack.inputs.prepare_planes]), in
             ``planes`` order, float32 (P, H, W): the residuals
-            [`predict`][diffcam.calibrate.stack_result.StackFit.predict] carries come from
+            [`predict`][diffcam.calibrate.stack.result.StackFit.predict] carries come from
             them (``None`` in files of format 1: rendering only).
     """
 
@@ -136,7 +136,7 @@ class StackFit:
     def predict(self, planes=None, *, kappa: float | None = None, residual: bool = True,
                 light: bool = False) -> np.ndarray:
         """Predicted planes, each normalised to unit mean (like
-        [`prepare_planes`][diffcam.calibrate.stack_inputs.prepare_planes]), or carrying its
+        [`prepare_planes`][diffcam.calibrate.stack.inputs.prepare_planes]), or carrying its
         light.
 
         Args:
@@ -260,7 +260,7 @@ class StackFit:
         """Write the fit to one ``.npz`` file (arrays and a JSON metadata entry with a
         format version), atomically: a temporary file in the same folder, then
         ``os.replace``. Read it back with
-        [`load_stack_fit`][diffcam.calibrate.stack_result.load_stack_fit]."""
+        [`load_stack_fit`][diffcam.calibrate.stack.result.load_stack_fit]."""
         path = check_output_path(path, suffixes=(".npz",))
         m = self.model
         meta = {
@@ -292,8 +292,8 @@ class StackFit:
 
 
 def load_stack_fit(path: str | os.PathLike) -> StackFit:
-    """Read a [`StackFit`][diffcam.calibrate.stack_result.StackFit] written by
-    [`StackFit.save`][diffcam.calibrate.stack_result.StackFit.save].
+    """Read a [`StackFit`][diffcam.calibrate.stack.result.StackFit] written by
+    [`StackFit.save`][diffcam.calibrate.stack.result.StackFit.save].
 
     Raises:
         DiffcamError: missing, corrupt or truncated file, not a stack-fit file, another

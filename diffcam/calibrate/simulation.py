@@ -1,5 +1,5 @@
 """The paper's simulated calibration (Section 3.1): the cameraman diffuser and its exact
-near/far intensities (`diffcam.calibrate.near_far.calibration_intensities`)."""
+near/far intensities (`diffcam.calibrate.phase.near_far.calibration_intensities`)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from diffcam.model.off_axis import disc_samples
 from diffcam.model.sensor import bin_pixels, resample
 from diffcam.model.stack import psf_stack
 from diffcam.optics.elements import circular_aperture
-from diffcam.calibrate.near_far import CalibrationGeometry, calibration_intensities
+from diffcam.calibrate.phase.near_far import CalibrationGeometry, calibration_intensities
 
 __all__ = ["cameraman_phase", "PaperSimulation",
            "paper_simulation", "measured_stack_simulation", "HIGH_FIDELITY_SPECTRUM",
@@ -224,7 +224,7 @@ def high_fidelity_captures(phase, aperture_radius: float, geometry: CalibrationG
 
     Returns:
         ``(near, far)`` on the calibration grid and its far-field pitch, float32, scaled
-        as `diffcam.calibrate.near_far.calibration_intensities` (W/m² for a unit
+        as `diffcam.calibrate.phase.near_far.calibration_intensities` (W/m² for a unit
         plane wave, up to the noise).
     """
     import dataclasses
