@@ -72,7 +72,12 @@ def test_field_file_options_fail_cleanly(tmp_path, capsys):
              (["compare", captured, "--model", path, "--at", "0,0", "-o", "o.png"],
               "one per --at position"),
              (["compare", captured, "--model", path, "--at", "0,0;1,1", "--z2", "1mm",
-               "-o", "o.png"], "does not take --z2")]
+               "-o", "o.png"], "does not take --z2"),
+             # beyond the positions' span (y ±4, x ±5) by more than a tenth of it
+             (["psf", path, "--at", "1e9,0", "-o", "o.tif"], "outside the model's field"),
+             (["compare", captured, "--model", path, "--at=2,-3;-3,6.1", "-o", "o.png"],
+              "--at -3,6.1 lies outside"),
+             (["psf", path, "--at", "-3,1", "-o", "o.tif"], "--at=-…")]
     for args, message in cases:
         args = [str(tmp_path / a) if a.startswith("o.") else a for a in args]
         try:

@@ -101,6 +101,7 @@ def test_split_is_the_point_by_point_model():
     ({"z1": -Z1}, "one positive distance"),
     ({"pixel_pitch": -1e-6}, "pixel_pitch"),
     ({"free": ("focus",)}, "free must name"),
+    ({"free": "focus"}, r"got \('focus',\)"),      # one name as a string
     ({"light_weight": 2.0}, "light_weight"),
 ])
 def test_bad_input_is_refused(change, message):

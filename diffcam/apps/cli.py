@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import functools
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -46,6 +47,10 @@ class Parser(argparse.ArgumentParser):
     (see diffcam CMD --help)``, exit status 2, instead of the whole usage block."""
 
     def error(self, message):
+        option = re.fullmatch(r"argument (--[\w-]+).*: expected one argument", message)
+        if option:               # or a value that starts with '-', e.g. --at -40,0
+            message += (f"; a value that starts with '-' goes after '=': "
+                        f"{option[1]}=-…")
         self.exit(2, f"{self.prog}: error: {message.rstrip('.')} (see {self.prog} "
                      f"--help)\n")
 

@@ -27,6 +27,28 @@ def field_models(path) -> tuple[tuple[model.FieldPSF, ...], str | None]:
     return ((fields,) if isinstance(fields, model.FieldPSF) else fields), channels
 
 
+SPAN_MARGIN = 0.1
+"""How far outside its positions' span (a fraction of the span, each side) a field
+model is asked for PSFs: beyond that its weights extrapolate."""
+
+
+def check_inside(field: model.FieldPSF, at: np.ndarray | None) -> None:
+    """Refuse positions ``at`` (``(m, 2)`` pixels) outside the model's positions' span
+    by more than `SPAN_MARGIN` of it, along an axis the positions span."""
+    if at is None:
+        return
+    span = np.asarray(field.positions, np.float64).reshape(-1, 2)
+    low, high = span.min(axis=0), span.max(axis=0)
+    margin = SPAN_MARGIN * (high - low)
+    outside = ((at < low - margin) | (at > high + margin)) & (high > low)
+    if outside.any():
+        y, x = at[np.argmax(outside.any(axis=1))]
+        raise DiffcamError(f"--at {y:g},{x:g} lies outside the model's field (its positions "
+                           f"span y {low[0]:g}…{high[0]:g}, x {low[1]:g}…{high[1]:g} pixels "
+                           f"from the axis), where it would extrapolate; give positions "
+                           f"within it, or build the model over a wider field.")
+
+
 def psfs_at(field: model.FieldPSF, at: np.ndarray | None) -> np.ndarray:
     """The registered PSFs ``([nz,] m, my, mx)`` of ``field`` at positions ``at``
     (``(m, 2)`` pixels; the same at every depth of a volume model), or at the
@@ -49,6 +71,7 @@ def cmd_psf_field(args) -> int:
                            f"{', '.join(given) or '--rendered-only or --processes'}.")
     check_output_path(args.out, suffixes=(".tif", ".tiff", ".npy"))
     fields, channels = field_models(args.phase)
+    check_inside(fields[0], args.at)
     psfs = np.stack([psfs_at(f, args.at) for f in fields]) if channels else psfs_at(
         fields[0], args.at)
     save_image(args.out, psfs)
@@ -96,6 +119,7 @@ def cmd_compare_field(args, path) -> int:
     if args.json is not None:
         check_output_path(args.json, suffixes=(".json",))
     fields, channels = field_models(path)
+    check_inside(fields[0], args.at)
     captured = np.asarray(read_psfs(args.captured)[0], np.float64)
     captured = captured[None] if captured.ndim == 2 else captured
     if channels is None:

@@ -44,8 +44,8 @@ def add_reconstruct(sub) -> None:
                     "in 3-D with lateral TV 1e-5, axial TV 2e-6, an L1 weight of 2e-5, "
                     "residual-balanced penalties and over-relaxation 1.85 "
                     "(diffcam.reconstruct.admm.VOLUME), "
-                    "with a vertical sensor window fitted to the capture in the "
-                    "forward model (--psf-envelope), all recorded in OUT.tif's metadata. See "
+                    "each PSF plane's vertical footprint first matched to the "
+                    "capture's (--psf-envelope), all recorded in OUT.tif's metadata. See "
                     "docs/cli_reconstruct.md and docs/volume.md.")
     rec.add_argument("raw", help="raw capture, grayscale or colour (.png, .tif, .npy)")
     rec.add_argument("--channel-order", choices=["RGB", "BGR"], metavar="ORDER",

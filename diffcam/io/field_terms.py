@@ -116,7 +116,8 @@ def fit_field_terms(image: np.ndarray, psfs: np.ndarray, z1, z2: float,
         z1: ``(nz,)`` metres, each plane's source distance from the diffuser.
         z2: metres, the diffuser-to-sensor distance.
         pixel_pitch: metres, the sensor's pixel pitch (of the images given).
-        free: the names of the terms fitted (of `FIELD_TERMS`); the others stay 0.
+        free: the name, or names, of the terms fitted (of `FIELD_TERMS`); the others
+            stay 0.
         samples: planes in the fit (at least 1, at most ``nz``).
         light_weight: ``λ`` as a share of the emptying weight, in (0, 1).
 
@@ -166,7 +167,7 @@ def fit_field_terms(image: np.ndarray, psfs: np.ndarray, z1, z2: float,
 def _field_inputs(psfs, free, z1, z2, pixel_pitch):
     """``fit_field_terms``'s geometry checked: the free terms as a tuple, ``z1`` a
     float64 ``(nz,)`` array beyond ``0``, ``z2`` and the pitch positive floats."""
-    free = tuple(free)
+    free = (free,) if isinstance(free, str) else tuple(free)
     if not set(free) <= set(FIELD_TERMS) or len(set(free)) != len(free):
         raise DiffcamError(f"free must name distinct terms of {FIELD_TERMS}; got {free}.")
     z2 = number_in("z2", z2, 1e-9, 1.0, "a distance in metres, > 0")

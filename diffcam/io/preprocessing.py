@@ -258,15 +258,16 @@ def light_profiles(image, psfs):
     psfs = np.asarray(real_array("psfs", psfs), np.float64)
     image = np.asarray(real_array("image", image), np.float64)
     if not (np.isfinite(psfs).all() and np.isfinite(image).all()):
-        raise DiffcamError("the envelope needs a finite capture and PSF stack; clean the "
+        raise DiffcamError("the footprint fits need a finite capture and PSF stack; clean the "
                            "NaN/Inf pixels first.")
     if psfs.ndim != 3 or image.ndim != 2 or psfs.shape[1] > image.shape[0]:
-        raise ShapeError(f"the envelope needs a (ny, nx) capture and a (nz, my, mx) PSF "
+        raise ShapeError(f"the footprint fits need a (ny, nx) capture and a (nz, my, mx) PSF "
                          f"stack with my <= ny; got {image.shape} and {psfs.shape}.")
     planes = np.maximum(psfs, 0).sum(axis=2)
     total = planes.sum(axis=1)
     if np.any(total <= 0) or not image.max() > 0:
-        raise DiffcamError("the envelope needs light in the capture and in every PSF plane.")
+        raise DiffcamError("the footprint fits need light (values above 0) in the capture "
+                           "and in every PSF plane.")
     centres = planes @ np.arange(psfs.shape[1]) / total
     return np.maximum(image, 0).sum(axis=1), planes, centres
 

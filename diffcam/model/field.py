@@ -139,7 +139,9 @@ class FieldPSF(eqx.Module):
                                 tuple(int(n) for n in object_shape[-2:]))
 
     def at(self, positions: Float[Array, "*depth m 2"]) -> Float[Array, "*depth m my mx"]:
-        """The registered PSFs ``Σ_k w_k(c) g_k`` at field positions ``c`` (pixels)."""
+        """The registered PSFs ``Σ_k w_k(c) g_k`` at field positions ``c`` (pixels):
+        the weights interpolate between the model's positions and extrapolate, unchecked,
+        outside their span."""
         w = _thin_plate(self.positions, self.coefficients, positions)   # (K, [nz,] m)
         return jnp.einsum("k...m,k...yx->...myx", w, self.kernels)
 
