@@ -176,24 +176,31 @@ def _diffcam(name, n, phase, depths, w, kind):
     return jax.jit(jax.value_and_grad(loss)), (p, z)
 
 
-def _chromatix(name, n, phase, depths, w, kind):
-    import jax
+def chromatix_psfs(n, dx, wavelength, z2, aperture_radius):
+    """``stack(phase, z)``: chromatix's PSFs of the depths z (metres; an array: one
+    batched field) or of one depth, (…, n, n), through a diffuser of ``phase`` (radians)
+    in a circular aperture, on an n² grid of pitch dx (all lengths in metres)."""
     import jax.numpy as jnp
     import chromatix.functional as cf
     um = 1e6  # chromatix works in micrometres
-    dx, lam, z2, radius = DX * um, LAM * um, Z2 * um, 0.3 * n * DX * um
+    dx, lam, z2, radius = dx * um, wavelength * um, z2 * um, aperture_radius * um
 
     def pupil(field):
         return cf.circular_pupil(field, 2 * radius)
 
     def stack(p, z):
-        """PSFs of the depths z (an array: one batched field) or of one depth z."""
-        field = cf.point_source((n, n), dx, lam, z, n=1.0, pupil=pupil)
+        field = cf.point_source((n, n), dx, lam, z * um, n=1.0, pupil=pupil)
         field = cf.phase_change(field, p)
         field = cf.transfer_propagate(field, z2, n=1.0, pad_width=0)
         return field.intensity.reshape(jnp.shape(z) + (n, n))
+    return stack
 
-    p, z = jnp.asarray(phase), jnp.asarray(depths * um, jnp.float32)
+
+def _chromatix(name, n, phase, depths, w, kind):
+    import jax
+    import jax.numpy as jnp
+    stack = chromatix_psfs(n, DX, LAM, Z2, 0.3 * n * DX)
+    p, z = jnp.asarray(phase), jnp.asarray(depths, jnp.float32)
     chunk = chunk_depths(n)
     if "batched" in name:
         forward = stack
@@ -218,22 +225,27 @@ def _chromatix(name, n, phase, depths, w, kind):
     return jax.jit(jax.value_and_grad(loss)), (p, z)
 
 
-def _dlux(name, n, phase, depths, w, kind):
-    import jax
+def dlux_psf(n, dx, wavelength, z2, aperture_radius):
+    """``one(phase, z1)``: dLux's PSF of one depth z1, (n, n), as `chromatix_psfs`."""
     import jax.numpy as jnp
     import dLux as dl
     import dLux.utils as dlu
-    radius = 0.3 * n * DX
-    center = jnp.array([-DX / 2])  # the axis on pixel N/2, as diffcam's and chromatix's
-    propagator = dl.layers.ASMPropagator(Z2, dl.PadSpec(pad=1))
+    center = jnp.array([-dx / 2])  # the axis on pixel N/2, as diffcam's and chromatix's
+    propagator = dl.layers.ASMPropagator(z2, dl.PadSpec(pad=1))
 
     def one(p, z1):
-        wf = dl.Wavefront(LAM, n, pixel_scale=DX, center=center)
+        wf = dl.Wavefront(wavelength, n, pixel_scale=dx, center=center)
         coords = wf.coordinates()
         wf = wf.add_phase(wf.wavenumber * jnp.sum(coords ** 2, axis=0) / (2 * z1))
-        wf = dl.layers.Optic(transmission=dlu.circle(coords, radius), phase=p)(wf)
+        wf = dl.layers.Optic(transmission=dlu.circle(coords, aperture_radius), phase=p)(wf)
         return propagator(wf).psf
+    return one
 
+
+def _dlux(name, n, phase, depths, w, kind):
+    import jax
+    import jax.numpy as jnp
+    one = dlux_psf(n, DX, LAM, Z2, 0.3 * n * DX)
     p, z = jnp.asarray(phase), jnp.asarray(depths, jnp.float32)
     chunk = chunk_depths(n)
     if "vmap" in name:

@@ -185,6 +185,12 @@ SECTIONS = {
                ["surface", "seed", "sparsity_weight", "steps", "start", "design", "baseline",
                 "baseline_is", "held_out_start", "held_out_design", "held_out_baseline",
                 "spread_start", "spread_design", "height_um", "wall_s", "wall_per_step_s"]),
+    "design_peers": ("Diffuser design: one step beside the same step with chromatix's and "
+                     "dLux's PSFs",
+                     "python -m benchmarks.bench_design_peers --chromatix-python "
+                     "/path/to/python3.12",
+                     ["candidate", "N", "depths", "step_s", "x_design", "peak_mb", "first_s",
+                      "loss", "grad_1mp", "load"]),
     "design_fidelity": ("Diffuser design: the neighbouring depths' PSF correlation with "
                         "the high-fidelity simulator's effects one at a time",
                         "python -m benchmarks.bench_design_fidelity",
