@@ -236,6 +236,22 @@ SECTIONS = {
            ("design_3d_end_to_end", ", the end-to-end objective beside depth "
             "discrimination, model PSFs", " --weights 0.1 --no-lenslets "
             "--end-to-end-steps 60 --calibration model --name design_3d_end_to_end"))},
+    **{f"design_3d_1000_photons_aperture_{name}": (
+        f"Diffuser design judged by 3-D reconstruction of held-out volumes, 1000 photons "
+        f"per pixel, aperture radius {label}",
+        f"python -m benchmarks.bench_design_3d --photons 1000 --no-lenslets --random-seeds "
+        f"6 {args} --name design_3d_1000_photons_aperture_{name}",
+        ["diffuser", "max_correlation", "truth_max_correlation", "psnr_db", "psnr_per_scene",
+         "resolved_dz_mm", "design_s", "reconstruct_s"])
+       for name, label, args in (
+           ("35", "0.35 of the frame width", "--weights 0.1 0 --aperture-fraction 0.35"),
+           ("45", "0.45 of the frame width", "--weights 0.1 0 --aperture-fraction 0.45"),
+           ("45_15um", "0.45 of the frame width, features ≥ 15 µm",
+            "--weights 0.1 0 --aperture-fraction 0.45 --feature-size 15"),
+           ("45_4um", "0.45 of the frame width, heights 0–4 µm",
+            "--weights 0.1 0 --aperture-fraction 0.45 --height-max 4"),
+           ("45_truth_design", "0.45 of the frame width, designed through the truth's PSFs",
+            "--weights 0.1 --aperture-fraction 0.45 --design-model truth"))},
     "design_3d_1000_photons_truth_design": (
         "Diffuser design judged by 3-D reconstruction of held-out volumes, 1000 photons per "
         "pixel, designed through the truth's PSFs (light, source, pixel integration)",
