@@ -251,7 +251,23 @@ SECTIONS = {
            ("45_4um", "0.45 of the frame width, heights 0–4 µm",
             "--weights 0.1 0 --aperture-fraction 0.45 --height-max 4"),
            ("45_truth_design", "0.45 of the frame width, designed through the truth's PSFs",
-            "--weights 0.1 --aperture-fraction 0.45 --design-model truth"))},
+            "--weights 0.1 --aperture-fraction 0.45 --design-model truth"),
+           ("35_truth_design", "0.35 of the frame width, designed through the truth's PSFs",
+            "--weights 0.1 --aperture-fraction 0.35 --design-model truth"),
+           ("45_truth_end_to_end", "0.45 of the frame width, both objectives through the "
+            "truth's PSFs", "--weights 0.1 --aperture-fraction 0.45 --design-model truth "
+            "--end-to-end-steps 60"))},
+    "design_3d_1000_photons_aperture_45_truth_design_bounds": (
+        "The same at 0.45 on 8 scenes, a two-point test on 22 depths and what bounds the "
+        "volume PSNR",
+        "python -m benchmarks.bench_design_3d --photons 1000 --no-lenslets --weights 0.1 "
+        "--aperture-fraction 0.45 --design-model truth --scenes 8 --two-point-depths 22 "
+        "--bounds --figure docs/design_3d_aperture.png "
+        "--name design_3d_1000_photons_aperture_45_truth_design_bounds",
+        ["diffuser", "truth_max_correlation", "psnr_db", "psnr_db_exact_psfs",
+         "psnr_db_noiseless", "depth_blind_psnr_db", "error_on_sources",
+         "error_other_planes", "error_elsewhere", "resolved_dz_mm", "finer_resolved_dz_mm",
+         "design_s"]),
     "design_3d_1000_photons_truth_design": (
         "Diffuser design judged by 3-D reconstruction of held-out volumes, 1000 photons per "
         "pixel, designed through the truth's PSFs (light, source, pixel integration)",
