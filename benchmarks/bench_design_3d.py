@@ -176,7 +176,8 @@ class Geometry:
 
     def lenslets(self, seed: int, regular: bool = False) -> LensletArray:
         """A random (or ``regular``) microlens array of these limits, its centres within
-        the aperture, 36 lenses per (64 `PIXEL`)² of it (36 at 256² and a quarter)."""
+        the aperture, as many lenses per aperture area as `bench_design`'s 36 at radius
+        64 `PIXEL` (256² and a quarter of the frame)."""
         count = max(1, round(36 * (self.aperture_radius / (64 * PIXEL)) ** 2))
         return LensletArray.random(seed, (self.n, self.n), PIXEL, self.feature_size,
                                    self.height_max, count, self.aperture_radius,
