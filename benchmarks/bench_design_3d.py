@@ -4,8 +4,10 @@ same limits and a regular microlens array?
 
     python -m benchmarks.bench_design_3d                # → benchmarks/results/design_3d.json
 
-The diffusers (`diffcam design`'s camera: 3 µm pixels, z2 2 mm, aperture radius a
-quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` samples across):
+The diffusers (`Geometry`: `diffcam design`'s camera, 3 µm pixels, z2 2 mm, aperture
+radius a quarter of the frame width (``--aperture-fraction``; a wider aperture's grid is
+padded, `Geometry.footprint_pad`), n 1.5, heights 0–2 µm (``--height-max``), features
+≥ 30 µm (``--feature-size``); ``--n`` samples across):
 
 - ``designed``: `diffcam.design.design` of a random smooth surface (seed 0) over
   ``--depths`` depths 10–60 mm (``--near``, ``--far``) even in 1/z1, ``--steps`` Adam
@@ -14,7 +16,7 @@ quarter of the frame, n 1.5, heights 0–2 µm, features ≥ 30 µm; ``--n`` sam
   high-fidelity``, through PSFs of the truth's three lines and 50 µm source disc
   (`DesignOptions` ``bandwidth``, ``source_radius``); with ``--design-model truth``,
   through the truth's own PSFs: its lines and source disc, and its field on a 2× finer
-  grid integrated over each pixel (``oversample`` 2, on `truth_camera`);
+  grid integrated over each pixel (``oversample`` 2, on `Geometry.truth_camera`);
   ``designed, w = 0`` the same without the spread term (``--weights``: the weights
   designed, the first is ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
@@ -52,8 +54,10 @@ boundary ``"crop"``), scaled to ``--photons`` photons per sensor pixel on averag
 the same scene whatever the diffuser (a diffuser that loses light off the sensor gets
 fewer), with Poisson noise and Gaussian read noise of ``READ_NOISE`` photons.
 
-Every volume is reconstructed by `diffcam.reconstruct.admm_tv_3d` (crop model) from the
-capture scaled to unit L2 norm, with the settings ``diffcam reconstruct --3d`` uses
+The scenes, captures, reconstructions and scores below are
+`benchmarks.design_3d_volumes`. Every volume is reconstructed by
+`diffcam.reconstruct.admm_tv_3d` (crop model) from the capture scaled to unit L2 norm,
+with the settings ``diffcam reconstruct --3d`` uses
 (`diffcam.reconstruct.admm.VOLUME`, chosen on the DiffuserCam 3-D capture) and
 ``--iterations`` iterations: the same for every diffuser, nothing tuned here; or, with
 ``--tune``, the TV and L1 weights chosen per diffuser on a training scene (`tuned`).
@@ -93,40 +97,26 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.bench_design import FAR, FEATURE, H_MAX, INDEX, NEAR, PIXEL, Z2, camera
+from benchmarks.design_3d_volumes import (READ_NOISE, bounds, calibration, capture,
+                                         depth_blind, finer_two_point, reconstruct,
+                                         resolved, scene, tuned, two_point,
+                                         two_point_planes, volume_psnr)
 from benchmarks.harness import write_json
 from diffcam.calibrate.simulation import HIGH_FIDELITY_SPECTRUM, high_fidelity_psfs
 from diffcam.design import (DesignOptions, LensletArray, SmoothSurface, depth_range,
                             design, evaluate_design)
 from diffcam.design.objective import DepthObjective, pair_correlations, standardised
 from diffcam.design.surfaces import height_map
-from diffcam.evaluate import psnr
-from diffcam.model import psf_stack
+from diffcam.model import Camera, psf_stack
 from diffcam.optics.propagation import effective_distance
-from diffcam.reconstruct import admm_tv_3d, convolution_model
-from diffcam.reconstruct.admm import VOLUME, AdmmOptions
+from diffcam.reconstruct.admm import VOLUME
 from diffcam.reconstruct.operators import grid_shapes
 
-READ_NOISE = 2.0
-"""Gaussian read noise, photons (electrons) per pixel."""
-DIP = 0.8
-"""Two points are resolved when the axial profile between their peaks falls to this
-fraction of the lower peak (or below)."""
-TUNING_FACTORS = (0.1, 1.0, 10.0)
-"""With ``--tune``, the factors on `VOLUME`'s TV and L1 weights tried per diffuser."""
-TRAINING_SEED = 2000
-"""The seed of the scene ``--tune`` chooses the weights on (held-out scenes: 1000 + k)."""
-CALIBRATION_SEED = 3000
-"""The seed of the calibration PSFs' noise (captures: 7; scenes: 1000 + k, 2000)."""
 SOURCE_RADIUS = 50e-6
 """Radius of the truth PSFs' source (and of the calibration's), metres (``--source-radius``
 in µm)."""
-FINE_TWO_POINT_SEED = 4000
-"""The seed of the finer two-point test's captures (plus the points' plane count apart:
-every diffuser gets the same noise for the same pair)."""
-SOURCE_SHARE = 0.1
-"""`bounds`: a voxel is on a source where the truth is at least this share of its peak."""
-BLOB_SIGMA = 1.0
-"""Standard deviation of a scene's Gaussian blobs, object-grid samples."""
+APERTURE_FRACTION = 0.25
+"""The aperture radius as a fraction of the frame width (``--aperture-fraction``)."""
 DESIGN_MODELS = {
     "point": {},
     "high-fidelity": {"bandwidth": float(np.ptp(HIGH_FIDELITY_SPECTRUM[0])) / 2,
@@ -136,17 +126,74 @@ DESIGN_MODELS = {
 """``--design-model``: the `DesignOptions` of the PSFs the depth designs optimise."""
 
 
-def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float],
-              lenslets: bool, end_to_end: DesignOptions | None = None) -> dict:
+@dataclasses.dataclass(frozen=True)
+class Geometry:
+    """A run's camera and fabrication limits: ``n`` samples of `PIXEL` across the
+    sensor, an aperture of radius ``aperture_fraction`` of the frame width (unitless),
+    depths ``near`` to ``far`` (metres), surfaces of minimum feature ``feature_size``
+    and heights in (0, ``height_max``) (metres)."""
+
+    n: int
+    near: float = NEAR
+    far: float = FAR
+    aperture_fraction: float = APERTURE_FRACTION
+    feature_size: float = FEATURE
+    height_max: float = H_MAX
+
+    @property
+    def aperture_radius(self) -> float:
+        """Metres."""
+        return self.aperture_fraction * self.n * PIXEL
+
+    def footprint_pad(self) -> int:
+        """Samples per side the propagation grid grows by: as much as the aperture's
+        footprint on the sensor at the nearest depth (radius a·(1 + z2/near)) grows
+        over the quarter-frame camera's, so that the PSFs keep its margin against
+        wrap-around (none for a quarter of the frame or less)."""
+        growth = (self.aperture_fraction - APERTURE_FRACTION) * (1 + Z2 / self.near)
+        return max(0, int(np.ceil(growth * self.n - 1e-9)))
+
+    def camera(self) -> Camera:
+        """The model's camera (`bench_design.camera` at this aperture)."""
+        pad = self.footprint_pad()
+        return dataclasses.replace(camera(self.n), aperture_radius=self.aperture_radius,
+                                   pad=(pad, pad))
+
+    def truth_camera(self) -> Camera:
+        """`camera` padded so that the high-fidelity model's grid (2× finer) also
+        samples the Fresnel transfer function of the farthest depth at the longest
+        wavelength (N·dx² / λ ≥ z_eff)."""
+        fine_dx = PIXEL / 2
+        need = (effective_distance(self.far, Z2) * HIGH_FIDELITY_SPECTRUM[0].max()
+                / fine_dx ** 2)
+        pad = max(self.footprint_pad(), int(np.ceil((need / 2 - self.n) / 2)))
+        return dataclasses.replace(self.camera(), pad=(pad, pad))
+
+    def smooth(self, seed: int) -> SmoothSurface:
+        """A random smooth surface of these limits."""
+        return SmoothSurface.random(seed, (self.n, self.n), PIXEL, self.feature_size,
+                                    self.height_max)
+
+    def lenslets(self, seed: int, regular: bool = False) -> LensletArray:
+        """A random (or ``regular``) microlens array of these limits, its centres within
+        the aperture, as many lenses per aperture area as `bench_design`'s 36 at radius
+        64 `PIXEL` (256² and a quarter of the frame)."""
+        count = max(1, round(36 * (self.aperture_radius / (64 * PIXEL)) ** 2))
+        return LensletArray.random(seed, (self.n, self.n), PIXEL, self.feature_size,
+                                   self.height_max, count, self.aperture_radius,
+                                   regular=regular)
+
+
+def diffusers(geometry: Geometry, z1: np.ndarray, depth: DesignOptions,
+              weights: list[float], lenslets: bool,
+              end_to_end: DesignOptions | None = None) -> dict:
     """The diffusers by name: (surface, seconds the design took or None). The smooth
     surface is designed by ``depth`` once per sparsity weight (the first is
     ``designed``), and with ``end_to_end`` options also by the end-to-end objective
-    (``designed end to end``); the depth designs on `truth_camera` if ``depth``
+    (``designed end to end``); the depth designs on the truth camera if ``depth``
     oversamples (its finer grid needs the padding)."""
-    cam = camera(n) if depth.oversample == 1 else truth_camera(n, float(np.max(z1)))
-    lenses = max(1, round(36 * (n / 256) ** 2))
-    region = n * PIXEL / 4
-    start = SmoothSurface.random(0, (n, n), PIXEL, FEATURE, H_MAX)
+    cam = geometry.camera() if depth.oversample == 1 else geometry.truth_camera()
+    start = geometry.smooth(0)
     out = {}
     for k, weight in enumerate(weights):
         options = dataclasses.replace(depth, sparsity_weight=weight)
@@ -159,240 +206,38 @@ def diffusers(n: int, z1: np.ndarray, depth: DesignOptions, weights: list[float]
         designed = design(start, cam, z1, INDEX, end_to_end).surface
         out["designed end to end"] = (designed, time.perf_counter() - t)
     out["start"] = (start, None)
-    out["random"] = (SmoothSurface.random(100, (n, n), PIXEL, FEATURE, H_MAX), None)
-    out["regular lenslets"] = (LensletArray.random(0, (n, n), PIXEL, FEATURE, H_MAX, lenses,
-                                                   region, regular=True), None)
+    out["random"] = (geometry.smooth(100), None)
+    out["regular lenslets"] = (geometry.lenslets(0, regular=True), None)
     if lenslets:
-        first = LensletArray.random(0, (n, n), PIXEL, FEATURE, H_MAX, lenses, region)
         t = time.perf_counter()
-        out["designed lenslets"] = (design(first, cam, z1, INDEX, dataclasses.replace(
+        out["designed lenslets"] = (design(geometry.lenslets(0), cam, z1, INDEX,
+                                           dataclasses.replace(
             depth, sparsity_weight=weights[0])).surface, time.perf_counter() - t)
     return out
 
 
-def truth_camera(n: int, far: float):
-    """`camera` padded so that the high-fidelity model's grid (2× finer) samples the
-    Fresnel transfer function of the farthest depth ``far`` (m) at the longest
-    wavelength (N·dx²/λ ≥ z_eff)."""
-    fine_dx = PIXEL / 2
-    need = effective_distance(far, Z2) * HIGH_FIDELITY_SPECTRUM[0].max() / fine_dx ** 2
-    pad = max(0, int(np.ceil((need / 2 - n) / 2)))
-    return dataclasses.replace(camera(n), pad=(pad, pad))
-
-
-def blob(volume: np.ndarray, plane: int, y: float, x: float, amplitude: float) -> None:
-    """Add a Gaussian blob (σ `BLOB_SIGMA` samples) at (plane, y, x) of ``volume``."""
-    oy, ox = volume.shape[-2:]
-    yy, xx = np.arange(oy)[:, None], np.arange(ox)[None, :]
-    volume[plane] += amplitude * np.exp(-((yy - y) ** 2 + (xx - x) ** 2)
-                                        / (2 * BLOB_SIGMA ** 2))
-
-
-def field(n: int, object_shape) -> tuple[slice, slice]:
-    """The central half of the sensor's field on the object grid (where scenes lie)."""
-    return tuple(slice(o // 2 - n // 4, o // 2 + n // 4) for o in object_shape)
-
-
-def scene(seed: int, nz: int, n: int, object_shape) -> np.ndarray:
-    """A sparse volume: 2·nz blobs of amplitude 0.5–1 at random planes and positions
-    within `field`."""
-    rng = np.random.default_rng(seed)
-    volume = np.zeros((nz, *object_shape))
-    rows, cols = field(n, object_shape)
-    for _ in range(2 * nz):
-        blob(volume, rng.integers(nz), rng.uniform(rows.start + 2, rows.stop - 3),
-             rng.uniform(cols.start + 2, cols.stop - 3), rng.uniform(0.5, 1.0))
-    return volume
-
-
-def two_point_planes(nz: int, stride: int = 1) -> list[tuple[int, int]]:
-    """(near plane, far plane) of the two-point test for k = 2, 2 + stride, … < nz
-    planes apart, centred on the middle of the stack."""
-    pairs = []
-    for k in range(2, nz, stride):
-        i = (nz - 1 - k) // 2
-        pairs.append((i, i + k))
-    return pairs
-
-
-def two_point(nz: int, object_shape, planes: tuple[int, int]) -> np.ndarray:
-    volume = np.zeros((nz, *object_shape))
-    cy, cx = (o // 2 for o in object_shape)
-    for p in planes:
-        blob(volume, p, cy, cx, 1.0)
-    return volume
-
-
-def expected_capture(volume: np.ndarray, truth_psfs: np.ndarray, n: int,
-                     photons: float) -> np.ndarray:
-    """The noise-free sensor image of ``volume`` through ``truth_psfs`` (crop model),
-    scaled to ``photons`` per pixel on average for a scene of this flux (whatever the
-    diffuser)."""
-    model = convolution_model(jnp.asarray(truth_psfs), (n, n), "crop", volume=True)
-    expected = np.asarray(model(jnp.asarray(volume, jnp.float32)), np.float64)
-    return expected * photons * n * n / volume.sum()
-
-
-def capture(volume: np.ndarray, truth_psfs: np.ndarray, n: int, photons: float,
-            rng: np.random.Generator) -> np.ndarray:
-    """The noisy sensor image of ``volume``: `expected_capture` with Poisson and read
-    noise, clipped at 0."""
-    expected = expected_capture(volume, truth_psfs, n, photons)
-    noisy = rng.poisson(np.clip(expected, 0, None)) + rng.normal(0, READ_NOISE, (n, n))
-    return np.clip(noisy, 0, None)
-
-
-def volume_psnr(estimate: np.ndarray, truth: np.ndarray, n: int,
-                align: str | None = "scale") -> float:
-    """PSNR (dB) of ``estimate`` within `field`, after its least-squares scale to
-    ``truth`` (``align=None``: as it is), over the whole volume (peak: the truth's
-    range there)."""
-    rows, cols = field(n, truth.shape[-2:])
-    e, t = estimate[:, rows, cols], truth[:, rows, cols]
-    flat = (lambda v: jnp.asarray(v.reshape(-1, v.shape[-1]), jnp.float32))
-    return float(psnr(flat(e), flat(t), align=align))
-
-
-def resolved(estimate: np.ndarray, planes: tuple[int, int]) -> bool:
-    """Whether the axial profile (5 × 5 pixels about the centre) shows the two points:
-    a peak within one plane of each, and a plane between them at ≤ `DIP` of the lower."""
-    cy, cx = (o // 2 for o in estimate.shape[-2:])
-    profile = estimate[:, cy - 2:cy + 3, cx - 2:cx + 3].sum(axis=(-2, -1))
-    peaks = []
-    for p in planes:
-        lo, hi = max(p - 1, 0), min(p + 2, len(profile))
-        peaks.append(lo + int(np.argmax(profile[lo:hi])))
-    i, j = peaks
-    if j - i < 2:
-        return False
-    return bool(profile[i + 1:j].min() <= DIP * min(profile[i], profile[j]))
-
-
-def finer_two_point(truth_psfs, solver_psfs, z1: np.ndarray, n: int, object_shape, args,
-                    options: AdmmOptions) -> list[dict]:
-    """The two-point test on the depth grid ``z1`` (finer than the scenes'), by bisection
-    over k, the planes between two points centred on the stack (`two_point_planes`,
-    k = 2 … nz − 1): it assumes that a pair is resolved if a closer one is, tests the
-    widest pair, then halves the interval; each capture with the noise of seed
-    `FINE_TWO_POINT_SEED` + k. Every pair tried, in order: ``planes`` (k), ``dz_mm`` and
-    ``resolved``."""
-    nz = len(z1)
-    pairs = dict(zip(range(2, nz), two_point_planes(nz)))
-    tried = []
-
-    def test(k: int) -> bool:
-        (i, j), rng = pairs[k], np.random.default_rng(FINE_TWO_POINT_SEED + k)
-        b = capture(two_point(nz, object_shape, (i, j)), truth_psfs, n, args.photons, rng)
-        ok = resolved(reconstruct(b[None], solver_psfs, args.iterations, options)[0], (i, j))
-        tried.append({"planes": k, "dz_mm": round(float(z1[j] - z1[i]) * 1e3, 2),
-                      "resolved": ok})
-        return ok
-
-    lo, hi = 2, nz - 1
-    if test(hi):
-        while lo < hi:
-            mid = (lo + hi) // 2
-            lo, hi = (lo, mid) if test(mid) else (mid + 1, hi)
-    return tried
-
-
-def bounds(volumes: np.ndarray, b: np.ndarray, estimate: np.ndarray, truth_psfs,
-           n: int, args, options: AdmmOptions) -> dict:
-    """What bounds a diffuser's volume PSNR on the held-out scenes ``volumes`` (their
-    noisy captures ``b`` and the solver's ``estimate``), mean over the scenes, dB:
-    ``psnr_db_exact_psfs``, the same captures reconstructed with the truth PSFs (no
-    calibration noise, no model error); ``psnr_db_noiseless``, noise-free captures with
-    the truth PSFs (the solver's and the diffuser's own limit); ``depth_blind_psnr_db``,
-    the estimate's mean over planes put on every plane (its lateral content without
-    depth); and where the estimate's squared error sits after its least-squares scale
-    (shares of it, within `field`): ``error_on_sources`` (voxels where the truth is
-    ≥ `SOURCE_SHARE` of its peak), ``error_other_planes`` (the sources' lateral
-    positions on the planes they are not on: depth confusion), ``error_elsewhere``."""
-    clean = np.stack([expected_capture(v, truth_psfs, n, args.photons) for v in volumes])
-    oracle = reconstruct(np.concatenate([b, clean]), np.asarray(truth_psfs),
-                         args.iterations, options)
-    scenes, shares, (rows, cols) = len(volumes), [], field(n, volumes.shape[-2:])
-    mean = (lambda values: round(float(np.mean(values)), 2))
-    for e, t in zip(estimate, volumes):
-        e, t = e[:, rows, cols], t[:, rows, cols]
-        err = e * np.sum(e * t) / np.sum(e * e) - t
-        on = t >= SOURCE_SHARE * t.max()
-        depth = np.broadcast_to(on.any(axis=0), on.shape) & ~on
-        total = np.sum(err ** 2)
-        shares.append([np.sum(err[on] ** 2) / total, np.sum(err[depth] ** 2) / total])
-    on, depth = np.mean(shares, axis=0)
-    return {"psnr_db_exact_psfs": mean([volume_psnr(oracle[s], volumes[s], n)
-                                        for s in range(scenes)]),
-            "psnr_db_noiseless": mean([volume_psnr(oracle[scenes + s], volumes[s], n)
-                                       for s in range(scenes)]),
-            "depth_blind_psnr_db": mean([volume_psnr(depth_blind(e), t, n)
-                                         for e, t in zip(estimate, volumes)]),
-            "error_on_sources": round(float(on), 3),
-            "error_other_planes": round(float(depth), 3),
-            "error_elsewhere": round(float(1 - on - depth), 3)}
-
-
-def depth_blind(volume: np.ndarray) -> np.ndarray:
-    """``volume``'s mean over planes, on every plane: its lateral content, no depth."""
-    return np.broadcast_to(volume.mean(axis=0), volume.shape)
-
-
-def reconstruct(b: np.ndarray, psfs: np.ndarray, iterations: int,
-                options: AdmmOptions) -> np.ndarray:
-    """ADMM-TV volumes of the captures ``b`` (…, n, n), each scaled to unit L2 norm."""
-    unit = b / np.linalg.norm(b, axis=(-2, -1), keepdims=True)
-    return np.asarray(admm_tv_3d(unit, psfs, iterations, options,
-                                 progress=False).image)
-
-
-def tuned(truth_psfs, solver_psfs, n: int, object_shape, args) -> AdmmOptions:
-    """`VOLUME` with its lateral TV (axial TV in proportion) and L1 weights each scaled
-    by one of `TUNING_FACTORS`: the pair with the best volume PSNR on the training
-    scene (seed `TRAINING_SEED`, not a held-out one)."""
-    volume = scene(TRAINING_SEED, len(solver_psfs), n, object_shape)
-    b = capture(volume, truth_psfs, n, args.photons, np.random.default_rng(TRAINING_SEED))
-    best = None
-    for f_tv in TUNING_FACTORS:
-        for f_l1 in TUNING_FACTORS:
-            options = AdmmOptions.of(VOLUME, tau=VOLUME.tau * f_tv,
-                                     tau_axial=VOLUME.tau_axial * f_tv,
-                                     sparsity=VOLUME.sparsity * f_l1)
-            estimate = reconstruct(b, solver_psfs, args.iterations, options)
-            score = volume_psnr(estimate, volume, n) if estimate.any() else -np.inf
-            if best is None or score > best[0]:
-                best = (score, options)
-    return best[1]
-
-
-def calibration(truth_psfs: np.ndarray, photons: float) -> np.ndarray:
-    """The PSF stack measured through ``truth_psfs`` (each of unit sum): Poisson noise
-    at ``photons`` at each PSF's brightest pixel, each normalised to unit sum."""
-    rng = np.random.default_rng(CALIBRATION_SEED)
-    peak = truth_psfs.max(axis=(-2, -1), keepdims=True)
-    counts = rng.poisson(np.asarray(truth_psfs, np.float64) / peak * photons)
-    return (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
-
-
-def stacks(surface, z1: np.ndarray, n: int, args) -> tuple[np.ndarray, np.ndarray]:
+def stacks(surface, z1: np.ndarray, geometry: Geometry,
+           args) -> tuple[np.ndarray, np.ndarray]:
     """The diffuser's truth PSFs at the depths ``z1`` (``--truth``) and those its solver
     inverts with (``--calibration``)."""
-    cam = camera(n)
+    cam = geometry.camera()
     diffuser = height_map(surface, INDEX)
     model_psfs = psf_stack(diffuser, cam, z1, progress=False)
     truth_psfs = model_psfs if args.truth == "model" else high_fidelity_psfs(
-        diffuser.phase(cam.wavelength), truth_camera(n, float(z1.max())), z1,
+        diffuser.phase(cam.wavelength), geometry.truth_camera(), z1,
         source_radius=args.source_radius * 1e-6)
     solver_psfs = model_psfs if args.calibration == "model" else calibration(
         np.asarray(truth_psfs), args.calibration_photons)
     return truth_psfs, solver_psfs
 
 
-def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, dict]:
+def judge(name, surface, z1, geometry, volumes, pairs, args,
+          design_s) -> tuple[tuple, dict]:
     """One diffuser: captures through its truth PSFs, reconstructions with its
     calibration (measured or model PSFs); (its truth PSFs and two-point volumes, for
     `figure`) and its scores."""
-    cam = camera(n)
-    truth_psfs, solver_psfs = stacks(surface, z1, n, args)
+    n = geometry.n
+    truth_psfs, solver_psfs = stacks(surface, z1, geometry, args)
     options = VOLUME
     if args.tune:
         options = tuned(truth_psfs, solver_psfs, n, volumes.shape[-2:], args)
@@ -406,13 +251,13 @@ def judge(name, surface, z1, n, volumes, pairs, args, design_s) -> tuple[tuple, 
     separations = [(float(z1[j] - z1[i]) * 1e3, resolved(estimate[scenes + m], (i, j)))
                    for m, (i, j) in enumerate(pairs)]
     smallest = min((dz for dz, ok in separations if ok), default=None)
-    objective = DepthObjective(cam, z1, INDEX)
+    objective = DepthObjective(geometry.camera(), z1, INDEX)
     shown = (np.asarray(truth_psfs), estimate[scenes:])
     truth_max = jnp.max(pair_correlations(standardised(jnp.asarray(truth_psfs))))
     extra = {}
     if args.two_point_depths:
         fine = depth_range(args.near * 1e-3, args.far * 1e-3, args.two_point_depths)
-        tried = finer_two_point(*stacks(surface, fine, n, args), fine, n,
+        tried = finer_two_point(*stacks(surface, fine, geometry, args), fine, n,
                                 volumes.shape[-2:], args, options)
         extra["finer_resolved_dz_mm"] = min(
             (t["dz_mm"] for t in tried if t["resolved"]), default=None)
@@ -490,7 +335,8 @@ def gain_rows(by: dict, weights: list[float]) -> list[dict]:
     return rows
 
 
-def main(argv=None) -> int:
+def arguments(argv=None) -> argparse.Namespace:
+    """The command line's options."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=128, help="samples across the sensor")
     parser.add_argument("--depths", type=int, default=8)
@@ -538,6 +384,12 @@ def main(argv=None) -> int:
     parser.add_argument("--source-radius", type=float, default=SOURCE_RADIUS * 1e6,
                         help="radius of the truth's (and the calibration's) source, µm; "
                              "the design models of a source take it too")
+    parser.add_argument("--aperture-fraction", type=float, default=APERTURE_FRACTION,
+                        help="aperture radius as a fraction of the frame width")
+    parser.add_argument("--feature-size", type=float, default=FEATURE * 1e6,
+                        help="the surfaces' minimum feature size, µm")
+    parser.add_argument("--height-max", type=float, default=H_MAX * 1e6,
+                        help="the surfaces' height range, µm")
     parser.add_argument("--random-seeds", type=int, default=0,
                         help="judge this many more random surfaces (seeds 101, …): the "
                              "baseline's spread")
@@ -547,8 +399,14 @@ def main(argv=None) -> int:
     parser.add_argument("--figure", help="also draw each diffuser's PSFs and a "
                         "two-point reconstruction to this image file")
     parser.add_argument("--name", default="design_3d")
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = arguments(argv)
     n, z1 = args.n, depth_range(args.near * 1e-3, args.far * 1e-3, args.depths)
+    geometry = Geometry(n, args.near * 1e-3, args.far * 1e-3, args.aperture_fraction,
+                        args.feature_size * 1e-6, args.height_max * 1e-6)
     object_shape = grid_shapes((n, n), (n, n), "crop")[0]
     pairs = two_point_planes(args.depths, max(1, args.depths // 8))
     volumes = np.stack([scene(1000 + s, args.depths, n, object_shape)
@@ -565,13 +423,13 @@ def main(argv=None) -> int:
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
         photons=args.photons, progress=False, **light)
     depth = DesignOptions(steps=args.steps, progress=False, **light)
-    made = diffusers(n, z1, depth, args.weights, args.lenslets, end_to_end)
+    made = diffusers(geometry, z1, depth, args.weights, args.lenslets, end_to_end)
     for seed in range(101, 101 + args.random_seeds):
-        made[f"random {seed}"] = (SmoothSurface.random(seed, (n, n), PIXEL, FEATURE, H_MAX),
-                                  None)
+        made[f"random {seed}"] = (geometry.smooth(seed), None)
     shown = {}
     for name, (surface, design_s) in made.items():
-        shown[name], row = judge(name, surface, z1, n, volumes, pairs, args, design_s)
+        shown[name], row = judge(name, surface, z1, geometry, volumes, pairs, args,
+                                 design_s)
         rows.append(row)
         print(row, flush=True)
     if args.figure:
@@ -607,6 +465,11 @@ def main(argv=None) -> int:
                      "two_point_depths": args.two_point_depths,
                      "random_seeds": args.random_seeds,
                      "source_radius_um": args.source_radius,
+                     "aperture_fraction": args.aperture_fraction,
+                     "aperture_radius_um": round(geometry.aperture_radius * 1e6, 2),
+                     "feature_size_um": args.feature_size,
+                     "height_max_um": args.height_max,
+                     "pad": geometry.camera().pad[0],
                      "solver": "admm_tv_3d, VOLUME settings, L2-normalised capture"},
         "random_surfaces_psnr_db": spread,
         "empty_volume_psnr_db": floor,

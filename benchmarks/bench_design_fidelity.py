@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.bench_design import FAR, INDEX, NEAR, camera
-from benchmarks.bench_design_3d import SOURCE_RADIUS, diffusers, truth_camera
+from benchmarks.bench_design_3d import SOURCE_RADIUS, Geometry, diffusers
 from benchmarks.harness import write_json
 from diffcam.calibrate.simulation import HIGH_FIDELITY_SPECTRUM, high_fidelity_psfs
 from diffcam.design import DesignOptions, depth_range
@@ -65,7 +65,7 @@ def box_filtered(psfs) -> np.ndarray:
 def case_psfs(phase, effects: tuple, n: int, z1) -> np.ndarray:
     """`high_fidelity_psfs` with the truth's ``effects`` on, the others off."""
     return high_fidelity_psfs(
-        phase, truth_camera(n, float(z1.max())), z1,
+        phase, Geometry(n).truth_camera(), z1,
         oversample=2 if "grid" in effects else 1,
         spectrum=HIGH_FIDELITY_SPECTRUM if "bandwidth" in effects else None,
         source_radius=SOURCE_RADIUS if "source" in effects else 0.0)
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     parser.add_argument("--name", default="design_fidelity")
     args = parser.parse_args(argv)
     n, z1 = args.n, depth_range(NEAR, FAR, args.depths)
-    made = diffusers(n, z1, DesignOptions(steps=args.steps, progress=False), [0.1, 0.0],
+    made = diffusers(Geometry(n), z1, DesignOptions(steps=args.steps, progress=False), [0.1, 0.0],
                      lenslets=False)
     rows = []
     for name in ("designed", "designed, w = 0", "random", "regular lenslets"):

@@ -23,6 +23,12 @@ from benchmarks.harness import PEERS, RESULTS
 PAGE = Path(__file__).resolve().parent / "RESULTS.md"
 BENCH_DIR = Path(__file__).resolve().parent
 
+DESIGN_BOUNDS_COLUMNS = ["diffuser", "truth_max_correlation", "psnr_db",
+                         "psnr_db_exact_psfs", "psnr_db_noiseless", "depth_blind_psnr_db",
+                         "error_on_sources", "error_other_planes", "error_elsewhere",
+                         "resolved_dz_mm", "finer_resolved_dz_mm", "design_s"]
+"""The columns of a `bench_design_3d` run with ``--bounds`` and ``--two-point-depths``."""
+
 SECTIONS = {
     # JSON name: (title, command, columns of the table: None for every scalar column).
     # The command is the JSON's own ``command_line`` where it records one; the one
@@ -242,6 +248,35 @@ SECTIONS = {
            ("design_3d_end_to_end", ", the end-to-end objective beside depth "
             "discrimination, model PSFs", " --weights 0.1 --no-lenslets "
             "--end-to-end-steps 60 --calibration model --name design_3d_end_to_end"))},
+    **{f"design_3d_1000_photons_aperture_{name}": (
+        f"Diffuser design judged by 3-D reconstruction of held-out volumes, 1000 photons "
+        f"per pixel, aperture radius {label}",
+        f"python -m benchmarks.bench_design_3d --photons 1000 --no-lenslets --random-seeds "
+        f"6 {args} --name design_3d_1000_photons_aperture_{name}",
+        ["diffuser", "max_correlation", "truth_max_correlation", "psnr_db", "psnr_per_scene",
+         "resolved_dz_mm", "design_s", "reconstruct_s"])
+       for name, label, args in (
+           ("35", "0.35 of the frame width", "--weights 0.1 0 --aperture-fraction 0.35"),
+           ("45", "0.45 of the frame width", "--weights 0.1 0 --aperture-fraction 0.45"),
+           ("45_15um", "0.45 of the frame width, features ≥ 15 µm",
+            "--weights 0.1 0 --aperture-fraction 0.45 --feature-size 15"),
+           ("45_4um", "0.45 of the frame width, heights 0–4 µm",
+            "--weights 0.1 0 --aperture-fraction 0.45 --height-max 4"),
+           ("45_truth_design", "0.45 of the frame width, designed through the truth's PSFs",
+            "--weights 0.1 --aperture-fraction 0.45 --design-model truth"),
+           ("35_truth_design", "0.35 of the frame width, designed through the truth's PSFs",
+            "--weights 0.1 --aperture-fraction 0.35 --design-model truth"),
+           ("45_truth_end_to_end", "0.45 of the frame width, both objectives through the "
+            "truth's PSFs", "--weights 0.1 --aperture-fraction 0.45 --design-model truth "
+            "--end-to-end-steps 60"))},
+    "design_3d_1000_photons_aperture_45_truth_design_bounds": (
+        "The same at 0.45 on 8 scenes, a two-point test on 22 depths and what bounds the "
+        "volume PSNR",
+        "python -m benchmarks.bench_design_3d --photons 1000 --no-lenslets --weights 0.1 "
+        "--aperture-fraction 0.45 --design-model truth --scenes 8 --two-point-depths 22 "
+        "--bounds --figure docs/design_3d_aperture.png "
+        "--name design_3d_1000_photons_aperture_45_truth_design_bounds",
+        DESIGN_BOUNDS_COLUMNS),
     "design_3d_1000_photons_truth_design": (
         "Diffuser design judged by 3-D reconstruction of held-out volumes, 1000 photons per "
         "pixel, designed through the truth's PSFs (light, source, pixel integration)",
@@ -262,10 +297,7 @@ SECTIONS = {
         "python -m benchmarks.bench_design_3d --photons 1000 --design-model truth "
         "--weights 0.1 --no-lenslets --end-to-end-steps 60 --two-point-depths 22 --bounds "
         "--name design_3d_1000_photons_truth_end_to_end",
-        ["diffuser", "truth_max_correlation", "psnr_db", "psnr_db_exact_psfs",
-         "psnr_db_noiseless", "depth_blind_psnr_db", "error_on_sources",
-         "error_other_planes", "error_elsewhere", "resolved_dz_mm", "finer_resolved_dz_mm",
-         "design_s"]),
+        DESIGN_BOUNDS_COLUMNS),
     "scene_psf_full": ("The same at the published 270 × 480: one PSF and a field-dependent "
                        "PSF, scored inside the monitor picture too",
                        "python -m benchmarks.bench_scene_psf --source DIR --folds … "

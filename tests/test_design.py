@@ -366,15 +366,73 @@ def test_lenslet_design_file_carries_the_lens_table(tmp_path):
     assert isinstance(load_design(path).surface, LensletArray)
 
 
+CLI_PROBLEM = ["design", "--grid", str(N), "--pixel", "3um", "--aperture", "60um", "--z2",
+               "1mm", "--depths", "4", "--feature", "15um", "--height", "1um",
+               "--no-progress"]
+"""`diffcam design` of the tests' problem (its start is `_smooth`)."""
+
+
 def test_command_line_writes_the_design_and_its_tiff(tmp_path, capsys):
     out = tmp_path / "cli.npz"
-    args = ["design", "--grid", str(N), "--pixel", "3um", "--aperture", "60um", "--z2", "1mm",
-            "--depths", "4", "--feature", "15um", "--height", "1um", "--steps", "3",
-            "--no-progress", "-o", str(out)]
+    args = [*CLI_PROBLEM, "--steps", "3", "-o", str(out)]
     assert main(args) == 0
     said = capsys.readouterr().out
     assert "max cross-depth PSF correlation" in said and str(tiff_path(out)) in said
     assert load_design(out).steps == 3 and tiff_path(out).is_file()
-    assert main(args[:-4] + ["5", "--resume", "-o", str(out)]) == 0
+    assert main(args[:-3] + ["5", "--resume", "-o", str(out)]) == 0
     assert load_design(out).steps == 5
     assert main(args[:-2] + ["-o", str(tmp_path / "x.txt")]) == 2
+
+
+class _Stopped(Exception):
+    """Raised in place of the optimiser."""
+
+
+@pytest.mark.parametrize("option, text, field, value", [
+    ("--bandwidth", "20nm", "bandwidth", 20e-9),
+    ("--source-radius", "50um", "source_radius", 50e-6),
+    ("--oversample", "2", "oversample", 2)])
+def test_command_line_light_source_and_pixel_options_reach_the_design(
+        option, text, field, value, monkeypatch, tmp_path):
+    """The option reaches `DesignOptions`, and the camera the command line builds passes
+    the design's sampling check with it (2× oversampled, the unpadded camera fails it:
+    `test_oversampled_design_checks_the_finer_grid`)."""
+    from diffcam.design.optimise import _check
+
+    call = []
+    monkeypatch.setattr("diffcam.design.design", lambda *a: call.extend(a) or _raise())
+    with pytest.raises(_Stopped):
+        main([*CLI_PROBLEM, option, text, "-o", str(tmp_path / "light.npz")])
+    surface, camera, z1, index, options = call
+    assert getattr(options, field) == pytest.approx(value)
+    _check(surface, camera, z1, index, options)
+
+
+def _raise():
+    raise _Stopped
+
+
+@pytest.mark.slow  # 20–40 s: compiles the design step with all three
+def test_command_line_designs_through_the_light_source_and_pixels_it_is_given(tmp_path):
+    """The optimiser's first step saw the PSFs of the options: its start correlation is
+    their objective's, not the one-line point-source one's."""
+    out = tmp_path / "light.npz"
+    assert main([*CLI_PROBLEM, "--bandwidth", "20nm", "--source-radius", "50um",
+                 "--oversample", "2", "--steps", "1", "-o", str(out)]) == 0
+    made = load_design(out)
+    seen = made.history[0, 2]
+    assert seen == pytest.approx(evaluate_design(_smooth(), made.objective())[
+        "max_correlation"], abs=1e-5)
+    point = DepthObjective(made.camera, made.z1, INDEX)
+    assert abs(seen - evaluate_design(_smooth(), point)["max_correlation"]) > 1e-4
+
+
+def test_command_line_refuses_light_it_cannot_design_through(tmp_path, capsys):
+    out = str(tmp_path / "bad.npz")
+    assert main([*CLI_PROBLEM, "--bandwidth", "600nm", "-o", out]) == 2
+    said = capsys.readouterr().err
+    assert "smaller than the camera's wavelength" in said and len(said.splitlines()) == 1
+    assert main([*CLI_PROBLEM, "--bandwidth=-1nm", "-o", out]) == 2
+    assert "bandwidth must be ≥ 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*CLI_PROBLEM, "--oversample", "0", "-o", out])

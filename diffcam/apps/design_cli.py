@@ -23,14 +23,26 @@ __all__ = ["add_design"]
 def _camera(args):
     """The camera of the design: the grid, z2 and aperture of the command line (the
     aperture defaults to a quarter of the grid's width), zero-padded so the Fresnel
-    transfer function of the farthest depth's z_eff = z1·z2/(z1 + z2) does not alias
-    (padded width N·dx ≥ λ·z_eff/dx)."""
+    transfer function of the farthest depth's z_eff = z1·z2/(z1 + z2) does not alias at
+    the longest wavelength λ + bandwidth on the field's grid, ``oversample``× finer
+    than the pixels (padded width N·dx ≥ oversample·λ·z_eff/dx)."""
     radius = args.aperture if args.aperture is not None else args.grid * args.pixel / 4
     z_eff = args.far * args.z2 / (args.far + args.z2)
-    needed = math.ceil(args.wavelength * z_eff / args.pixel ** 2)
+    needed = math.ceil(args.oversample * (args.wavelength + args.bandwidth) * z_eff
+                       / args.pixel ** 2)
     return model.Camera(wavelength=args.wavelength, z2=args.z2, dx=args.pixel,
                         aperture_radius=radius, shape=(args.grid, args.grid),
                         pad=max(0, -(-(needed - args.grid) // 2)))
+
+
+def _light(args) -> str:
+    """What the PSFs are of, when not one line from a point sampled at pixel centres."""
+    parts = ([f"lines ±{args.bandwidth * 1e9:g} nm"] if args.bandwidth > 0 else []) + (
+        [f"a disc source of radius {args.source_radius * 1e6:g} µm"]
+        if args.source_radius > 0 else []) + (
+        [f"{args.oversample}× oversampled, integrated over pixels"]
+        if args.oversample > 1 else [])
+    return "; PSFs of " + ", ".join(parts) if parts else ""
 
 
 def _start(args, camera):
@@ -56,13 +68,16 @@ def _cmd_design(args) -> int:
                                    time_budget=args.time_budget, checkpoint=str(out),
                                    resume=args.resume, progress=not args.no_progress,
                                    objective=args.objective.replace("-", "_"),
-                                   scenes=args.scenes, photons=args.photons)
+                                   scenes=args.scenes, photons=args.photons,
+                                   bandwidth=args.bandwidth,
+                                   source_radius=args.source_radius,
+                                   oversample=args.oversample)
     print(f"diffcam design: {args.surface} surface, {args.grid}×{args.grid} at "
           f"{args.pixel * 1e6:g} µm, heights 0–{args.height * 1e6:g} µm, features ≥ "
           f"{args.feature * 1e6:g} µm, n = {args.index:g}; {args.depths} depths "
           f"{args.near * 1e3:g}–{args.far * 1e3:g} mm (even in 1/z1), z2 "
           f"{args.z2 * 1e3:g} mm, aperture radius {float(camera.aperture_radius) * 1e3:.3g} "
-          f"mm ...", flush=True)
+          f"mm{_light(args)} ...", flush=True)
     result = design.design(_start(args, camera), camera, z1, args.index, options)
     before, after = result.history[0, 2], result.final["max_correlation"]
     per_step = result.seconds / max(result.steps, 1)
@@ -117,6 +132,15 @@ def add_design(sub) -> None:
     p.add_argument("--photons", type=float, default=100.0,
                    help="end to end: photo-electrons per sensor pixel on average (shot "
                         "noise)")
+    p.add_argument("--bandwidth", type=length_arg("bandwidth"), default="0",
+                   help="design through three lines λ − bandwidth, λ, λ + bandwidth "
+                        "(weights ½, 1, ½; default 0: one line)")
+    p.add_argument("--source-radius", type=length_arg("source radius"), default="0",
+                   help="design through the PSFs of a disc source of this radius "
+                        "(default 0: a point)")
+    p.add_argument("--oversample", type=count(1, 8), default=1,
+                   help="field samples per pixel, per side: >1 integrates the "
+                        "irradiance over each pixel (the grid is padded to match)")
     p.add_argument("--steps", type=iterations_count(), default=300, help="Adam steps in all")
     p.add_argument("--learning-rate", type=float, default=0.2, help="Adam's step size")
     p.add_argument("--time-budget", type=float,

@@ -101,6 +101,10 @@ def _check(surface, camera, z1, refractive_index, options: DesignOptions) -> np.
         raise DiffcamError(f"the surface's grid ({surface.shape} at {surface.dx:.3g} m) is "
                            f"not the camera's ({camera.shape} at {float(camera.dx):.3g} m); "
                            f"build them on one grid.")
+    if not options.bandwidth < float(camera.wavelength):
+        raise DiffcamError(f"bandwidth ({options.bandwidth:g} m) must be smaller than the "
+                           f"camera's wavelength ({float(camera.wavelength):g} m): it is "
+                           f"the light's half-width about it.")
     if not float(refractive_index) > 1:
         raise DiffcamError(f"refractive_index must be > 1 (a material denser than air), "
                            f"got {refractive_index!r}.")
