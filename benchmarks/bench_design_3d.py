@@ -16,7 +16,9 @@ padded, `Geometry.footprint_pad`), n 1.5, heights 0–2 µm (``--height-max``), 
   high-fidelity``, through PSFs of the truth's three lines and 50 µm source disc
   (`DesignOptions` ``bandwidth``, ``source_radius``); with ``--design-model truth``,
   through the truth's own PSFs: its lines and source disc, and its field on a 2× finer
-  grid integrated over each pixel (``oversample`` 2, on `Geometry.truth_camera`);
+  grid integrated over each pixel (``oversample`` 2, on `Geometry.truth_camera`); the
+  source the design models assume is the truth's unless ``--design-source-radius``
+  says otherwise;
   ``designed, w = 0`` the same without the spread term (``--weights``: the weights
   designed, the first is ``designed``);
 - ``start``: that random surface before the design (the same surface, undesigned);
@@ -384,6 +386,10 @@ def arguments(argv=None) -> argparse.Namespace:
     parser.add_argument("--source-radius", type=float, default=SOURCE_RADIUS * 1e6,
                         help="radius of the truth's (and the calibration's) source, µm; "
                              "the design models of a source take it too")
+    parser.add_argument("--design-source-radius", type=float, default=None,
+                        help="the source radius the design models assume, µm (default: "
+                             "--source-radius; another value: a design model that "
+                             "misjudges the source)")
     parser.add_argument("--aperture-fraction", type=float, default=APERTURE_FRACTION,
                         help="aperture radius as a fraction of the frame width")
     parser.add_argument("--feature-size", type=float, default=FEATURE * 1e6,
@@ -417,7 +423,9 @@ def main(argv=None) -> int:
                                  for v in volumes[:args.scenes]])), 2)
     blind = round(float(np.mean([volume_psnr(depth_blind(v), v, n)
                                  for v in volumes[:args.scenes]])), 2)
-    light = {k: args.source_radius * 1e-6 if k == "source_radius" else v
+    assumed = args.source_radius if args.design_source_radius is None \
+        else args.design_source_radius
+    light = {k: assumed * 1e-6 if k == "source_radius" else v
              for k, v in DESIGN_MODELS[args.design_model].items()}
     end_to_end = None if args.end_to_end_steps < 1 else DesignOptions(
         objective="end_to_end", steps=args.end_to_end_steps, scenes=2, solver_iterations=20,
@@ -465,6 +473,7 @@ def main(argv=None) -> int:
                      "two_point_depths": args.two_point_depths,
                      "random_seeds": args.random_seeds,
                      "source_radius_um": args.source_radius,
+                     "design_source_radius_um": assumed,
                      "aperture_fraction": args.aperture_fraction,
                      "aperture_radius_um": round(geometry.aperture_radius * 1e6, 2),
                      "feature_size_um": args.feature_size,
