@@ -1,7 +1,7 @@
 """Execute the notebooks (jupytext sources in ``notebooks/``) and write them with their
 outputs to ``docs/notebooks/*.ipynb``, which the documentation site renders as they are.
 
-    python scripts/render_notebooks.py                 # all four, full size
+    python scripts/render_notebooks.py                 # all of them, full size
     python scripts/render_notebooks.py 04_real_data    # one
     DIFFCAM_NOTEBOOK_SMALL=1 python scripts/render_notebooks.py   # reduced size
 
