@@ -431,7 +431,10 @@ def test_command_line_refuses_light_it_cannot_design_through(tmp_path, capsys):
     out = str(tmp_path / "bad.npz")
     assert main([*CLI_PROBLEM, "--bandwidth", "600nm", "-o", out]) == 2
     said = capsys.readouterr().err
-    assert "smaller than the camera's wavelength" in said and len(said.splitlines()) == 1
+    assert "at most 0.25 of the camera's wavelength" in said and len(said.splitlines()) == 1
+    # a source imaged wider than an eighth of the frame (its blur wraps around it)
+    assert main([*CLI_PROBLEM, "--source-radius", "1m", "-o", out]) == 2
+    assert "wrap around" in capsys.readouterr().err
     assert main([*CLI_PROBLEM, "--bandwidth=-1nm", "-o", out]) == 2
     assert "bandwidth must be ≥ 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):

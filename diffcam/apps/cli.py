@@ -6,7 +6,6 @@ import argparse
 import contextlib
 import functools
 import os
-import re
 import sys
 import time
 from pathlib import Path
@@ -14,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from diffcam.apps.compile_cache import DEFAULT_MAX_MB, enable_compilation_cache
-from diffcam.apps.common import (DefaultsFormatter, count, grid_count, iterations_count,
-                                 length_arg, lengths_arg, limits, one_line_warnings,
+from diffcam.apps.common import (DefaultsFormatter, Parser, count, grid_count,
+                                 iterations_count, length_arg, lengths_arg, limits, one_line_warnings,
                                  planes_arg, positions_arg, read_psfs, save_figure,
                                  save_image, save_open_figures, save_rgb)
 from diffcam.apps.scene_psf_cli import add_calibrate_psf
@@ -40,19 +39,6 @@ __all__ = ["main", "run", "build_parser", "save_image", "save_rgb", "save_figure
 MAX_RESTARTS = 100
 """Most random starts ``diffcam calibrate --restarts`` takes (each is a full run of
 the projections)."""
-
-
-class Parser(argparse.ArgumentParser):
-    """A subcommand's parser: a usage error is one line, ``diffcam CMD: error: …
-    (see diffcam CMD --help)``, exit status 2, instead of the whole usage block."""
-
-    def error(self, message):
-        option = re.fullmatch(r"argument (--[\w-]+).*: expected one argument", message)
-        if option:               # or a value that starts with '-', e.g. --at -40,0
-            message += (f"; a value that starts with '-' goes after '=': "
-                        f"{option[1]}=-…")
-        self.exit(2, f"{self.prog}: error: {message.rstrip('.')} (see {self.prog} "
-                     f"--help)\n")
 
 
 def _camera_for(phase_file, z2, crop):

@@ -1,5 +1,6 @@
 """What the ``diffcam`` subcommands share: argparse types (lengths with units, checked
-counts, plane lists), the ``--help`` formatter and the limits each help states, image
+counts, plane lists), the parser whose usage errors are one line, the ``--help``
+formatter and the limits each help states, image
 and figure writers, and the PSF readers. The command modules (`cli`,
 `fit_cli`, `reconstruct_cli`,
 `scene_psf_cli`, `demo`) import from here, never
@@ -11,6 +12,7 @@ import argparse
 import contextlib
 import math
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -23,6 +25,7 @@ from diffcam.core.lazy import module_constant
 from diffcam.io import (MAX_READ_BYTES, atomic_output, make_output_folder, read_image,
                         read_mat_stack)
 
+
 def _units(parse, name):
     """An argparse type that reads lengths with units; errors become usage errors."""
     def convert(text):
@@ -32,6 +35,19 @@ def _units(parse, name):
             raise argparse.ArgumentTypeError(str(e)) from None
     convert.__name__ = name
     return convert
+
+
+class Parser(argparse.ArgumentParser):
+    """A subcommand's parser: a usage error is one line, ``diffcam CMD: error: …
+    (see diffcam CMD --help)``, exit status 2, instead of the whole usage block."""
+
+    def error(self, message):
+        option = re.fullmatch(r"argument (--[\w-]+).*: expected one argument", message)
+        if option:               # or a value that starts with '-', e.g. --at -40,0
+            message += (f"; a value that starts with '-' goes after '=': "
+                        f"{option[1]}=-…")
+        self.exit(2, f"{self.prog}: error: {message.rstrip('.')} (see {self.prog} "
+                     f"--help)\n")
 
 
 def length_arg(name):

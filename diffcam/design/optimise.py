@@ -89,6 +89,34 @@ def _row(loss, terms: Terms) -> dict:
     return dict(zip(HISTORY_COLUMNS, (float(v) for v in values)))
 
 
+MAX_RELATIVE_BANDWIDTH = 0.25
+"""Largest ``bandwidth`` as a share of the camera's wavelength: the shortest line's
+phase, 2π(n − 1)h/λ, is steeper by 1/(1 − share) than the one the surface's limits are
+set for, and the thin, dispersion-free element holds over a narrow band only."""
+MAX_SOURCE_IMAGE = 1 / 8
+"""Largest radius of the source's image on the sensor (source_radius·z2/z1 at the
+nearest depth) as a share of the frame's smaller side: the PSF is blurred by moving it
+circularly (`source_blurred`), which wraps light across the frame beyond that."""
+
+
+def _check_light(camera, options: DesignOptions, z_min: float) -> None:
+    """The light and source of ``options`` within what the design's PSFs can model."""
+    wavelength = float(camera.wavelength)
+    if not options.bandwidth <= MAX_RELATIVE_BANDWIDTH * wavelength:
+        raise DiffcamError(f"bandwidth ({options.bandwidth:g} m) must be at most "
+                           f"{MAX_RELATIVE_BANDWIDTH:g} of the camera's wavelength "
+                           f"({wavelength:g} m): it is the light's half-width about it, "
+                           f"and the surface's phase is modelled dispersion-free.")
+    image = options.source_radius * float(camera.z2) / z_min / float(camera.dx)
+    frame = min(camera.out_shape)
+    if image > MAX_SOURCE_IMAGE * frame:
+        raise DiffcamError(f"a source of radius {options.source_radius:g} m has an image "
+                           f"of radius {image:.3g} pixels at z1 = {z_min:g} m, more than "
+                           f"{MAX_SOURCE_IMAGE:g} of the {frame}-pixel frame: its blur would "
+                           f"wrap around it; give the source's real radius (a pinhole or an "
+                           f"LED: tens of µm) or a farther nearest depth.")
+
+
 def _check(surface, camera, z1, refractive_index, options: DesignOptions) -> np.ndarray:
     """The concrete checks before anything is traced (sampling at the longest
     wavelength, ``camera.wavelength`` + ``options.bandwidth``, on the grid
@@ -101,10 +129,6 @@ def _check(surface, camera, z1, refractive_index, options: DesignOptions) -> np.
         raise DiffcamError(f"the surface's grid ({surface.shape} at {surface.dx:.3g} m) is "
                            f"not the camera's ({camera.shape} at {float(camera.dx):.3g} m); "
                            f"build them on one grid.")
-    if not options.bandwidth < float(camera.wavelength):
-        raise DiffcamError(f"bandwidth ({options.bandwidth:g} m) must be smaller than the "
-                           f"camera's wavelength ({float(camera.wavelength):g} m): it is "
-                           f"the light's half-width about it.")
     if not float(refractive_index) > 1:
         raise DiffcamError(f"refractive_index must be > 1 (a material denser than air), "
                            f"got {refractive_index!r}.")
@@ -112,6 +136,7 @@ def _check(surface, camera, z1, refractive_index, options: DesignOptions) -> np.
     if z1.size < 2 or np.unique(z1).size != z1.size:
         raise DiffcamError(f"a depth range needs at least 2 different depths, got "
                            f"{z1.size} ({np.unique(z1).size} different).")
+    _check_light(camera, options, float(z1.min()))
     with warnings.catch_warnings():
         warnings.simplefilter("error", UndersamplingWarning)
         try:
@@ -146,7 +171,9 @@ def design(surface: Surface, camera: Camera, z1, refractive_index: float = 1.5,
 
     Raises:
         DiffcamError: a surface off the camera's grid, n ≤ 1, fewer than two depths, a
-            geometry the PSF cannot sample, or a checkpoint of another problem.
+            geometry the PSF cannot sample, a bandwidth over `MAX_RELATIVE_BANDWIDTH` of
+            the wavelength or a source imaged wider than `MAX_SOURCE_IMAGE` of the
+            frame, or a checkpoint of another problem.
     """
     options = DesignOptions() if options is None else options
     z1 = _check(surface, camera, z1, refractive_index, options)
