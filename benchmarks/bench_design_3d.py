@@ -53,8 +53,9 @@ test (two blobs at the field's centre, on planes k apart, one volume per k: k = 
 nz − 1 in steps of nz // 8). A capture is the solvers' crop model,
 ``b = crop(Σ_z h_z^hf * x_z)`` (`diffcam.reconstruct.operators.convolution_model`,
 boundary ``"crop"``), scaled to ``--photons`` photons per sensor pixel on average for
-the same scene whatever the diffuser (a diffuser that loses light off the sensor gets
-fewer), with Poisson noise and Gaussian read noise of ``READ_NOISE`` photons.
+the same scene whatever the diffuser (each PSF has unit sum on the sensor's frame, so a
+source gets fewer only where its PSF, moved off axis, leaves the sensor), with Poisson
+noise and Gaussian read noise of ``READ_NOISE`` photons.
 
 The scenes, captures, reconstructions and scores below are
 `benchmarks.design_3d_volumes`. Every volume is reconstructed by
