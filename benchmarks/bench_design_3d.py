@@ -111,7 +111,7 @@ from diffcam.design import (DesignOptions, LensletArray, SmoothSurface, depth_ra
 from diffcam.design.objective import DepthObjective, pair_correlations, standardised
 from diffcam.design.surfaces import height_map
 from diffcam.model import Camera, psf_stack
-from diffcam.optics.propagation import effective_distance
+from diffcam.optics.propagation import effective_distance, transfer_pad
 from diffcam.reconstruct.admm import VOLUME
 from diffcam.reconstruct.operators import grid_shapes
 
@@ -166,10 +166,9 @@ class Geometry:
         """`camera` padded so that the high-fidelity model's grid (2× finer) also
         samples the Fresnel transfer function of the farthest depth at the longest
         wavelength (N·dx² / λ ≥ z_eff)."""
-        fine_dx = PIXEL / 2
-        need = (effective_distance(self.far, Z2) * HIGH_FIDELITY_SPECTRUM[0].max()
-                / fine_dx ** 2)
-        pad = max(self.footprint_pad(), int(np.ceil((need / 2 - self.n) / 2)))
+        sampled = transfer_pad(self.n, PIXEL, 2 * HIGH_FIDELITY_SPECTRUM[0].max(),
+                               effective_distance(self.far, Z2))
+        pad = max(self.footprint_pad(), sampled)
         return dataclasses.replace(self.camera(), pad=(pad, pad))
 
     def smooth(self, seed: int) -> SmoothSurface:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from diffcam.calibrate.simulation import recorded_psfs
 from diffcam.evaluate import psnr
 from diffcam.reconstruct import admm_tv_3d, convolution_model
 from diffcam.reconstruct.admm import VOLUME, AdmmOptions
@@ -35,10 +36,7 @@ SOURCE_SHARE = 0.1
 def calibration(truth_psfs: np.ndarray, photons: float) -> np.ndarray:
     """The PSF stack measured through ``truth_psfs`` (each of unit sum): Poisson noise
     at ``photons`` at each PSF's brightest pixel, each normalised to unit sum."""
-    rng = np.random.default_rng(CALIBRATION_SEED)
-    peak = truth_psfs.max(axis=(-2, -1), keepdims=True)
-    counts = rng.poisson(np.asarray(truth_psfs, np.float64) / peak * photons)
-    return (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
+    return recorded_psfs(truth_psfs, photons, np.random.default_rng(CALIBRATION_SEED))
 
 
 def blob(volume: np.ndarray, plane: int, y: float, x: float, amplitude: float) -> None:

@@ -35,17 +35,20 @@ import dataclasses
 import os
 import sys
 
+import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
-from diffcam.calibrate.simulation import HIGH_FIDELITY_SPECTRUM, high_fidelity_psfs
+from diffcam.calibrate.simulation import (HIGH_FIDELITY_SPECTRUM, high_fidelity_psfs,
+                                         recorded_psfs)
 from diffcam.design import DesignOptions, SmoothSurface, depth_range, design
 from diffcam.design.objective import pair_correlations, standardised
 from diffcam.design.surfaces import height_map
 from diffcam.evaluate import psnr
 from diffcam.model import Camera
-from diffcam.optics.propagation import effective_distance
+from diffcam.model.sensor import read_noise, shot_noise
+from diffcam.optics.propagation import effective_distance, transfer_pad
 from diffcam.reconstruct import admm_tv_3d, convolution_model
 from diffcam.reconstruct.admm import VOLUME
 
@@ -59,8 +62,8 @@ z1 = depth_range(10e-3, 60e-3, 8)            # even in 1/z1: neighbours equally 
 # judge's grid, 2× finer, also needs N·dx²/λ ≥ z_eff at the farthest depth.
 camera = Camera(wavelength=532e-9, z2=Z2, dx=PIXEL, aperture_radius=0.45 * N * PIXEL,
                 shape=(N, N), pad=(31, 31))
-need = effective_distance(z1.max(), Z2) * HIGH_FIDELITY_SPECTRUM[0].max() / (PIXEL / 2) ** 2
-pad = max(31, int(np.ceil((need / 2 - N) / 2)))
+pad = max(31, transfer_pad(N, PIXEL, 2 * HIGH_FIDELITY_SPECTRUM[0].max(),
+                           effective_distance(z1.max(), Z2)))
 judge_camera = dataclasses.replace(camera, pad=(pad, pad))
 
 # %% [markdown]
@@ -132,15 +135,13 @@ for _ in range(2 * len(z1)):
 
 field = tuple(slice(c - N // 4, c + N // 4) for c in centre)
 estimates = {}
-for name, psfs in truth.items():
+for key, (name, psfs) in zip(jax.random.split(jax.random.key(7), 2), truth.items()):
     model = convolution_model(jnp.asarray(psfs), (N, N), "crop", volume=True)
     expected = np.asarray(model(jnp.asarray(volume, jnp.float32)), np.float64)
     expected *= 1000 * N * N / volume.sum()
-    capture = np.clip(rng.poisson(np.clip(expected, 0, None)) + rng.normal(0, 2, (N, N)),
-                      0, None)
-    peak = psfs.max(axis=(-2, -1), keepdims=True)
-    counts = rng.poisson(psfs / peak * 1e4)
-    calibration = (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
+    shot, read = jax.random.split(key)
+    capture = np.clip(np.asarray(read_noise(read, shot_noise(shot, expected), 2.0)), 0, None)
+    calibration = recorded_psfs(psfs, 1e4, rng)
     estimate = np.asarray(admm_tv_3d(capture / np.linalg.norm(capture), calibration,
                                      ITERATIONS, VOLUME, progress=False).image)
     e, t = (v[:, field[0], field[1]].reshape(len(z1), -1) for v in (estimate, volume))

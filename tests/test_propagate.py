@@ -12,8 +12,9 @@ from diffcam.core.errors import DiffcamError, SamplingError, ShapeError, Undersa
 from diffcam.optics.elements import circular_aperture, thin_lens
 from diffcam.optics.lens import fourier_lens, inverse_fourier_lens
 from diffcam.optics.propagation import (angular_spectrum, apply_transfer, choose_propagation,
-                                        fresnel_ir, fresnel_tf, plan_propagation, propagate,
-                                        transfer_function)
+                                        critical_distance, fresnel_ir, fresnel_tf,
+                                        plan_propagation, propagate, transfer_function,
+                                        transfer_pad)
 from conftest import assert_float32_gradient_matches_float64, assert_grad_matches_fd
 
 LAM = 0.5e-6
@@ -435,3 +436,14 @@ def test_zero_distance_is_identity():
     u = _smooth_field((32, 32))
     for fn in (fresnel_tf, fresnel_ir, angular_spectrum):
         np.testing.assert_array_equal(fn(u, 1e-6, LAM, 0.0), u)
+
+
+@pytest.mark.parametrize("n, dx, z", [(128, 3e-6, 3e-3), (100, 2e-6, 5e-3), (257, 5e-6, 15e-3),
+                                        (257, 5e-6, 1e-3)])
+def test_transfer_pad_is_the_least_pad_whose_critical_distance_reaches_z(n, dx, z):
+    """The padded axis samples the transfer function of z (N·dx²/λ ≥ z); one sample less
+    a side does not (or the unpadded axis already does)."""
+    lam = 532e-9
+    pad = transfer_pad(n, dx, lam, z)
+    assert critical_distance((1, n + 2 * pad), dx, lam)[1] >= z
+    assert pad == 0 or critical_distance((1, n + 2 * pad - 2), dx, lam)[1] < z

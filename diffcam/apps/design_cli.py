@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from diffcam import design, model  # lazy: loaded on use (JAX, optax)
+from diffcam import design, model, optics  # lazy: loaded on use (JAX, optax)
 from diffcam.apps.common import count, grid_count, iterations_count, length_arg
 from diffcam.core.errors import DiffcamError
 from diffcam.io import check_output_path
@@ -27,12 +27,11 @@ def _camera(args):
     the longest wavelength λ + bandwidth on the field's grid, ``oversample``× finer
     than the pixels (padded width N·dx ≥ oversample·λ·z_eff/dx)."""
     radius = args.aperture if args.aperture is not None else args.grid * args.pixel / 4
-    z_eff = args.far * args.z2 / (args.far + args.z2)
-    needed = math.ceil(args.oversample * (args.wavelength + args.bandwidth) * z_eff
-                       / args.pixel ** 2)
+    z_eff = optics.propagation.effective_distance(args.far, args.z2)
+    pad = optics.propagation.transfer_pad(args.grid, args.pixel,
+                       args.oversample * (args.wavelength + args.bandwidth), z_eff)
     return model.Camera(wavelength=args.wavelength, z2=args.z2, dx=args.pixel,
-                        aperture_radius=radius, shape=(args.grid, args.grid),
-                        pad=max(0, -(-(needed - args.grid) // 2)))
+                        aperture_radius=radius, shape=(args.grid, args.grid), pad=pad)
 
 
 def _light(args) -> str:

@@ -24,7 +24,7 @@ from diffcam.calibrate.phase.near_far import CalibrationGeometry, calibration_in
 
 __all__ = ["cameraman_phase", "PaperSimulation",
            "paper_simulation", "measured_stack_simulation", "HIGH_FIDELITY_SPECTRUM",
-           "high_fidelity_captures", "high_fidelity_psfs"]
+           "high_fidelity_captures", "high_fidelity_psfs", "recorded_psfs"]
 
 
 def cameraman_phase(size: int = 512) -> Float[Array, "size size"]:
@@ -197,10 +197,18 @@ def high_fidelity_psfs(phase, camera, z1, *, oversample: int = 2,
     pixels = np.asarray(bin_pixels(jnp.asarray(stack.mean(axis=1)), fine.dx, camera.dx,
                                    camera.out_shape), np.float64)
     if photons is not None:
-        rng = np.random.default_rng(seed)
-        peak = pixels.max(axis=(-2, -1), keepdims=True)
-        pixels = rng.poisson(pixels / peak * photons).astype(np.float64)
+        return recorded_psfs(pixels, photons, np.random.default_rng(seed))
     return (pixels / pixels.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
+
+
+def recorded_psfs(psfs, photons: float, rng: np.random.Generator) -> np.ndarray:
+    """PSFs ``(…, ny, nx)`` (non-negative) as a calibration records them: Poisson noise
+    at ``photons`` at each PSF's brightest pixel, then each normalised to unit sum
+    (float32)."""
+    psfs = np.asarray(psfs, np.float64)
+    peak = psfs.max(axis=(-2, -1), keepdims=True)
+    counts = rng.poisson(psfs / peak * photons).astype(np.float64)
+    return (counts / counts.sum(axis=(-2, -1), keepdims=True)).astype(np.float32)
 
 
 def high_fidelity_captures(phase, aperture_radius: float, geometry: CalibrationGeometry, *,

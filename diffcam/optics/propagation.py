@@ -63,6 +63,7 @@ __all__ = [
     "choose_propagation",
     "plan_propagation",
     "critical_distance",
+    "transfer_pad",
     "transfer_function",
     "apply_transfer",
     "spherical_chirp",
@@ -86,6 +87,14 @@ def critical_distance(shape, dx, wavelength) -> tuple[float, float]:
     ny, nx = shape[-2], shape[-1]
     lam = float(wavelength)
     return ny * dy * dy / lam, nx * dxx * dxx / lam
+
+
+def transfer_pad(n: int, dx: float, wavelength: float, z: float) -> int:
+    """Samples of pitch ``dx`` (m) to add on each side of an ``n``-sample axis so that a
+    transfer function of distance ``z`` (m) is sampled at ``wavelength`` (m): the
+    inverse of `critical_distance`, ⌈(λz/dx² − n)/2⌉, at least 0. For a grid ``k``×
+    finer than ``dx`` (whose pad is ``k`` times this one), give ``k·wavelength``."""
+    return max(0, math.ceil((float(wavelength) * float(z) / float(dx) ** 2 - n) / 2))
 
 
 def _check_common(field, dx, wavelength, z):
